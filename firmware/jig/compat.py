@@ -1,0 +1,71 @@
+"""The one place where MicroPython-only names are looked up.
+
+Everything else imports ``const``, the tick clock and the ``IS_MICROPYTHON`` flag
+from here, so the firmware modules import unchanged under CPython.
+"""
+
+try:
+    from micropython import const
+
+    IS_MICROPYTHON = True
+except ImportError:
+    IS_MICROPYTHON = False
+
+    def const(value):
+        return value
+
+
+import time
+
+# MicroPython's tick counters wrap at 2**30 on 32-bit ports; CPython mimics that so
+# wrap-around handling is exercised by the host tests too.
+TICKS_PERIOD = const(0x40000000)
+_TICKS_MASK = const(0x3FFFFFFF)
+_TICKS_HALF = const(0x20000000)
+
+if hasattr(time, "ticks_us"):
+    ticks_us = time.ticks_us
+    ticks_ms = time.ticks_ms
+    ticks_diff = time.ticks_diff
+    ticks_add = time.ticks_add
+    sleep_us = time.sleep_us
+    sleep_ms = time.sleep_ms
+else:
+
+    def ticks_us():
+        return (time.perf_counter_ns() // 1000) & _TICKS_MASK
+
+    def ticks_ms():
+        return (time.perf_counter_ns() // 1000000) & _TICKS_MASK
+
+    def ticks_diff(a, b):
+        """Signed difference a - b of two wrapped tick values."""
+        return ((a - b + _TICKS_HALF) & _TICKS_MASK) - _TICKS_HALF
+
+    def ticks_add(a, delta):
+        return (a + delta) & _TICKS_MASK
+
+    def sleep_us(us):
+        time.sleep(us / 1000000)
+
+    def sleep_ms(ms):
+        time.sleep(ms / 1000)
+
+
+def load_native():
+    """Return the viper helper module, or None where it cannot run.
+
+    CPython has no viper; the WebAssembly MicroPython build rejects the decorator at
+    compile time. Both fall back to the portable code paths.
+    """
+    if not IS_MICROPYTHON:
+        return None
+    try:
+        from jig import native
+
+        return native
+    except Exception:  # SyntaxError/ViperTypeError/ImportError: no native emitter here
+        return None
+
+
+NATIVE = load_native()

@@ -1,0 +1,1 @@
+"""MotorJig host side: bus-master library, jigctl command line and the virtual bench."""
