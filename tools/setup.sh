@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# Sets up everything the host side needs, once: a virtual environment in .venv with
+# the project installed (editable) plus its test, bench and board extras, and the
+# WebAssembly MicroPython used to replay captures on a real MicroPython VM.
+# Safe to run again: it only redoes a step whose inputs changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+say() { printf 'setup: %s\n' "$*"; }
+
+as_root() { if [ "$(id -u)" = 0 ]; then "$@"; elif command -v sudo >/dev/null; then sudo "$@"; else return 1; fi; }
+
+apt_install() {
+    command -v apt-get >/dev/null || return 1
+    say "installing Debian packages: $*"
+    as_root apt-get update -qq && as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+}
+
+PYTHON=${PYTHON:-python3}
+if ! command -v "$PYTHON" >/dev/null; then
+    apt_install python3 python3-venv || { say "python3 is missing: install it (Debian: apt-get install python3 python3-venv)"; exit 1; }
+fi
+
+if [ ! -x .venv/bin/python ]; then
+    if ! "$PYTHON" -m venv .venv 2>/dev/null; then
+        rm -rf .venv
+        apt_install python3-venv || { say "python3 cannot make a virtual environment: apt-get install python3-venv"; exit 1; }
+        "$PYTHON" -m venv .venv
+    fi
+fi
+
+stamp=.venv/.motorjig-installed
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    say "installing the project and its test/bench/board extras into .venv"
+    .venv/bin/python -m pip install -q --upgrade pip
+    .venv/bin/python -m pip install -q -e '.[test,bench,board]'
+    touch "$stamp"
+fi
+
+# The WebAssembly MicroPython VM (npm) runs the capture replay on real MicroPython.
+wasm=host_tests/wasm
+if [ ! -d "$wasm/node_modules/@micropython" ] || [ "$wasm/package.json" -nt "$wasm/node_modules" ]; then
+    if ! command -v npm >/dev/null; then
+        if [ "${CI:-}" = true ]; then
+            apt_install nodejs npm || { say "node/npm are required in CI and could not be installed"; exit 1; }
+        else
+            say "node/npm not found: the MicroPython (WebAssembly) replay will be skipped (Debian: apt-get install nodejs npm)"
+        fi
+    fi
+    if command -v npm >/dev/null; then
+        say "installing the WebAssembly MicroPython VM (npm)"
+        (cd "$wasm" && npm install --no-audit --no-fund --loglevel=error >/dev/null)
+        touch "$wasm/node_modules"
+    fi
+fi
