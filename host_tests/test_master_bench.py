@@ -1,0 +1,374 @@
+"""Every Master method against the virtual bench (real jig firmware + simulated drives),
+once over the bench's pseudo-terminal and once over its TCP port.
+
+Faults come from the simulated drive's own fault switches (``silent``) or, where it
+has none yet (a reply carrying status 0xAA), from replacing the drive's ``handle``
+for the duration of one test.
+"""
+
+import os
+import re
+import threading
+
+import pytest
+
+from jig import frame as F
+from motorjig import errors as E
+from motorjig.master import AxisStatus, Master, MotionStatus
+from motorjig.sim import Bench
+
+DRIVE = 2
+OTHER = 3
+JIG = 1
+ABSENT = 9
+FAST = 200000  # pps
+
+
+@pytest.fixture(scope="module")
+def bench():
+    with Bench(driver_ids=(DRIVE, OTHER), baud=115200) as b:
+        yield b
+
+
+@pytest.fixture(params=["pty", "tcp"])
+def m(request, bench):
+    url = bench.pty_path if request.param == "pty" else bench.tcp_url
+    for d in bench.sim.drivers.values():
+        d.silent = False
+    # generous timeout: the bench runs in real time on a shared, busy machine
+    with Master(url, timeout=0.5) as master:
+        for s in (DRIVE, OTHER):
+            master.emergency_stop(s)
+            master.alarm_reset(s)
+            master.servo_enable(s, True)
+            master.clear_position(s)
+            master.set_parameter(s, 3, 5)  # short accel/decel: fast tests
+            master.set_parameter(s, 4, 5)
+        yield master
+
+
+def drive(bench, slave=DRIVE):
+    return bench.sim.drivers[slave]
+
+
+def test_connection_and_discovery(bench, m):
+    assert m.is_open
+    assert m.is_slave_exist(DRIVE) and m.is_slave_exist(JIG)
+    assert not m.is_slave_exist(ABSENT, timeout=0.1)
+    found = m.scan(range(0, 5), timeout=0.2)
+    assert sorted(found) == [JIG, DRIVE, OTHER]
+    assert found[DRIVE].type == 20 and found[JIG].type_name == "MotorJig bridge"
+    assert m.open() is m  # already open: no-op
+    m.close()
+    assert not m.is_open
+    m.connect()
+    assert m.get_slave_info(DRIVE).type_name == "Ezi-STEP Plus-R ST"
+
+
+def test_info(m):
+    info = m.get_slave_info(DRIVE)
+    assert info.type == 20 and "sim" in info.version
+    assert m.get_motor_info(DRIVE).text
+    assert m.get_firmware_info(DRIVE) >= 0
+
+
+def test_parameters(m):
+    m.set_parameter(DRIVE, 1, 123456)
+    assert m.get_parameter(DRIVE, 1) == 123456
+    assert m.get_rom_parameter(DRIVE, 1) != 123456
+    m.save_all_parameters(DRIVE)
+    assert m.get_rom_parameter(DRIVE, 1) == 123456
+    m.set_parameter(DRIVE, 1, 500000)
+    m.save_all_parameters(DRIVE)
+    with pytest.raises(E.DataError):
+        m.set_parameter(DRIVE, 3, 0)  # accel time 0 ms is out of range
+    # the jig's own table on slave 1
+    m.set_parameter(JIG, 11, 30)
+    assert m.get_parameter(JIG, 11) == 30
+    m.set_parameter(JIG, 11, 20)
+
+
+def test_io(m):
+    m.set_io_output(DRIVE, 1 << 15, 0)
+    assert m.get_io_output(DRIVE) & (1 << 15)
+    m.set_io_output(DRIVE, 0, 1 << 15)
+    assert not m.get_io_output(DRIVE) & (1 << 15)
+    m.set_io_input(DRIVE, 1 << 26, 0)
+    assert m.get_io_input(DRIVE) & (1 << 26)
+    m.set_io_input(DRIVE, 0, 1 << 26)
+    assert not m.get_io_input(DRIVE) & (1 << 26)
+    m.set_io_assign_map(DRIVE, 5, 1 << 13, 1)
+    a = m.get_io_assign_map(DRIVE, 5)
+    assert (a.mask, a.level) == (1 << 13, 1)
+    assert m.io_assign_map_read_rom(DRIVE) == 0
+
+
+def test_positions(m):
+    m.set_command_pos(DRIVE, 170)  # 0xAA: stuffed on the wire
+    assert m.get_command_pos(DRIVE) == 170
+    m.set_actual_pos(DRIVE, 150)
+    assert m.get_actual_pos(DRIVE) == 150
+    assert m.get_pos_error(DRIVE) == 20
+    assert m.get_actual_vel(DRIVE) == 0
+    m.clear_position(DRIVE)
+    assert m.get_command_pos(DRIVE) == 0 and m.get_actual_pos(DRIVE) == 0
+
+
+def test_status_words(m):
+    st = m.get_axis_status(DRIVE)
+    assert isinstance(st, AxisStatus) and st.servo_on and not st.motioning
+    io = m.get_io_axis_status(DRIVE)
+    assert io.axis == st
+    ms = m.get_motion_status(DRIVE)
+    assert isinstance(ms, MotionStatus) and ms.command_pos == 0
+    al = m.get_all_status(DRIVE)
+    assert al.axis.servo_on and al.command_pos == 0 and al.actual_vel == 0
+
+
+def test_moves_and_waiting(m):
+    m.move_inc(DRIVE, 3000, FAST)
+    assert m.get_axis_status(DRIVE).motioning
+    st = m.wait_motion_done(DRIVE, timeout=5)
+    assert not st.errors and m.get_command_pos(DRIVE) == 3000
+    m.move_abs(DRIVE, -2000, FAST)
+    m.wait_motion_done(DRIVE, timeout=5)
+    assert m.get_command_pos(DRIVE) == -2000
+    m.move_inc_ex(DRIVE, 1000, FAST, accel_ms=5, decel_ms=5)
+    m.wait_motion_done(DRIVE, timeout=5)
+    m.move_abs_ex(DRIVE, 0, FAST)
+    m.wait_motion_done(DRIVE, timeout=5)
+    assert m.get_command_pos(DRIVE) == 0
+    m.move_origin(DRIVE)
+    st = m.wait_motion_done(DRIVE, timeout=5)
+    assert st.origin_ok
+
+
+def test_velocity_overrides_pause_and_stops(m):
+    m.move_velocity(DRIVE, 20000, 1)
+    assert m.get_axis_status(DRIVE).motioning
+    m.velocity_override(DRIVE, 40000)
+    m.move_pause(DRIVE, True)
+    assert m.get_axis_status(DRIVE).motion_pause
+    m.move_pause(DRIVE, False)
+    m.move_stop(DRIVE)
+    m.wait_motion_done(DRIVE, timeout=5)
+    m.move_inc(DRIVE, 100000, 20000)
+    m.position_abs_override(DRIVE, 3000)
+    m.position_inc_override(DRIVE, 500)
+    m.wait_motion_done(DRIVE, timeout=5)
+    assert m.get_command_pos(DRIVE) == 3500
+    m.move_velocity_ex(DRIVE, 20000, 0, accdec_ms=5)
+    assert m.get_axis_status(DRIVE).motioning
+    m.emergency_stop(DRIVE)
+    st = m.get_axis_status(DRIVE)
+    assert st.emergency_stop and not st.motioning
+
+
+def test_limit_move(bench, m):
+    drive(bench).limit_plus = 400
+    try:
+        m.move_to_limit(DRIVE, FAST, 1)
+        st = m.wait_motion_done(DRIVE, timeout=5)
+        assert st.hw_limit_plus and m.get_command_pos(DRIVE) == 400
+    finally:
+        drive(bench).limit_plus = None
+
+
+def test_alarms(bench, m):
+    drive(bench).inject_alarm(3)
+    assert m.get_alarm_type(DRIVE).name == "step-out"
+    assert m.get_axis_status(DRIVE).step_alarm
+    with pytest.raises(E.ServoOnRefusedError) as exc:
+        m.servo_enable(DRIVE, True)
+    assert exc.value.status == 0x87
+    m.step_alarm_reset(DRIVE, True)
+    m.step_alarm_reset(DRIVE, False)
+    assert m.get_alarm_type(DRIVE).code == 0
+    drive(bench).inject_alarm(1)
+    m.servo_alarm_reset(DRIVE)
+    assert m.get_alarm_type(DRIVE).code == 0
+    drive(bench).inject_alarm(2)
+    m.alarm_reset(DRIVE)  # STEP: assert + release
+    assert m.get_alarm_type(DRIVE).code == 0
+
+
+def test_position_table(m):
+    item = bytearray(64)
+    F.put_i32(item, 0, 1500)
+    F.put_u32(item, 8, FAST)
+    F.put_u16(item, 16, 3)  # ABS normal
+    assert m.pos_table_write_item(DRIVE, 7, item)
+    assert m.pos_table_read_item(DRIVE, 7) == bytes(item)
+    assert m.pos_table_write_rom(DRIVE)
+    assert m.pos_table_read_rom(DRIVE)
+    m.pos_table_run_item(DRIVE, 7)
+    m.wait_motion_done(DRIVE, timeout=5)
+    assert m.get_command_pos(DRIVE) == 1500
+    with pytest.raises(ValueError):
+        m.pos_table_write_item(DRIVE, 7, b"short")
+
+
+def test_broadcast_moves(m):
+    m.all_move_inc(2000, FAST)
+    for s in (DRIVE, OTHER):
+        m.wait_motion_done(s, timeout=5)
+        assert m.get_command_pos(s) == 2000
+    m.all_move_abs(-500, FAST)
+    for s in (DRIVE, OTHER):
+        m.wait_motion_done(s, timeout=5)
+        assert m.get_command_pos(s) == -500
+    m.all_move_origin()
+    assert m.get_axis_status(OTHER).origin_ok
+    m.all_move_inc(1000000, 20000)
+    m.all_move_stop()
+    m.all_emergency_stop()
+    for s in (DRIVE, OTHER):
+        assert m.get_axis_status(s).emergency_stop
+
+
+def test_jig_extensions(m):
+    m.reset_counters(JIG)
+    m.get_command_pos(DRIVE)
+    c = m.read_counters(JIG)
+    assert c["forwards"] >= 1 and c["replies"] >= 1 and "up_crc_errors" in c
+    m.start_bus_scan(JIG)
+    assert m.get_bus_scan_result(JIG).state in ("running", "done")
+    res = m.jig_bus_scan(JIG)
+    assert res.state == "done" and res.types == {DRIVE: 20, OTHER: 20}
+
+
+def test_low_level(m):
+    fr = m.request(DRIVE, F.GET_AXIS_STATUS)
+    assert (fr.slave, fr.ftype, fr.data[0]) == (DRIVE, F.GET_AXIS_STATUS, 0) and len(fr.data) == 5
+    assert len(m.call(DRIVE, F.GET_ALL_STATUS)) == 32
+    m.broadcast(F.ALL_MOVE_STOP)
+    m.discard_input()
+    m.write(F.encode(DRIVE, F.GET_COMMAND_POS))
+    fr = m.read_frame(0.5)
+    assert fr is not None and fr.ftype == F.GET_COMMAND_POS
+    assert list(m.frames(0.05)) == []
+    assert m.next_sync(DRIVE) >= 0
+
+
+# --- error paths ----------------------------------------------------------------
+def test_no_reply_from_an_absent_or_silent_slave(bench, m):
+    m.timeout = 0.15
+    with pytest.raises(E.NoReplyError) as exc:
+        m.get_axis_status(ABSENT)
+    assert "no reply from slave 9 to GetAxisStatus within 150 ms" in str(exc.value)
+    drive(bench, OTHER).silent = True
+    try:
+        n0 = drive(bench, OTHER).requests
+        with pytest.raises(E.NoReplyError):
+            m.get_command_pos(OTHER)
+        assert drive(bench, OTHER).requests - n0 == 1 + m.retries  # reads are retried
+        n0 = drive(bench, OTHER).requests
+        with pytest.raises(E.NoReplyError):
+            m.move_inc(OTHER, 100, 1000)
+        assert drive(bench, OTHER).requests - n0 == 1  # motion starts are not
+    finally:
+        drive(bench, OTHER).silent = False
+
+
+def test_reply_with_bad_crc_on_the_driver_bus(bench, m):
+    # The jig checks the driver's reply and drops it, so the PC sees a timeout; a
+    # bench that relayed it would give ReplyCRCError. Either way: CommError, retried.
+    d = drive(bench)
+    d.bad_crc = True
+    m.timeout = 0.15
+    try:
+        n0 = d.requests
+        with pytest.raises(E.CommError):
+            m.get_command_pos(DRIVE)
+        assert d.requests - n0 == 1 + m.retries
+    finally:
+        d.bad_crc = False
+
+
+def test_refused_move_0x85(m):
+    m.servo_enable(DRIVE, False)
+    with pytest.raises(E.MotionRefusedError) as exc:
+        m.move_inc(DRIVE, 1000, FAST)
+    assert exc.value.status == 0x85 and "slave 2" in str(exc.value)
+    m.servo_enable(DRIVE, True)
+    m.move_velocity(DRIVE, 10000, 1)
+    with pytest.raises(E.MotionRefusedError):  # already moving
+        m.move_abs(DRIVE, 0, FAST)
+    m.move_stop(DRIVE)
+
+
+def test_crc_error_status_0xaa(bench, monkeypatch, m):
+    d = drive(bench)
+    real = d.handle
+    answers = []
+
+    def corrupted_once(ftype, data, broadcast=False):
+        if not answers:
+            answers.append(ftype)
+            return bytes([F.STATUS_CRC_ERROR])
+        return real(ftype, data, broadcast)
+
+    monkeypatch.setattr(d, "handle", corrupted_once)
+    n0 = d.requests
+    assert m.get_command_pos(DRIVE) == 0  # read: re-sent after the 0xAA status
+    assert d.requests - n0 == 2
+    answers.clear()
+    with pytest.raises(E.RequestCRCError) as exc:  # motion start: reported, not re-sent
+        m.move_inc(DRIVE, 1000, FAST)
+    assert exc.value.status == 0xAA
+    monkeypatch.setattr(d, "handle", lambda ftype, data, broadcast=False: bytes([F.STATUS_CRC_ERROR]))
+    with pytest.raises(E.RequestCRCError):
+        m.get_command_pos(DRIVE)
+
+
+def test_port_errors(bench, tmp_path):
+    with pytest.raises(E.PortError) as exc:
+        Master(str(tmp_path / "nope"))
+    assert "does not exist" in str(exc.value)
+    with Master(bench.pty_path):
+        with pytest.raises(E.PortError) as exc:
+            Master(bench.pty_path)
+        assert "busy" in str(exc.value)
+
+
+def test_two_threads_do_not_share_a_master_but_two_masters_share_tcp(bench):
+    # two TCP clients see each other's replies; matching keeps them apart
+    errors = []
+
+    def worker(slave, n):
+        try:
+            with Master(bench.tcp_url, timeout=0.5) as mm:
+                for _ in range(n):
+                    mm.get_slave_info(slave)
+        except Exception as exc:  # reported below
+            errors.append(exc)
+
+    ts = [threading.Thread(target=worker, args=(s, 5)) for s in (DRIVE, OTHER)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(10)
+    # Requests of two masters can collide on one bus (the jig aborts the older wait),
+    # so a timeout is possible; a reply decoded for the wrong request is not.
+    assert all(isinstance(e, E.NoReplyError) for e in errors), errors
+
+
+def test_ver8_framing_through_the_jig():
+    with Bench(driver_ids=(DRIVE,), baud=115200, ver8=True) as b, Master(b.tcp_url, ver8=True, timeout=0.5) as mm:
+        assert mm.get_slave_info(DRIVE).type == 20
+        assert mm.get_slave_info(JIG).type_name == "MotorJig bridge"
+        mm.servo_enable(DRIVE, True)
+        mm.set_parameter(DRIVE, 3, 5)
+        mm.move_inc(DRIVE, 500, FAST)
+        mm.wait_motion_done(DRIVE, timeout=5)
+        assert mm.get_command_pos(DRIVE) == 500
+    with Bench(driver_ids=(DRIVE,), baud=115200) as b, Master(b.tcp_url, ver8=True, retries=0) as mm:
+        with pytest.raises(E.NoReplyError):  # a Ver6 bus ignores Ver8 frames
+            mm.get_slave_info(DRIVE)
+
+
+def test_every_public_method_is_exercised():
+    src = open(os.path.abspath(__file__)).read()
+    called = set(re.findall(r"\bmm?\.(\w+)\(", src))
+    public = {n for n in dir(Master) if not n.startswith("_") and callable(getattr(Master, n))}
+    assert public - called == set()

@@ -1,0 +1,152 @@
+"""Human-readable decoding of frames seen on the line (monitor, raw, -v trace).
+
+``Decoder`` tells requests from replies by remembering the last request per
+(slave, frame type): the next frame with the same pair is its reply. A frame
+seen without a request before it is classed by its length (a reply starts with a
+known status byte and has the reply length of its frame type; a request has the
+request length).
+"""
+
+from jig import frame as F
+
+from motorjig import names as N
+from motorjig.errors import status_meaning
+from motorjig.master import REPLY_LEN, REQUEST_LEN, VAR, AxisStatus
+
+
+def _i32(d, o):
+    return F.get_i32(d, o) if len(d) >= o + 4 else None
+
+
+def _reply_fields(ftype, d):
+    """Decoded fields of a good reply's data (after the status byte), or {}."""
+    n = len(d)
+    if ftype in (F.GET_SLAVE_INFO, F.GET_MOTOR_INFO) and n >= 1:
+        text = bytes(d[1:]).split(b"\x00")[0].decode("ascii", "replace")
+        if ftype == F.GET_SLAVE_INFO:
+            return {"slave_type": d[0], "type_name": N.slave_type_name(d[0]), "version": text}
+        return {"motor_type": d[0], "motor": text}
+    if ftype == F.GET_AXIS_STATUS and n == 4:
+        return {"flags": AxisStatus(F.get_u32(d, 0)).flags}
+    if ftype in (F.GET_PARAMETER, F.GET_ROM_PARAMETER, F.GET_COMMAND_POS, F.GET_ACTUAL_POS,
+                 F.GET_POS_ERROR, F.GET_ACTUAL_VEL) and n == 4:
+        return {"value": F.get_i32(d, 0)}
+    if ftype in (F.GET_IO_INPUT, F.GET_IO_OUTPUT) and n == 4:
+        table = N.INPUT_BITS if ftype == F.GET_IO_INPUT else N.OUTPUT_BITS
+        return {"value": "0x%08X" % F.get_u32(d, 0), "bits": N.bit_names(F.get_u32(d, 0), table)}
+    if ftype == F.GET_ALARM_TYPE and n == 1:
+        return {"alarm": N.ALARM_NAMES.get(d[0], d[0])}
+    if ftype == F.GET_ALL_STATUS and n == 32:
+        return {"inputs": "0x%08X" % F.get_u32(d, 0), "outputs": "0x%08X" % F.get_u32(d, 4),
+                "flags": AxisStatus(F.get_u32(d, 8)).flags, "command_pos": F.get_i32(d, 12),
+                "actual_pos": F.get_i32(d, 16), "pos_error": F.get_i32(d, 20),
+                "actual_vel": F.get_i32(d, 24), "pt_number": F.get_u32(d, 28)}
+    if ftype == F.GET_MOTION_STATUS and n == 20:
+        return {"command_pos": F.get_i32(d, 0), "actual_pos": F.get_i32(d, 4),
+                "pos_error": F.get_i32(d, 8), "actual_vel": F.get_i32(d, 12)}
+    if ftype == F.GET_IO_AXIS_STATUS and n == 12:
+        return {"inputs": "0x%08X" % F.get_u32(d, 0), "outputs": "0x%08X" % F.get_u32(d, 4),
+                "flags": AxisStatus(F.get_u32(d, 8)).flags}
+    return {}
+
+
+def _request_fields(ftype, d):
+    n = len(d)
+    if ftype in (F.MOVE_ABS_POS, F.MOVE_INC_POS, F.ALL_MOVE_ABS_POS, F.ALL_MOVE_INC_POS) and n == 8:
+        return {"position": F.get_i32(d, 0), "speed": F.get_u32(d, 4)}
+    if ftype in (F.MOVE_VELOCITY, F.MOVE_TO_LIMIT) and n == 5:
+        return {"speed": F.get_u32(d, 0), "direction": "+" if d[4] else "-"}
+    if ftype == F.SET_PARAMETER and n == 5:
+        return {"param": d[0], "value": F.get_i32(d, 1)}
+    if ftype in (F.GET_PARAMETER, F.GET_ROM_PARAMETER) and n == 1:
+        return {"param": d[0]}
+    if ftype in (F.SERVO_ENABLE, F.STEP_ALARM_RESET, F.MOVE_PAUSE) and n == 1:
+        return {"on": bool(d[0])}
+    if ftype in (F.SET_COMMAND_POS, F.SET_ACTUAL_POS, F.POSITION_ABS_OVERRIDE,
+                 F.POSITION_INC_OVERRIDE) and n == 4:
+        return {"position": F.get_i32(d, 0)}
+    if ftype == F.VELOCITY_OVERRIDE and n == 4:
+        return {"speed": F.get_u32(d, 0)}
+    return {}
+
+
+def looks_like_reply(ftype, data):
+    if not data or data[0] not in N.STATUS_NAMES:
+        return False
+    if data[0] != F.STATUS_OK:
+        return len(data) == 1
+    want = REPLY_LEN.get(ftype)
+    return want == VAR or want == len(data) - 1
+
+
+def looks_like_request(ftype, data):
+    want = REQUEST_LEN.get(ftype)
+    if isinstance(want, tuple):
+        return len(data) in want
+    return want is None or want == len(data)
+
+
+class Decoder:
+    """Turns Frames into dicts and one-line descriptions, pairing replies with requests."""
+
+    def __init__(self):
+        self.pending = set()
+
+    def classify(self, fr):
+        """'request', 'reply' or 'broadcast'.
+
+        A frame that answers a request seen before is a reply. Otherwise its length
+        decides; a frame that fits both (e.g. ``02 2C 00``: StepAlarmReset release,
+        and also its OK reply) counts as a request.
+        """
+        key = (fr.slave, fr.ftype)
+        if fr.slave == F.BROADCAST_ID:
+            return "broadcast"
+        if key in self.pending and fr.data:
+            self.pending.discard(key)
+            return "reply"
+        if looks_like_reply(fr.ftype, fr.data) and not looks_like_request(fr.ftype, fr.data):
+            return "reply"
+        self.pending.add(key)
+        return "request"
+
+    def as_dict(self, fr, kind=None):
+        kind = kind or self.classify(fr)
+        out = {"t": fr.t, "kind": kind, "slave": fr.slave, "type": fr.ftype,
+               "name": N.frame_name(fr.ftype), "data": bytes(fr.data).hex(" ")}
+        if fr.sync >= 0:
+            out["sync"] = fr.sync
+        if kind == "reply" and fr.data:
+            out["status"] = fr.data[0]
+            out["status_name"] = N.status_name(fr.data[0])
+            if fr.data[0] == F.STATUS_OK:
+                out.update(_reply_fields(fr.ftype, fr.data[1:]))
+            else:
+                out["meaning"] = status_meaning(fr.data[0])
+        elif kind != "reply":
+            out.update(_request_fields(fr.ftype, fr.data))
+        return out
+
+    def describe(self, fr, kind=None):
+        return describe_dict(self.as_dict(fr, kind))
+
+
+def describe_dict(d):
+    head = "%-9s id %-2d %-22s" % (d["kind"], d["slave"], "%s(0x%02X)" % (d["name"], d["type"]))
+    if "sync" in d:
+        head += " sync %d" % d["sync"]
+    extra = []
+    if "status" in d:
+        extra.append("status %s" % ("OK" if d["status"] == 0 else "0x%02X %s" % (d["status"], d["meaning"])))
+    fields = [(k, v) for k, v in d.items() if k not in _BASE]
+    for k, v in fields:
+        if isinstance(v, list):
+            v = ",".join(v) or "-"
+        extra.append("%s=%s" % (k, v))
+    nbytes = len(d["data"].split())
+    if not fields and nbytes > (1 if "status" in d else 0):
+        extra.append("data [%s]" % d["data"])
+    return head + "  " + "  ".join(extra)
+
+
+_BASE = ("t", "kind", "slave", "type", "name", "data", "sync", "status", "status_name", "meaning")

@@ -1,0 +1,788 @@
+"""Plus-R bus master for PCs: the vendor library's function set over any pyserial port.
+
+    from motorjig.master import Master
+    with Master("/dev/ttyUSB0", baud=115200) as m:      # or "socket://127.0.0.1:5000", "COM7"
+        m.servo_enable(2, True)
+        m.move_inc(2, 10000, 5000)
+        print(m.get_all_status(2))
+
+Every request is encoded with ``jig.frame`` and every reply is read with
+``jig.parser.FrameParser`` -- the firmware's own modules; there is no second
+encoder, CRC or parser on the host side.
+
+A reply is the first good frame with the same slave id and frame type (and, in
+Ver8 framing, the same sync number) as the request; anything else on the line
+(a stale reply, the echo of our own request with ``echo=True``) is skipped. No reply within the
+timeout raises ``NoReplyError`` (``ReplyCRCError`` when only frames with a bad
+CRC came). A non-zero status byte raises the ``StatusError`` subclass for that
+code; a reply whose length does not fit the frame type raises ``BadReplyError``.
+
+Timeouts follow the vendor library: 100 ms by default, five times that for
+ROM and servo-on frames, 15x for ClearPosition, 20x for PosTableWriteROM.
+Failed requests are re-sent (``retries`` times) only for frames that are
+harmless to repeat: reads, stops, parameter and I/O writes, alarm resets --
+never motion starts.
+"""
+
+import socket
+import time
+from collections import namedtuple
+
+import serial
+
+from jig import diag as D
+from jig import frame as F
+from jig.parser import FrameParser
+
+from motorjig import names as N
+from motorjig.errors import (BadReplyError, JigError, NoReplyError, PortError, ReplyCRCError,
+                             StatusError, status_error)
+
+DEFAULT_TIMEOUT = 0.1  # seconds, the vendor library's COMM_WAITTIME
+DEFAULT_BAUD = 115200
+#: baud rates Plus-R drives are commonly set to (the manual page is unconfirmed)
+BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+
+#: frame types whose reply may take longer (multiplier of the per-call timeout)
+TIMEOUT_FACTOR = {
+    F.SAVE_ALL_PARAMETERS: 5,
+    F.GET_ROM_PARAMETER: 5,
+    F.IO_ASSIGN_MAP_READ_ROM: 5,
+    F.SERVO_ENABLE: 5,
+    F.POS_TABLE_READ_ROM: 5,
+    F.CLEAR_POSITION: 15,
+    F.POS_TABLE_WRITE_ROM: 20,
+}
+
+#: frame types that are harmless to send twice, so a failed attempt is retried
+IDEMPOTENT = frozenset((
+    F.GET_SLAVE_INFO, F.GET_MOTOR_INFO, F.GET_FIRMWARE_INFO, F.GET_ROM_PARAMETER, F.SET_PARAMETER,
+    F.GET_PARAMETER, F.SET_IO_OUTPUT, F.SET_IO_INPUT, F.GET_IO_INPUT, F.GET_IO_OUTPUT,
+    F.SET_IO_ASSIGN_MAP, F.GET_IO_ASSIGN_MAP, F.IO_ASSIGN_MAP_READ_ROM, F.TRIGGER_OUTPUT_STATUS,
+    F.SERVO_ENABLE, F.SERVO_ALARM_RESET, F.STEP_ALARM_RESET, F.GET_ALARM_TYPE, F.MOVE_STOP,
+    F.EMERGENCY_STOP, F.GET_AXIS_STATUS, F.GET_IO_AXIS_STATUS, F.GET_MOTION_STATUS,
+    F.GET_ALL_STATUS, F.SET_COMMAND_POS, F.GET_COMMAND_POS, F.SET_ACTUAL_POS, F.GET_ACTUAL_POS,
+    F.GET_POS_ERROR, F.GET_ACTUAL_VEL, F.CLEAR_POSITION, F.MOVE_PAUSE, F.POS_TABLE_READ_ITEM,
+    F.POS_TABLE_WRITE_ITEM, F.POS_TABLE_READ_ROM, F.POS_TABLE_READ_ONE_ITEM,
+    F.POS_TABLE_WRITE_ONE_ITEM, F.GET_PUSH_STATUS,
+    D.READ_COUNTERS, D.RESET_COUNTERS, D.START_BUS_SCAN, D.GET_BUS_SCAN_RESULT,
+))
+
+VAR = -1  # variable-length reply (info strings)
+#: data bytes after the status byte of a good reply (Ver6), for the length check
+REPLY_LEN = {
+    F.GET_SLAVE_INFO: VAR, F.GET_MOTOR_INFO: VAR, F.GET_FIRMWARE_INFO: 1,
+    F.SAVE_ALL_PARAMETERS: 0, F.GET_ROM_PARAMETER: 4, F.SET_PARAMETER: 0, F.GET_PARAMETER: 4,
+    F.SET_IO_OUTPUT: 0, F.SET_IO_INPUT: 0, F.GET_IO_INPUT: 4, F.GET_IO_OUTPUT: 4,
+    F.SET_IO_ASSIGN_MAP: 0, F.GET_IO_ASSIGN_MAP: 5, F.IO_ASSIGN_MAP_READ_ROM: 1,
+    F.TRIGGER_OUTPUT_STATUS: 1, F.SERVO_ENABLE: 0, F.SERVO_ALARM_RESET: 0, F.STEP_ALARM_RESET: 0,
+    F.GET_ALARM_TYPE: 1, F.MOVE_STOP: 0, F.EMERGENCY_STOP: 0, F.MOVE_ORIGIN: 0, F.MOVE_ABS_POS: 0,
+    F.MOVE_INC_POS: 0, F.MOVE_TO_LIMIT: 0, F.MOVE_VELOCITY: 0, F.POSITION_ABS_OVERRIDE: 0,
+    F.POSITION_INC_OVERRIDE: 0, F.VELOCITY_OVERRIDE: 0, F.GET_AXIS_STATUS: 4,
+    F.GET_IO_AXIS_STATUS: 12, F.GET_MOTION_STATUS: 20, F.GET_ALL_STATUS: 32, F.SET_COMMAND_POS: 0,
+    F.GET_COMMAND_POS: 4, F.SET_ACTUAL_POS: 0, F.GET_ACTUAL_POS: 4, F.GET_POS_ERROR: 4,
+    F.GET_ACTUAL_VEL: 4, F.CLEAR_POSITION: 0, F.MOVE_PAUSE: 0, F.POS_TABLE_READ_ITEM: 64,
+    F.POS_TABLE_WRITE_ITEM: 1, F.POS_TABLE_READ_ROM: 1, F.POS_TABLE_WRITE_ROM: 1,
+    F.POS_TABLE_RUN_ITEM: 0, F.POS_TABLE_READ_ONE_ITEM: 4, F.GET_PUSH_STATUS: 1,
+    F.MOVE_ABS_POS_EX: 0, F.MOVE_INC_POS_EX: 0, F.MOVE_VELOCITY_EX: 0,
+    # the jig's diagnostic frames (jig.diag)
+    D.READ_COUNTERS: VAR, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0,
+    D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1,
+}
+#: data bytes of a request (Ver6); the monitor tells requests from replies with it
+REQUEST_LEN = {
+    F.GET_SLAVE_INFO: 0, F.GET_MOTOR_INFO: 0, F.GET_FIRMWARE_INFO: 0, F.SAVE_ALL_PARAMETERS: 0,
+    F.GET_ROM_PARAMETER: 1, F.SET_PARAMETER: 5, F.GET_PARAMETER: 1, F.SET_IO_OUTPUT: 8,
+    F.SET_IO_INPUT: 8, F.GET_IO_INPUT: 0, F.GET_IO_OUTPUT: 0, F.SET_IO_ASSIGN_MAP: 6,
+    F.GET_IO_ASSIGN_MAP: 1, F.IO_ASSIGN_MAP_READ_ROM: 0, F.TRIGGER_OUTPUT_RUN_A: 18,
+    F.TRIGGER_OUTPUT_STATUS: 0, F.SERVO_ENABLE: 1, F.SERVO_ALARM_RESET: 0, F.STEP_ALARM_RESET: 1,
+    F.GET_ALARM_TYPE: 0, F.MOVE_STOP: 0, F.EMERGENCY_STOP: 0, F.MOVE_ORIGIN: 0, F.MOVE_ABS_POS: 8,
+    F.MOVE_INC_POS: 8, F.MOVE_TO_LIMIT: 5, F.MOVE_VELOCITY: 5, F.POSITION_ABS_OVERRIDE: 4,
+    F.POSITION_INC_OVERRIDE: 4, F.VELOCITY_OVERRIDE: 4, F.ALL_MOVE_STOP: 0, F.ALL_EMERGENCY_STOP: 0,
+    F.ALL_MOVE_ORIGIN: 0, F.ALL_MOVE_ABS_POS: 8, F.ALL_MOVE_INC_POS: 8, F.GET_AXIS_STATUS: 0,
+    F.GET_IO_AXIS_STATUS: 0, F.GET_MOTION_STATUS: 0, F.GET_ALL_STATUS: 0, F.SET_COMMAND_POS: 4,
+    F.GET_COMMAND_POS: 0, F.SET_ACTUAL_POS: 4, F.GET_ACTUAL_POS: 0, F.GET_POS_ERROR: 0,
+    F.GET_ACTUAL_VEL: 0, F.CLEAR_POSITION: 0, F.MOVE_PAUSE: 1, F.POS_TABLE_READ_ITEM: 2,
+    F.POS_TABLE_WRITE_ITEM: 66, F.POS_TABLE_READ_ROM: 0, F.POS_TABLE_WRITE_ROM: 0,
+    F.POS_TABLE_RUN_ITEM: 2, F.POS_TABLE_READ_ONE_ITEM: 4, F.POS_TABLE_WRITE_ONE_ITEM: 8,
+    F.MOVE_PUSH: (26, 28), F.GET_PUSH_STATUS: 0, F.MOVE_ABS_POS_EX: 40, F.MOVE_INC_POS_EX: 40,
+    F.MOVE_VELOCITY_EX: 37,
+    D.READ_COUNTERS: 0, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0, D.GET_BUS_SCAN_RESULT: 0,
+}
+
+#: Ver8 libraries widen the inputs to 64 bits; drives that keep 32 are accepted too
+REPLY_LEN_VER8 = dict(REPLY_LEN)
+REPLY_LEN_VER8.update({F.GET_IO_INPUT: (4, 8), F.GET_IO_AXIS_STATUS: (12, 16), F.GET_ALL_STATUS: (32, 36)})
+
+SYNC_SEED = 0xF0  # the vendor V8 class starts its per-slave counters here
+POS_TABLE_ITEM_SIZE = 64
+_READ_SLICE = 0.005  # seconds one port read may block; bounds the timeout overshoot
+
+Frame = namedtuple("Frame", "slave sync ftype data body t")
+Frame.__doc__ = """One checked frame off the line: data excludes id/sync/type/CRC; body is the
+unstuffed frame id..CRC; t is time.time() when it completed."""
+
+SlaveInfo = namedtuple("SlaveInfo", "type type_name version")
+MotorInfo = namedtuple("MotorInfo", "type text")
+Alarm = namedtuple("Alarm", "code name")
+IOAssign = namedtuple("IOAssign", "mask level")
+MotionStatus = namedtuple("MotionStatus", "command_pos actual_pos pos_error actual_vel pt_number")
+IOAxisStatus = namedtuple("IOAxisStatus", "inputs outputs axis")
+BusScan = namedtuple("BusScan", "state types")
+AllStatus = namedtuple("AllStatus", "inputs outputs axis command_pos actual_pos pos_error actual_vel "
+                                    "pt_number")
+
+
+class AxisStatus(int):
+    """The u32 axis-status word, with every flag readable by name.
+
+    ``st.motioning``, ``st.servo_on``, ``st.flags`` (names of the set flags),
+    ``st.errors`` (the set flags that mean trouble).
+    """
+
+    def __getattr__(self, name):
+        bit = N.AXIS_FLAG_BITS.get(name)
+        if bit is None:
+            raise AttributeError(name)
+        return bool(int(self) >> bit & 1)
+
+    @property
+    def flags(self):
+        return N.bit_names(int(self), N.AXIS_FLAGS)
+
+    @property
+    def errors(self):
+        return [n for n in self.flags if n in N.AXIS_ERROR_FLAGS]
+
+    def __repr__(self):
+        return "AxisStatus(0x%08X: %s)" % (int(self), ", ".join(self.flags) or "-")
+
+
+def jsonable(value):
+    """Results as plain JSON types (namedtuples -> dicts, AxisStatus -> value + flags)."""
+    if isinstance(value, AxisStatus):
+        return {"value": int(value), "flags": value.flags}
+    if hasattr(value, "_asdict"):
+        return {k: jsonable(v) for k, v in value._asdict().items()}
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, (bytes, bytearray)):
+        return value.hex(" ")
+    return value
+
+
+def _i32(value):
+    if not -0x80000000 <= value <= 0x7FFFFFFF:
+        raise ValueError("%d does not fit a signed 32-bit field" % value)
+    return value
+
+
+def _u32(value):
+    if not 0 <= value <= 0xFFFFFFFF:
+        raise ValueError("%d does not fit an unsigned 32-bit field" % value)
+    return value
+
+
+def pack(*fields):
+    """Little-endian data from (kind, value) pairs; kind is 'u8', 'u16', 'i32' or 'u32'."""
+    out = bytearray()
+    for kind, value in fields:
+        value = int(value)
+        if kind == "u8":
+            if not 0 <= value <= 0xFF:
+                raise ValueError("%d does not fit a byte" % value)
+            out.append(value)
+        elif kind == "u16":
+            if not 0 <= value <= 0xFFFF:
+                raise ValueError("%d does not fit an unsigned 16-bit field" % value)
+            b = bytearray(2)
+            F.put_u16(b, 0, value)
+            out += b
+        else:
+            b = bytearray(4)
+            F.put_u32(b, 0, _i32(value) if kind == "i32" else _u32(value))
+            out += b
+    return bytes(out)
+
+
+def _check_slave(slave):
+    if not (0 <= slave <= F.MAX_SLAVE_ID):
+        raise ValueError("slave id must be 0..%d, not %d" % (F.MAX_SLAVE_ID, slave))
+
+
+def _open_error(url, exc):
+    """One sentence for a pyserial open failure."""
+    text = str(exc)
+    low = text.lower()
+    if "lock" in low or "busy" in low or "resource temporarily unavailable" in low:
+        return PortError("port %s is busy (another program has it open)" % url)
+    if "connection refused" in low:
+        return PortError("cannot connect to %s: connection refused (is the bench running?)" % url)
+    if "no such file" in low or "filenotfound" in low or "cannot find" in low:
+        return PortError("port %s does not exist (see `jigctl ports`)" % url)
+    if "permission denied" in low or "access is denied" in low:
+        return PortError("no permission to open %s (on Linux: add yourself to the dialout group)" % url)
+    if "invalid url" in low or "expected" in low or "not known" in low:
+        return PortError("%s is not a valid port or URL (%s)" % (url, text.rstrip(".")))
+    return PortError("cannot open %s: %s" % (url, text.rstrip(".")))
+
+
+class Master:
+    """A Plus-R bus master on one serial port (or pyserial URL).
+
+    ``timeout`` is the per-call reply timeout in seconds (multiplied for slow frame
+    types), ``retries`` how often an idempotent request is re-sent after a failed
+    attempt, ``ver8`` selects the framing with a sync-number byte. ``trace`` is
+    called as ``trace(direction, wire_or_frame)`` for every frame sent ("tx",
+    bytes) and received ("rx", Frame) -- the CLI's -v uses it. ``echo=True`` is for
+    adapters that hear their own transmissions: the copy of each request is skipped.
+
+    One Master per port, used from one thread at a time.
+    """
+
+    def __init__(self, port, baud=DEFAULT_BAUD, timeout=DEFAULT_TIMEOUT, retries=2, ver8=False,
+                 trace=None, echo=False, open=True):
+        self.url = port
+        self.baud = baud
+        self.timeout = timeout
+        self.retries = retries
+        self.ver8 = ver8
+        self.trace = trace
+        self.echo = echo
+        self.parser = FrameParser(ver8=ver8)
+        self._serial = None
+        self._sync = {}
+        self._rx = b""
+        self._rx_pos = 0
+        if open:
+            self.open()
+
+    # --- connection --------------------------------------------------------------
+    def open(self):
+        if self._serial is not None:
+            return self
+        if not isinstance(self.baud, int) or self.baud <= 0:
+            raise ValueError("baud rate must be a positive integer, not %r" % (self.baud,))
+        try:
+            self._serial = serial.serial_for_url(self.url, baudrate=self.baud, timeout=_READ_SLICE,
+                                                 write_timeout=2.0, exclusive=True)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise _open_error(self.url, exc) from None
+        return self
+
+    connect = open
+
+    def close(self):
+        port, self._serial = self._serial, None
+        if port is None:
+            return
+        sock = getattr(port, "_socket", None)
+        if sock is not None and str(self.url).startswith("socket://"):
+            # pyserial's socket close() sleeps 0.3 s "for quick reconnects"; a command
+            # line tool that opens one connection per run does not need that wait.
+            try:
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            sock.close()
+            port._socket = None
+            port.is_open = False
+        else:
+            port.close()
+
+    @property
+    def is_open(self):
+        return self._serial is not None
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # --- low level ---------------------------------------------------------------
+    def _port(self):
+        if self._serial is None:
+            raise PortError("port %s is not open" % self.url)
+        return self._serial
+
+    def next_sync(self, slave):
+        """The sync number for the next Ver8 request to slave (one counter per slave)."""
+        if slave == F.BROADCAST_ID:
+            used = set(self._sync.values())
+            s = (max(used) + 1) & 0xFF if used else SYNC_SEED
+            while s in used:
+                s = (s + 1) & 0xFF
+            for k in self._sync:
+                self._sync[k] = s
+            return s
+        s = (self._sync.get(slave, SYNC_SEED) + 1) & 0xFF
+        self._sync[slave] = s
+        return s
+
+    def write(self, wire):
+        """Put bytes on the line as they are."""
+        port = self._port()
+        try:
+            port.write(wire)
+            port.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise PortError("writing to %s failed: %s" % (self.url, exc)) from None
+        if self.trace:
+            self.trace("tx", bytes(wire))
+
+    def _read_some(self):
+        port = self._port()
+        try:
+            n = port.in_waiting
+            if not n:
+                data = port.read(1)  # blocks at most _READ_SLICE (the port's timeout)
+                if not data:
+                    return b""
+                n = port.in_waiting
+                return data + (port.read(n) if n else b"")
+            return port.read(n)
+        except (serial.SerialException, OSError) as exc:
+            raise PortError("reading from %s failed: %s" % (self.url, exc)) from None
+
+    def discard_input(self):
+        """Drop unread bytes and any partial frame (done before every request)."""
+        port = self._port()
+        try:
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError):
+            pass
+        self._rx = b""
+        self._rx_pos = 0
+        self.parser.reset()
+
+    def read_frame(self, timeout):
+        """The next good frame off the line, or None after timeout seconds."""
+        deadline = time.monotonic() + timeout
+        p = self.parser
+        while True:
+            while self._rx_pos < len(self._rx):
+                self._rx_pos = p.feed(self._rx, self._rx_pos, len(self._rx))
+                if p.ready:
+                    body = bytes(p.body[:p.body_len])
+                    fr = Frame(p.slave, p.sync, p.ftype, bytes(p.body[p.data_start:p.data_end]), body,
+                               time.time())
+                    if self.trace:
+                        self.trace("rx", fr)
+                    return fr
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            self._rx = self._read_some()
+            self._rx_pos = 0
+
+    def frames(self, duration):
+        """Yield every good frame seen on the line for duration seconds (None: forever)."""
+        end = None if duration is None else time.monotonic() + duration
+        while True:
+            left = 0.2 if end is None else end - time.monotonic()
+            if left <= 0:
+                return
+            fr = self.read_frame(min(left, 0.2))
+            if fr is not None:
+                yield fr
+
+    def _await_reply(self, slave, ftype, sync, timeout, sent_body):
+        deadline = time.monotonic() + timeout
+        crc_before = self.parser.crc_errors
+        # Only the first identical frame can be the echo: some OK replies are byte for
+        # byte equal to their request (StepAlarmReset 0, ServoEnable 0: "id type 00").
+        echo_pending = self.echo
+        while True:
+            fr = self.read_frame(max(0.0, deadline - time.monotonic()))
+            if fr is None:
+                name = N.frame_name(ftype)
+                if self.parser.crc_errors != crc_before:
+                    raise ReplyCRCError("the reply from slave %d to %s failed its CRC (line noise?)"
+                                        % (slave, name), slave, ftype)
+                raise NoReplyError("no reply from slave %d to %s within %d ms" % (
+                    slave, name, round(timeout * 1000)), slave, ftype)
+            if echo_pending and fr.body == sent_body:
+                echo_pending = False  # our own request, heard back by an echoing adapter
+                continue
+            if fr.slave == slave and fr.ftype == ftype and (sync < 0 or fr.sync == sync) and fr.data:
+                return fr
+
+    def request(self, slave, ftype, data=b"", timeout=None, retries=None, check=True):
+        """Send one request and return its reply Frame (``data[0]`` is the status).
+
+        With ``check`` (default) a non-zero status raises its StatusError and the
+        reply length is checked against the frame type.
+        """
+        if slave != F.BROADCAST_ID:
+            _check_slave(slave)
+        if timeout is None:
+            timeout = self.timeout * TIMEOUT_FACTOR.get(ftype, 1)
+        if retries is None:
+            retries = self.retries
+        attempts = 1 + retries if ftype in IDEMPOTENT else 1
+        last = None
+        for attempt in range(attempts):
+            sync = self.next_sync(slave) if self.ver8 else -1
+            wire = F.encode(slave, ftype, data, sync)
+            body = _unstuffed_body(slave, ftype, data, sync)
+            self.discard_input()
+            self.write(wire)
+            try:
+                fr = self._await_reply(slave, ftype, sync, timeout, body)
+            except (NoReplyError, ReplyCRCError) as exc:
+                last = exc
+                continue
+            if fr.data[0] == F.STATUS_CRC_ERROR and attempt + 1 < attempts:
+                continue  # the slave saw our request corrupted: send it again
+            if check:
+                self._check(fr)
+            return fr
+        raise last
+
+    def _check(self, fr):
+        status = fr.data[0]
+        if status != F.STATUS_OK:
+            raise status_error(status, fr.slave, fr.ftype, N.frame_name(fr.ftype))
+        table = REPLY_LEN_VER8 if self.ver8 else REPLY_LEN
+        want = table.get(fr.ftype)
+        got = len(fr.data) - 1
+        allowed = want if isinstance(want, tuple) else (want,)
+        if want is not None and want != VAR and got not in allowed:
+            raise BadReplyError("slave %d replied to %s with %d data bytes, expected %s" % (
+                fr.slave, N.frame_name(fr.ftype), got, " or ".join(map(str, allowed))), fr.slave, fr.ftype)
+        if want == VAR and got < 1:
+            raise BadReplyError("slave %d replied to %s without data" % (fr.slave, N.frame_name(fr.ftype)),
+                                fr.slave, fr.ftype)
+
+    def call(self, slave, ftype, data=b"", **kw):
+        """request() and return only the reply data after the status byte."""
+        return self.request(slave, ftype, data, **kw).data[1:]
+
+    def broadcast(self, ftype, data=b""):
+        """Send a frame to every slave (id 99); no reply is awaited."""
+        sync = self.next_sync(F.BROADCAST_ID) if self.ver8 else -1
+        self.discard_input()
+        self.write(F.encode(F.BROADCAST_ID, ftype, data, sync))
+        time.sleep(0.001)
+
+    # --- info / parameters -------------------------------------------------------
+    def is_slave_exist(self, slave, timeout=None):
+        """True when slave answers GetSlaveInfo (any status) within the timeout; one try."""
+        try:
+            self.request(slave, F.GET_SLAVE_INFO, timeout=timeout, retries=0, check=False)
+            return True
+        except (NoReplyError, ReplyCRCError):
+            return False
+
+    def get_slave_info(self, slave):
+        d = self.call(slave, F.GET_SLAVE_INFO)
+        return SlaveInfo(d[0], N.slave_type_name(d[0]), _cstr(d[1:]))
+
+    def get_motor_info(self, slave):
+        d = self.call(slave, F.GET_MOTOR_INFO)
+        return MotorInfo(d[0], _cstr(d[1:]))
+
+    def get_firmware_info(self, slave):
+        return self.call(slave, F.GET_FIRMWARE_INFO)[0]
+
+    def save_all_parameters(self, slave):
+        self.call(slave, F.SAVE_ALL_PARAMETERS)
+
+    def get_parameter(self, slave, number):
+        return F.get_i32(self.call(slave, F.GET_PARAMETER, pack(("u8", number))), 0)
+
+    def get_rom_parameter(self, slave, number):
+        return F.get_i32(self.call(slave, F.GET_ROM_PARAMETER, pack(("u8", number))), 0)
+
+    def set_parameter(self, slave, number, value):
+        self.call(slave, F.SET_PARAMETER, pack(("u8", number), ("i32", value)))
+
+    # --- I/O -----------------------------------------------------------------------
+    def set_io_output(self, slave, set_mask=0, clear_mask=0):
+        self.call(slave, F.SET_IO_OUTPUT, pack(("u32", set_mask), ("u32", clear_mask)))
+
+    def set_io_input(self, slave, set_mask=0, clear_mask=0):
+        self.call(slave, F.SET_IO_INPUT, pack(("u32", set_mask), ("u32", clear_mask)))
+
+    def get_io_input(self, slave):
+        d = self.call(slave, F.GET_IO_INPUT)
+        return _uint(d, 0, len(d))
+
+    def get_io_output(self, slave):
+        return F.get_u32(self.call(slave, F.GET_IO_OUTPUT), 0)
+
+    def get_io_assign_map(self, slave, pin):
+        d = self.call(slave, F.GET_IO_ASSIGN_MAP, pack(("u8", pin)))
+        return IOAssign(F.get_u32(d, 0), d[4])
+
+    def set_io_assign_map(self, slave, pin, mask, level):
+        self.call(slave, F.SET_IO_ASSIGN_MAP, pack(("u8", pin), ("u32", mask), ("u8", level)))
+
+    def io_assign_map_read_rom(self, slave):
+        return self.call(slave, F.IO_ASSIGN_MAP_READ_ROM)[0]
+
+    # --- drive control / alarms -----------------------------------------------------
+    def servo_enable(self, slave, on=True):
+        self.call(slave, F.SERVO_ENABLE, pack(("u8", 1 if on else 0)))
+
+    def servo_alarm_reset(self, slave):
+        self.call(slave, F.SERVO_ALARM_RESET)
+
+    def step_alarm_reset(self, slave, assert_reset=True):
+        self.call(slave, F.STEP_ALARM_RESET, pack(("u8", 1 if assert_reset else 0)))
+
+    def alarm_reset(self, slave, servo=False):
+        """Clear an alarm: ServoAlarmReset on a servo, StepAlarmReset assert + release on a STEP."""
+        if servo:
+            self.servo_alarm_reset(slave)
+        else:
+            self.step_alarm_reset(slave, True)
+            self.step_alarm_reset(slave, False)
+
+    def get_alarm_type(self, slave):
+        code = self.call(slave, F.GET_ALARM_TYPE)[0]
+        return Alarm(code, N.ALARM_NAMES.get(code, "unknown alarm %d" % code))
+
+    # --- motion ----------------------------------------------------------------------
+    def move_stop(self, slave):
+        self.call(slave, F.MOVE_STOP)
+
+    def emergency_stop(self, slave):
+        self.call(slave, F.EMERGENCY_STOP)
+
+    def move_pause(self, slave, pause=True):
+        self.call(slave, F.MOVE_PAUSE, pack(("u8", 1 if pause else 0)))
+
+    def move_origin(self, slave):
+        self.call(slave, F.MOVE_ORIGIN)
+
+    def move_abs(self, slave, position, speed):
+        self.call(slave, F.MOVE_ABS_POS, pack(("i32", position), ("u32", speed)))
+
+    def move_inc(self, slave, distance, speed):
+        self.call(slave, F.MOVE_INC_POS, pack(("i32", distance), ("u32", speed)))
+
+    def move_to_limit(self, slave, speed, direction):
+        """Run towards the limit sensor; direction 1 = +, 0 = -."""
+        self.call(slave, F.MOVE_TO_LIMIT, pack(("u32", speed), ("u8", 1 if direction else 0)))
+
+    def move_velocity(self, slave, speed, direction):
+        """Jog at speed pps until stopped; direction 1 = +, 0 = -."""
+        self.call(slave, F.MOVE_VELOCITY, pack(("u32", speed), ("u8", 1 if direction else 0)))
+
+    def position_abs_override(self, slave, position):
+        self.call(slave, F.POSITION_ABS_OVERRIDE, pack(("i32", position)))
+
+    def position_inc_override(self, slave, distance):
+        self.call(slave, F.POSITION_INC_OVERRIDE, pack(("i32", distance)))
+
+    def velocity_override(self, slave, speed):
+        self.call(slave, F.VELOCITY_OVERRIDE, pack(("u32", speed)))
+
+    def _ex_option(self, accel_ms, decel_ms, ignore_stop_input):
+        flags = (1 if ignore_stop_input else 0) | (2 if accel_ms else 0) | (4 if decel_ms else 0)
+        return pack(("u32", flags), ("u16", accel_ms or 0), ("u16", decel_ms or 0)) + bytes(24)
+
+    def move_abs_ex(self, slave, position, speed, accel_ms=None, decel_ms=None, ignore_stop_input=False):
+        self.call(slave, F.MOVE_ABS_POS_EX, pack(("i32", position), ("u32", speed))
+                  + self._ex_option(accel_ms, decel_ms, ignore_stop_input))
+
+    def move_inc_ex(self, slave, distance, speed, accel_ms=None, decel_ms=None, ignore_stop_input=False):
+        self.call(slave, F.MOVE_INC_POS_EX, pack(("i32", distance), ("u32", speed))
+                  + self._ex_option(accel_ms, decel_ms, ignore_stop_input))
+
+    def move_velocity_ex(self, slave, speed, direction, accdec_ms=None, ignore_stop_input=False):
+        """Jog with its own acc/dec time (VELOCITY_OPTION_EX)."""
+        flags = (1 if ignore_stop_input else 0) | (2 if accdec_ms else 0)
+        self.call(slave, F.MOVE_VELOCITY_EX, pack(("u32", speed), ("u8", 1 if direction else 0), ("u32", flags),
+                                                  ("u16", accdec_ms or 0)) + bytes(26))
+
+    # --- all axes (broadcast, no reply) ------------------------------------------------
+    def all_move_stop(self):
+        self.broadcast(F.ALL_MOVE_STOP)
+
+    def all_emergency_stop(self):
+        self.broadcast(F.ALL_EMERGENCY_STOP)
+
+    def all_move_origin(self):
+        self.broadcast(F.ALL_MOVE_ORIGIN)
+
+    def all_move_abs(self, position, speed):
+        self.broadcast(F.ALL_MOVE_ABS_POS, pack(("i32", position), ("u32", speed)))
+
+    def all_move_inc(self, distance, speed):
+        self.broadcast(F.ALL_MOVE_INC_POS, pack(("i32", distance), ("u32", speed)))
+
+    # --- status / position ---------------------------------------------------------------
+    def get_axis_status(self, slave):
+        return AxisStatus(F.get_u32(self.call(slave, F.GET_AXIS_STATUS), 0))
+
+    def get_io_axis_status(self, slave):
+        d = self.call(slave, F.GET_IO_AXIS_STATUS)
+        w = len(d) - 8  # 4 (Ver6) or 8 (Ver8) bytes of inputs
+        return IOAxisStatus(_uint(d, 0, w), F.get_u32(d, w), AxisStatus(F.get_u32(d, w + 4)))
+
+    def get_motion_status(self, slave):
+        d = self.call(slave, F.GET_MOTION_STATUS)
+        return MotionStatus(F.get_i32(d, 0), F.get_i32(d, 4), F.get_i32(d, 8), F.get_i32(d, 12),
+                            F.get_u32(d, 16))
+
+    def get_all_status(self, slave):
+        d = self.call(slave, F.GET_ALL_STATUS)
+        w = len(d) - 28
+        o = w + 8
+        return AllStatus(_uint(d, 0, w), F.get_u32(d, w), AxisStatus(F.get_u32(d, w + 4)),
+                         F.get_i32(d, o), F.get_i32(d, o + 4), F.get_i32(d, o + 8), F.get_i32(d, o + 12),
+                         F.get_u32(d, o + 16))
+
+    def set_command_pos(self, slave, position):
+        self.call(slave, F.SET_COMMAND_POS, pack(("i32", position)))
+
+    def get_command_pos(self, slave):
+        return F.get_i32(self.call(slave, F.GET_COMMAND_POS), 0)
+
+    def set_actual_pos(self, slave, position):
+        self.call(slave, F.SET_ACTUAL_POS, pack(("i32", position)))
+
+    def get_actual_pos(self, slave):
+        return F.get_i32(self.call(slave, F.GET_ACTUAL_POS), 0)
+
+    def get_pos_error(self, slave):
+        return F.get_i32(self.call(slave, F.GET_POS_ERROR), 0)
+
+    def get_actual_vel(self, slave):
+        return F.get_i32(self.call(slave, F.GET_ACTUAL_VEL), 0)
+
+    def clear_position(self, slave):
+        self.call(slave, F.CLEAR_POSITION)
+
+    # --- position table (items as raw 64-byte blocks, layout in the protocol notes §5.9) ----
+    def pos_table_read_item(self, slave, item):
+        return bytes(self.call(slave, F.POS_TABLE_READ_ITEM, pack(("u16", item))))
+
+    def pos_table_write_item(self, slave, item, block):
+        if len(block) != POS_TABLE_ITEM_SIZE:
+            raise ValueError("a position-table item is %d bytes, not %d" % (POS_TABLE_ITEM_SIZE, len(block)))
+        return self.call(slave, F.POS_TABLE_WRITE_ITEM, pack(("u16", item)) + bytes(block))[0] != 0
+
+    def pos_table_read_rom(self, slave):
+        return self.call(slave, F.POS_TABLE_READ_ROM)[0] == 0
+
+    def pos_table_write_rom(self, slave):
+        return self.call(slave, F.POS_TABLE_WRITE_ROM)[0] == 0
+
+    def pos_table_run_item(self, slave, item):
+        self.call(slave, F.POS_TABLE_RUN_ITEM, pack(("u16", item)))
+
+    # --- helpers ---------------------------------------------------------------------------
+    def wait_motion_done(self, slave, timeout=10.0, poll=0.02):
+        """Poll the axis status until the axis stops moving; returns the last AxisStatus.
+
+        Raises MotionTimeoutError when the axis still moves after timeout seconds.
+        """
+        end = time.monotonic() + timeout
+        while True:
+            st = self.get_axis_status(slave)
+            if not st.motioning:
+                return st
+            if time.monotonic() > end:
+                raise MotionTimeoutError("slave %d still moving after %.1f s" % (slave, timeout))
+            time.sleep(poll)
+
+    def scan(self, ids=range(F.MAX_SLAVE_ID + 1), timeout=None, progress=None):
+        """Probe ids with GetSlaveInfo (one try each); returns {id: SlaveInfo or None}.
+
+        A slave that replies with an error status is listed with None as its info.
+        ``progress(id, found_so_far)`` is called before each probe.
+        """
+        found = {}
+        for i in ids:
+            if progress:
+                progress(i, dict(found))
+            try:
+                fr = self.request(i, F.GET_SLAVE_INFO, timeout=timeout, retries=0, check=False)
+            except (NoReplyError, ReplyCRCError):
+                continue
+            try:
+                self._check(fr)
+                d = fr.data[1:]
+                found[i] = SlaveInfo(d[0], N.slave_type_name(d[0]), _cstr(d[1:]))
+            except JigError:
+                found[i] = None
+        return found
+
+    # --- the jig's own frames (slave 1 by default; layouts in jig.diag) ---------------------
+    def read_counters(self, jig=1):
+        """The jig's counters as {name: value} (0xF0), decoded by jig.diag.decode_counters."""
+        fr = self.request(jig, D.READ_COUNTERS)
+        try:
+            return D.decode_counters(fr.data)
+        except ValueError as exc:
+            raise BadReplyError("slave %d sent a bad ReadCounters reply (%s)" % (jig, exc), jig, fr.ftype) from None
+
+    def reset_counters(self, jig=1):
+        self.call(jig, D.RESET_COUNTERS)
+
+    def start_bus_scan(self, jig=1):
+        """Make the jig probe ids 0..15 on its driver bus in the background (0xF2)."""
+        self.call(jig, D.START_BUS_SCAN)
+
+    def get_bus_scan_result(self, jig=1):
+        """(state, {id: slave type}) of the jig's bus scan (0xF3); state is idle/running/done."""
+        fr = self.request(jig, D.GET_BUS_SCAN_RESULT)
+        try:
+            return BusScan(*D.decode_scan(fr.data))
+        except ValueError as exc:
+            raise BadReplyError("slave %d sent a bad GetBusScanResult reply (%s)" % (jig, exc), jig,
+                                fr.ftype) from None
+
+    def jig_bus_scan(self, jig=1, timeout=5.0, poll=0.05):
+        """Start the jig's bus scan and wait for its result."""
+        self.start_bus_scan(jig)
+        end = time.monotonic() + timeout
+        while True:
+            res = self.get_bus_scan_result(jig)
+            if res.state == "done":
+                return res
+            if time.monotonic() > end:
+                raise MotionTimeoutError("the jig's bus scan did not finish within %.1f s" % timeout)
+            time.sleep(poll)
+
+
+class MotionTimeoutError(JigError):
+    """The axis kept moving past the wait timeout."""
+
+
+def _cstr(b):
+    b = bytes(b)
+    end = b.find(b"\x00")
+    if end >= 0:
+        b = b[:end]
+    return b.decode("ascii", "replace")
+
+
+def _uint(buf, off, n):
+    v = 0
+    for i in range(n):
+        v |= buf[off + i] << (8 * i)
+    return v
+
+
+def _unstuffed_body(slave, ftype, data, sync):
+    body = bytearray(F.MAX_BODY)
+    n = F.build_body(body, slave, ftype, data, 0, -1, sync)
+    return bytes(body[:n])
+
+
+__all__ = ["Master", "Frame", "SlaveInfo", "MotorInfo", "Alarm", "IOAssign", "MotionStatus",
+           "IOAxisStatus", "AllStatus", "BusScan", "AxisStatus", "MotionTimeoutError", "StatusError", "jsonable",
+           "pack", "BAUD_RATES", "DEFAULT_TIMEOUT"]
