@@ -1,0 +1,108 @@
+"""The jig's own event counters, in the order 0xF0 ReadCounters sends them.
+
+``NAMES`` is the wire order; the ``C_*`` indices point into ``Counters.v``. The PC
+library decodes ReadCounters with ``jig.diag.WIRE_NAMES`` (these names followed by
+the two parsers' counters), so there is exactly one copy of the layout.
+
+Conservation laws the tests check (``pending`` is 1 while a reply is awaited):
+
+* forwards = replies + timeouts + aborts + pending   (PC requests sent downstream)
+* int_requests = int_replies + int_timeouts + int_aborts + pending  (scan/safety)
+* up_frames_in = local_requests + forwards + broadcasts
+"""
+
+from jig.compat import const
+
+NAMES = (
+    "up_frames_in",  # good frames received from the PC
+    "up_frames_out",  # frames sent to the PC (local replies + relayed replies)
+    "down_frames_in",  # good frames received from the driver bus
+    "down_frames_out",  # frames sent on the driver bus (forwards, broadcasts, scan, safety)
+    "local_requests",  # frames for the jig's own id
+    "local_errors",  # local replies with status 0x80/0x81/0x82
+    "forwards",  # PC requests forwarded that await a reply
+    "broadcasts",  # PC frames to id 99 forwarded (no reply awaited)
+    "replies",  # matching replies relayed to the PC
+    "timeouts",  # forwarded requests that got no matching reply in time
+    "aborts",  # waits abandoned because the PC sent a new request
+    "stale_drops",  # driver-bus frames dropped: late, unmatched or unsolicited
+    "echo_drops",  # bytes heard on our own port while transmitting, discarded
+    "up_rx_overflows",  # bytes lost: upstream RX buffer full
+    "down_rx_overflows",  # bytes lost: downstream RX buffer full
+    "int_requests",  # jig-originated requests (bus scan, safety stop)
+    "int_replies",
+    "int_timeouts",
+    "int_aborts",
+    "safety_stops",  # times the master-silence stop fired
+    "param_errors",  # parameter file missing/corrupt at boot (defaults used)
+    "param_saves",  # SaveAllParameters that wrote the file
+    "turnaround_count",  # frames whose handling time was measured
+    "turnaround_min_us",  # jig handling time: last byte in -> DE up for the answer
+    "turnaround_avg_us",
+    "turnaround_max_us",
+)
+
+C_UP_IN = const(0)
+C_UP_OUT = const(1)
+C_DOWN_IN = const(2)
+C_DOWN_OUT = const(3)
+C_LOCAL = const(4)
+C_LOCAL_ERRORS = const(5)
+C_FORWARDS = const(6)
+C_BROADCASTS = const(7)
+C_REPLIES = const(8)
+C_TIMEOUTS = const(9)
+C_ABORTS = const(10)
+C_STALE = const(11)
+C_ECHO = const(12)
+C_UP_OVERFLOWS = const(13)
+C_DOWN_OVERFLOWS = const(14)
+C_INT_REQUESTS = const(15)
+C_INT_REPLIES = const(16)
+C_INT_TIMEOUTS = const(17)
+C_INT_ABORTS = const(18)
+C_SAFETY_STOPS = const(19)
+C_PARAM_ERRORS = const(20)
+C_PARAM_SAVES = const(21)
+C_TA_COUNT = const(22)
+C_TA_MIN = const(23)
+C_TA_AVG = const(24)
+C_TA_MAX = const(25)
+COUNT = const(26)
+
+
+class Counters:
+    """Integer counters in a preallocated list (small ints: no allocation on MicroPython)."""
+
+    def __init__(self):
+        self.v = [0] * COUNT
+        self.ta_sum = 0
+        self.reset()
+
+    def reset(self):
+        v = self.v
+        for i in range(COUNT):
+            v[i] = 0
+        self.ta_sum = 0
+
+    def turnaround(self, us):
+        """Record one jig handling time in µs."""
+        v = self.v
+        if us < 0:
+            us = 0
+        if v[C_TA_COUNT] == 0 or us < v[C_TA_MIN]:
+            v[C_TA_MIN] = us
+        if us > v[C_TA_MAX]:
+            v[C_TA_MAX] = us
+        v[C_TA_COUNT] += 1
+        self.ta_sum += us
+        if self.ta_sum > 0x3FFFFFFF:  # keep the sum a small int: restart the average window
+            self.ta_sum = us
+            v[C_TA_COUNT] = 1
+        v[C_TA_AVG] = self.ta_sum // v[C_TA_COUNT]
+
+    def get(self, name):
+        return self.v[NAMES.index(name)]
+
+    def as_dict(self):
+        return dict(zip(NAMES, self.v))

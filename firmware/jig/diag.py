@@ -1,0 +1,70 @@
+"""Wire layouts of the jig's own diagnostic frames and of its GetSlaveInfo reply.
+
+Frame types 0xF0-0xF3 are not used by the Plus-R protocol. Request and reply
+layouts (reply data always starts with the status byte)::
+
+    0xF0 ReadCounters      req: -        reply: St, u8 n, n x u32 in WIRE_NAMES order
+    0xF1 ResetCounters     req: -        reply: St
+    0xF2 StartBusScan      req: -        reply: St  (scan of ids 0..15 runs in the background)
+    0xF3 GetBusScanResult  req: -        reply: St, u8 state, u16 found bitmap (bit k = id k
+                                                answered), 16 x u8 slave type per id (0 = none)
+
+The PC library decodes with ``decode_counters`` / ``decode_scan`` below, so the
+layout exists once. ``SLAVE_TYPE`` is what the jig reports in GetSlaveInfo: 200
+(0xC8), a code no FASTECH product uses (their list: 1, 3, 10, 11, 20, 30, 31, 35,
+40, 50, 60, 100, 102, 105, 108, 110, 120, 130, 150, 155, 160, 180, 254, 255).
+"""
+
+from jig import counters, parser
+from jig.compat import const
+
+READ_COUNTERS = const(0xF0)
+RESET_COUNTERS = const(0xF1)
+START_BUS_SCAN = const(0xF2)
+GET_BUS_SCAN_RESULT = const(0xF3)
+
+SLAVE_TYPE = const(200)
+NAME = b"MotorJig bridge"
+VERSION = b"0.1"
+
+WIRE_NAMES = (
+    counters.NAMES
+    + tuple(["up_" + n for n in parser.COUNTER_NAMES])
+    + tuple(["down_" + n for n in parser.COUNTER_NAMES])
+)
+N_WIRE = len(WIRE_NAMES)
+
+SCAN_IDS = const(16)  # ids 0..15
+SCAN_IDLE = const(0)  # never started
+SCAN_RUNNING = const(1)
+SCAN_DONE = const(2)
+SCAN_STATE_NAMES = ("idle", "running", "done")
+SCAN_REPLY_LEN = const(1 + 1 + 2 + 16)  # incl. status
+
+
+def decode_counters(data):
+    """Reply data of ReadCounters (status first) -> dict name -> value (host side)."""
+    if len(data) < 2 or data[0] != 0:
+        raise ValueError("bad ReadCounters reply")
+    n = data[1]
+    if len(data) != 2 + 4 * n:
+        raise ValueError("bad ReadCounters reply length")
+    out = {}
+    for i in range(n):
+        o = 2 + 4 * i
+        v = data[o] | (data[o + 1] << 8) | (data[o + 2] << 16) | (data[o + 3] << 24)
+        name = WIRE_NAMES[i] if i < N_WIRE else "counter_%d" % i
+        out[name] = v
+    return out
+
+
+def decode_scan(data):
+    """Reply data of GetBusScanResult -> (state name, {id: slave type}) (host side)."""
+    if len(data) != SCAN_REPLY_LEN or data[0] != 0:
+        raise ValueError("bad GetBusScanResult reply")
+    found = data[2] | (data[3] << 8)
+    ids = {}
+    for i in range(SCAN_IDS):
+        if found & (1 << i):
+            ids[i] = data[4 + i]
+    return SCAN_STATE_NAMES[data[1]], ids

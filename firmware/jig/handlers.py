@@ -1,0 +1,170 @@
+"""Frames addressed to the jig itself (slave 1 by default), answered locally.
+
+Each handler gets the parsed request and writes the reply data -- status byte
+first -- into a preallocated buffer, returning its length. Requests whose data
+length is not the documented one get 0x82, unknown frame types 0x80, values out
+of range or unknown parameter numbers 0x81.
+
+"No axis here": vendor masters probe every id with GetCommandPos (0x51) and poll
+GetAxisStatus (0x40) / GetAllStatus (0x43), checking reply lengths exactly. The jig
+answers them with status 0 and the documented length, all fields zero: position
+0, no flags (not moving, no alarm, no limit), no inputs/outputs.
+
+The jig's I/O (SetIOOutput / GetIOOutput / GetIOInput) uses bits 0..15 only (LEDs,
+relays, buttons of the board); the upper 16 bits of the masks are ignored and read
+as 0, which keeps every value a small int (no heap use on MicroPython).
+"""
+
+from jig import diag, frame
+from jig import params as P
+from jig.frame import get_u16, put_u16, put_u32
+
+LEN_ANY = -1
+
+
+class Handlers:
+    def __init__(self, app):
+        self.app = app  # gives params, counters, hal, scanner, parsers, apply_params()
+        info = bytearray(1 + 1 + len(diag.NAME) + 1 + len(diag.VERSION) + 1)
+        info[0] = frame.STATUS_OK
+        info[1] = diag.SLAVE_TYPE
+        s = diag.NAME + b" " + diag.VERSION + b"\x00"
+        info[2:] = s
+        self.info = info
+        self.counter_values = [0] * diag.N_WIRE
+        self.pending_change = -1
+        # frame type -> (handler, required request data length or LEN_ANY)
+        self.table = {
+            frame.GET_SLAVE_INFO: (self.slave_info, 0),
+            frame.SAVE_ALL_PARAMETERS: (self.save_all, 0),
+            frame.GET_ROM_PARAMETER: (self.get_rom_param, 1),
+            frame.SET_PARAMETER: (self.set_param, 5),
+            frame.GET_PARAMETER: (self.get_param, 1),
+            frame.SET_IO_OUTPUT: (self.set_io_output, 8),
+            frame.GET_IO_INPUT: (self.get_io_input, 0),
+            frame.GET_IO_OUTPUT: (self.get_io_output, 0),
+            frame.GET_AXIS_STATUS: (self.no_axis, 0),
+            frame.GET_ALL_STATUS: (self.no_axis, 0),
+            frame.GET_COMMAND_POS: (self.no_axis, 0),
+            diag.READ_COUNTERS: (self.read_counters, 0),
+            diag.RESET_COUNTERS: (self.reset_counters, 0),
+            diag.START_BUS_SCAN: (self.start_scan, 0),
+            diag.GET_BUS_SCAN_RESULT: (self.scan_result, 0),
+        }
+        # Reply data lengths (status included) of the no-axis answers.
+        self.no_axis_len = bytearray(256)
+        self.no_axis_len[frame.GET_AXIS_STATUS] = 1 + 4
+        self.no_axis_len[frame.GET_ALL_STATUS] = 1 + 32
+        self.no_axis_len[frame.GET_COMMAND_POS] = 1 + 4
+
+    def handle(self, p, out):
+        """Reply data (status first) for request p into out; returns its length."""
+        entry = self.table.get(p.ftype)
+        if entry is None:
+            out[0] = frame.STATUS_FRAME_TYPE_ERROR
+            return 1
+        fn, need = entry
+        n = p.data_end - p.data_start
+        if need != LEN_ANY and n != need:
+            out[0] = frame.STATUS_FRAME_ERROR
+            return 1
+        return fn(p, p.body, p.data_start, out)
+
+    def after_reply(self, p):
+        """Run changes that must wait until the reply has gone (new slave id etc.)."""
+        if self.pending_change >= 0:
+            self.pending_change = -1
+            self.app.apply_params()
+
+    def slave_info(self, p, d, o, out):
+        info = self.info
+        n = len(info)
+        for i in range(n):
+            out[i] = info[i]
+        return n
+
+    def no_axis(self, p, d, o, out):
+        n = self.no_axis_len[p.ftype]
+        for i in range(n):
+            out[i] = 0
+        return n
+
+    # --- parameters ------------------------------------------------------------
+    def get_param(self, p, d, o, out):
+        num = d[o]
+        if num >= P.COUNT:
+            out[0] = frame.STATUS_DATA_ERROR
+            return 1
+        out[0] = frame.STATUS_OK
+        put_u32(out, 1, self.app.params.get(num))
+        return 5
+
+    def get_rom_param(self, p, d, o, out):
+        num = d[o]
+        if num >= P.COUNT:
+            out[0] = frame.STATUS_DATA_ERROR
+            return 1
+        out[0] = frame.STATUS_OK
+        put_u32(out, 1, self.app.params.get_rom(num))
+        return 5
+
+    def set_param(self, p, d, o, out):
+        num = d[o]
+        if num >= P.COUNT or not self.app.params.set(num, frame.get_i32(d, o + 1)):
+            out[0] = frame.STATUS_DATA_ERROR
+            return 1
+        if P.TABLE[num][6] == P.IMMEDIATE:
+            self.pending_change = num
+        out[0] = frame.STATUS_OK
+        return 1
+
+    def save_all(self, p, d, o, out):
+        if self.app.save_params():
+            out[0] = frame.STATUS_OK
+        else:
+            out[0] = frame.STATUS_ROM_ACCESS_ERROR
+        return 1
+
+    # --- jig I/O -----------------------------------------------------------------
+    def set_io_output(self, p, d, o, out):
+        hal = self.app.hal
+        cur = hal.get_outputs() & 0xFFFF
+        cur = (cur | get_u16(d, o)) & ~get_u16(d, o + 4) & 0xFFFF
+        hal.set_outputs(cur)
+        out[0] = frame.STATUS_OK
+        return 1
+
+    def get_io_output(self, p, d, o, out):
+        out[0] = frame.STATUS_OK
+        put_u16(out, 1, self.app.hal.get_outputs() & 0xFFFF)
+        put_u16(out, 3, 0)
+        return 5
+
+    def get_io_input(self, p, d, o, out):
+        out[0] = frame.STATUS_OK
+        put_u16(out, 1, self.app.hal.get_inputs() & 0xFFFF)
+        put_u16(out, 3, 0)
+        return 5
+
+    # --- diagnostics -------------------------------------------------------------
+    def read_counters(self, p, d, o, out):
+        vals = self.app.counter_values(self.counter_values)
+        n = len(vals)
+        out[0] = frame.STATUS_OK
+        out[1] = n
+        for i in range(n):
+            put_u32(out, 2 + 4 * i, vals[i] & 0x3FFFFFFF)
+        return 2 + 4 * n
+
+    def reset_counters(self, p, d, o, out):
+        self.app.reset_counters()
+        out[0] = frame.STATUS_OK
+        return 1
+
+    def start_scan(self, p, d, o, out):
+        self.app.scanner.start()
+        out[0] = frame.STATUS_OK
+        return 1
+
+    def scan_result(self, p, d, o, out):
+        return self.app.scanner.result_into(out)

@@ -1,0 +1,114 @@
+"""One half-duplex RS-485 port: DE/RE timing around a transmission, echo discard.
+
+``send`` raises DE, waits the pre-delay, writes, makes sure the last stop bit has
+left the shift register (the HAL's ``write`` returns after transmit-complete, or
+we wait the computed wire time), waits the post-delay and releases DE. In
+hardware-DE mode the USART drives DE itself (set up through ``port.hw_de``) and
+``send`` only writes.
+
+A separate /RE pin (``port.re``, if the board has one) is driven with DE: the
+receiver is switched off while we drive the bus and back on after DE drops.
+Bytes heard on our own port while we transmit anyway (a transceiver whose
+receiver stays enabled) are echo: they are discarded from the receive stream and
+counted.
+"""
+
+from jig import mem
+from jig.compat import const
+
+BITS_PER_BYTE = const(10)  # 8N1: start + 8 data + stop
+
+
+def wire_time_us(nbytes, baud):
+    """Time nbytes take on the wire at baud, in µs (rounded up)."""
+    return (nbytes * BITS_PER_BYTE * 1000000 + baud - 1) // baud
+
+
+class Rs485:
+    def __init__(self, hal, port, pre_us=10, post_us=0, hw_de=False):
+        self.hal = hal
+        self.port = port
+        self.pre_us = pre_us
+        self.post_us = post_us
+        self.hw = False
+        self.echo_bytes = 0  # bytes discarded as echo
+        self.tx_frames = 0
+        self.tx_bytes = 0
+        self.t_tx_start = 0  # tick when DE last went up (or the write started)
+        self._keep = 0  # bytes still to deliver before the echo to skip
+        self._skip = 0  # echo bytes still to skip
+        self.re = getattr(port, "re", None)  # separate /RE pin, if any
+        port.de(0)
+        if self.re is not None:
+            self.re(0)
+        self.configure(pre_us, post_us, hw_de)
+
+    def configure(self, pre_us, post_us, hw_de):
+        """Set DE delays; hardware DE if asked for and the port supports it."""
+        self.pre_us = pre_us
+        self.post_us = post_us
+        want = bool(hw_de)
+        hook = getattr(self.port, "hw_de", None)
+        baud = self.port.baud
+        # DEAT/DEDT are in 1/16 bit time, 5 bits wide (max 31).
+        pre16 = min(31, (pre_us * baud * 16 + 999999) // 1000000)
+        post16 = min(31, (post_us * baud * 16 + 999999) // 1000000)
+        ok = False
+        if hook is not None:
+            ok = hook(want, pre16, post16)
+        self.hw = bool(want and ok)
+        return self.hw
+
+    def send(self, buf, n):
+        """Transmit buf[0:n] with DE framing; returns when the line is released."""
+        hal = self.hal
+        port = self.port
+        keep = port.any()
+        if not self.hw:
+            if self.re is not None:
+                self.re(1)
+            port.de(1)
+            self.t_tx_start = hal.ticks_us()
+            if self.pre_us:
+                hal.sleep_us(self.pre_us)
+        else:
+            self.t_tx_start = hal.ticks_us()
+        port.write(buf, n)
+        if not port.tx_blocks:
+            hal.sleep_us(wire_time_us(n, port.baud))
+        if not self.hw:
+            if self.post_us:
+                hal.sleep_us(self.post_us)
+            port.de(0)
+            if self.re is not None:
+                self.re(0)
+        self.tx_frames += 1
+        self.tx_bytes += n
+        echo = port.any() - keep
+        if echo > 0:
+            if self._skip == 0:
+                self._keep = keep
+            self._skip += echo
+            self.echo_bytes += echo
+
+    def any(self):
+        return self.port.any()
+
+    def read_into(self, buf, n):
+        """Received bytes (echo removed) into buf[0:]; returns the count."""
+        got = self.port.readinto(buf, n)
+        if self._skip == 0 or got == 0:
+            return got
+        k = self._keep
+        if k >= got:
+            self._keep = k - got
+            return got
+        self._keep = 0
+        d = got - k
+        if d > self._skip:
+            d = self._skip
+        self._skip -= d
+        rest = got - k - d
+        if rest:
+            mem.copy(buf, k, buf, k + d, rest)
+        return k + rest

@@ -1,0 +1,77 @@
+"""Master-silence safety stop (opt-in): stop the drivers when the PC goes quiet.
+
+Like EtherCAT's process-data watchdog or a CANopen heartbeat consumer: once the PC
+has sent at least one frame, if it then stays silent longer than
+``safety_timeout_ms`` (0 = off), the jig sends MoveStop or EmergencyStop
+(``safety_action``) once to every driver id that has answered through the bridge,
+and counts the event. It re-arms when the PC speaks again.
+"""
+
+from jig import counters as K
+from jig import frame
+from jig.compat import ticks_diff
+from jig.params import P_REPLY_TIMEOUT_MS, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
+
+
+class SafetyStop:
+    def __init__(self, bridge, params, counters):
+        self.bridge = bridge
+        self.params = params
+        self.c = counters
+        self.fired_at = -1  # bridge.pc_frames value when it last fired
+        self.todo = 0  # bitmap of ids still to stop
+        self.next_id = 0
+        self.waiting = False
+        self.sent = 0  # stop frames sent
+        self.empty = bytearray(1)
+
+    def wait_us(self, now):
+        """µs until the silence limit is reached (-1: not armed)."""
+        ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
+        if self.todo:
+            return 0
+        if ms == 0 or self.bridge.pc_frames == 0 or self.fired_at == self.bridge.pc_frames:
+            return -1
+        d = ms * 1000 - ticks_diff(now, self.bridge.t_pc)
+        return d if d > 0 else 0
+
+    def poll(self, now):
+        b = self.bridge
+        if not self.todo:
+            ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
+            if ms == 0 or b.pc_frames == 0 or self.fired_at == b.pc_frames:
+                return
+            if ticks_diff(now, b.t_pc) <= ms * 1000:
+                return
+            self.fired_at = b.pc_frames
+            self.c.v[K.C_SAFETY_STOPS] += 1
+            self.todo = b.seen
+            self.next_id = 0
+            if not self.todo:
+                return
+        if self.waiting or b.busy():
+            return
+        while self.next_id < 30 and not (self.todo & (1 << self.next_id)):
+            self.next_id += 1
+        if self.next_id >= 30:
+            self.todo = 0
+            return
+        ftype = frame.EMERGENCY_STOP if self.params.ram[P_SAFETY_ACTION] else frame.MOVE_STOP
+        if b.request(self, self.next_id, ftype, self.empty, 0, self.params.ram[P_REPLY_TIMEOUT_MS]):
+            self.waiting = True
+            self.sent += 1
+
+    def _done(self):
+        self.waiting = False
+        self.todo &= ~(1 << self.next_id)
+
+    def on_reply(self, p):
+        self._done()
+
+    def on_timeout(self):
+        self._done()
+
+    def on_abort(self):
+        # The PC is back: it is in charge again.
+        self.waiting = False
+        self.todo = 0

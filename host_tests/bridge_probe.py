@@ -1,0 +1,175 @@
+"""The jig's App on a minimal in-memory HAL, for measurements under CPython and MicroPython.
+
+Used by host_tests/test_bridge_vm.py (through host_tests/wasm/run_vm.mjs: the
+real MicroPython VM) and by tools/bench_bridge.py. Nothing here allocates in the
+steady state either, so heap growth measured with the collector disabled is the
+firmware's own.
+
+* ``forward_alloc(n)`` / ``local_alloc(n)``: heap bytes allocated over n forwarded
+  (request forwarded + reply relayed) or local transactions after a warm-up; the
+  goal is 0. ``gc.mem_alloc`` exists on MicroPython only.
+* ``Rig``: the App plus helpers to push one transaction through it.
+"""
+
+import gc
+
+from jig import frame, mem
+from jig.app import App
+from jig.ringbuf import RingBuffer
+
+MASK = 0x3FFFFFFF
+
+
+class Port:
+    def __init__(self):
+        self.baud = 115200
+        self.rx = RingBuffer(1024)
+        self.t_last = 0
+        self.overflows = 0
+        self.tx_blocks = True
+        self.out = bytearray(frame.MAX_WIRE)
+        self.out_n = 0
+        self.writes = 0
+
+    def any(self):
+        return self.rx.any()
+
+    def readinto(self, buf, n):
+        return self.rx.read_into(buf, n)
+
+    def write(self, buf, n):
+        mem.copy(self.out, 0, buf, 0, n)
+        self.out_n = n
+        self.writes += 1
+
+    def de(self, v):
+        pass
+
+    def hw_de(self, on, pre16, post16):
+        return False
+
+
+class NoFS:
+    def read_into(self, path, buf):
+        return -1
+
+    def write(self, path, buf, n):
+        pass
+
+    def rename(self, a, b):
+        pass
+
+    def remove(self, path):
+        pass
+
+
+class Hal:
+    def __init__(self):
+        self.t = 0
+        self.fs = NoFS()
+        self.param_path = "/p"
+        self.outputs = 0
+        self.up = None
+        self.down = None
+
+    def open(self, up_baud, down_baud):
+        self.up = Port()
+        self.down = Port()
+
+    def ticks_us(self):
+        return self.t
+
+    def sleep_us(self, us):
+        self.t = (self.t + us) & MASK
+
+    def set_outputs(self, m):
+        self.outputs = m
+
+    def get_outputs(self):
+        return self.outputs
+
+    def get_inputs(self):
+        return 0
+
+    def heartbeat(self, on):
+        pass
+
+    def wdt_feed(self):
+        pass
+
+
+class Rig:
+    def __init__(self):
+        self.hal = Hal()
+        self.app = App(self.hal)
+        self.req = bytearray(frame.encode(2, frame.GET_AXIS_STATUS))
+        self.reply = bytearray(frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08"))
+        self.local = bytearray(frame.encode(1, frame.GET_COMMAND_POS))
+        self.counters = bytearray(frame.encode(1, 0xF0))
+
+    def _in(self, port, wire):
+        hal = self.hal
+        hal.t = (hal.t + 50) & MASK
+        port.rx.write(wire, len(wire), hal.t)
+        port.t_last = hal.t
+
+    def forward_once(self):
+        """PC request in, poll (forwarded), driver reply in, poll (relayed)."""
+        hal = self.hal
+        self._in(hal.up, self.req)
+        self.app.poll()
+        self._in(hal.down, self.reply)
+        self.app.poll()
+
+    def local_once(self, wire=None):
+        self._in(self.hal.up, self.local if wire is None else wire)
+        self.app.poll()
+
+
+def _measure(fn, n):
+    for _ in range(20):
+        fn()
+    gc.collect()
+    gc.disable()
+    try:
+        a0 = gc.mem_alloc()
+        for _ in range(n):
+            fn()
+        a1 = gc.mem_alloc()
+    finally:
+        gc.enable()
+    return a1 - a0
+
+
+def forward_alloc(n=200):
+    r = Rig()
+    used = _measure(r.forward_once, n)
+    ok = r.hal.up.writes == n + 20 and r.hal.up.out[0:r.hal.up.out_n] == r.reply
+    return used, ok
+
+
+def local_alloc(n=200, counters=False):
+    r = Rig()
+    wire = r.counters if counters else r.local
+    used = _measure(lambda: r.local_once(wire), n)
+    return used, r.hal.up.writes == n + 20
+
+
+def scan_all_absent():
+    """StartBusScan with no driver answering: 16 probes, each timing out; returns
+    (probes sent, scan state, heap bytes used by the 16 probes or -1 on CPython)."""
+    r = Rig()
+    r.local_once(bytearray(frame.encode(1, 0xF2)))
+    hal = r.hal
+    gc.collect()
+    has_mem = hasattr(gc, "mem_alloc")
+    if has_mem:
+        gc.disable()
+        a0 = gc.mem_alloc()
+    for _ in range(40):
+        hal.t = (hal.t + 30000) & MASK
+        r.app.poll()
+    used = gc.mem_alloc() - a0 if has_mem else -1
+    if has_mem:
+        gc.enable()
+    return hal.down.writes, r.app.scanner.state, used

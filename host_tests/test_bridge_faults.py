@@ -1,0 +1,202 @@
+"""Bridge behaviour under faults, on the virtual bench (real firmware, virtual time)."""
+
+import struct
+
+from jig import frame as F
+from motorjig.sim import SimBench
+
+GCP = F.GET_COMMAND_POS
+
+
+def make(**kw):
+    kw.setdefault("driver_ids", (2, 3))
+    return SimBench(**kw)
+
+
+def test_silent_driver_times_out_like_an_empty_address():
+    b = make()
+    b.drivers[2].silent = True
+    assert b.request(2, GCP) == (None, None)
+    assert b.counters["timeouts"] == 1 and b.counters["replies"] == 0
+    _w, r = b.request(3, GCP)
+    assert r == b"\x00" + bytes(4)
+    assert b.pc.raw == b.pc.frames[0][1]  # nothing else ever reached the PC
+
+
+def test_garbage_answer_is_not_relayed():
+    b = make()
+    b.drivers[2].garbage = True
+    assert b.request(2, GCP) == (None, None)
+    c = b.counters
+    assert c["timeouts"] == 1 and c["replies"] == 0 and c["up_frames_out"] == 0
+    assert c["down_noise"] + c["down_crc_errors"] + c["down_stuff_errors"] + c["down_short"] > 0
+    assert b.pc.raw == b""
+
+
+def test_bad_crc_reply_dropped():
+    b = make()
+    b.drivers[2].bad_crc = True
+    assert b.request(2, GCP) == (None, None)
+    assert b.counters["down_crc_errors"] == 1 and b.pc.raw == b""
+
+
+def test_wrong_id_reply_dropped():
+    b = make()
+    b.drivers[2].wrong_id = 5
+    assert b.request(2, GCP) == (None, None)
+    c = b.counters
+    assert c["stale_drops"] == 1 and c["timeouts"] == 1 and b.pc.raw == b""
+
+
+def test_late_reply_never_answers_the_next_request():
+    b = make()
+    d = b.drivers[2]
+    d.late_us = 60000.0  # jig reply timeout is 50 ms
+    assert b.request(2, GCP, timeout_us=52000.0) == (None, None)
+    assert b.counters["timeouts"] == 1
+    d.late_us = 0.0
+    # next request (another type) goes out while the late reply is still pending
+    wire, r = b.request(2, F.GET_AXIS_STATUS)
+    assert r is not None and wire[3] == F.GET_AXIS_STATUS
+    b.run_for(20000.0)  # the late GetCommandPos reply arrives now
+    c = b.counters
+    assert c["stale_drops"] == 1 and c["replies"] == 1
+    assert [w[3] for _t, w in b.pc.frames] == [F.GET_AXIS_STATUS]
+    # and the request after that still gets its own answer
+    wire, r = b.request(3, GCP)
+    assert wire[2:4] == bytes([3, GCP])
+    assert len(b.pc.frames) == 2
+
+
+def test_late_reply_to_idle_jig_is_dropped():
+    b = make()
+    b.drivers[2].late_us = 70000.0
+    assert b.request(2, GCP, timeout_us=100000.0) == (None, None)
+    assert b.counters["stale_drops"] == 1 and b.pc.raw == b""
+
+
+def test_ver8_same_type_late_reply_is_told_apart_by_sync():
+    b = make(ver8=True)
+    d = b.drivers[2]
+    d.late_us = 55000.0
+    b.send(b.encode(2, GCP))  # sync 0, answered at ~56 ms
+    b.run_for(53000.0)
+    assert b.counters["timeouts"] == 1
+    d.late_us = 0.0
+    d.motion.pos = 1234.0  # the second answer differs from the first
+    wire, r = b.request(2, GCP)  # sync 1; the sync-0 answer arrives while this waits
+    assert r == b"\x00" + struct.pack("<i", 1234) and wire[3] == 1
+    b.run_for(20000.0)
+    assert len(b.pc.frames) == 1 and b.counters["stale_drops"] == 1
+
+
+def test_truncated_request_then_good_one():
+    b = make()
+    wire = F.encode(2, GCP)
+    b.send(wire[:5])
+    b.run_for(20000.0)  # > inter-byte timeout
+    _w, r = b.request(2, GCP)
+    assert r == b"\x00" + bytes(4)
+    assert b.counters["up_timeouts"] == 1 and b.drivers[2].requests == 1
+
+
+def test_truncated_request_immediately_followed_by_good_one():
+    b = make()
+    wire = F.encode(2, GCP)
+    got = b.transact(wire[:5] + wire)
+    assert got is not None and got[2:4] == bytes([2, GCP])
+    assert b.counters["up_resyncs"] == 1 and b.drivers[2].requests == 1
+
+
+def test_noise_bursts_on_both_buses():
+    b = make()
+    noise = bytes([0x55, 0xAA, 0x01, 0xAA, 0xCC, 0x02, 0x13, 0xFF, 0x00, 0xEE, 0xAA])
+    for k in range(20):
+        b.up_bus.inject(noise[k % 5 :])
+        b.down_bus.inject(noise[: 3 + k % 7])
+        b.run_for(20000.0)
+        wire, r = b.request(2 + k % 2, GCP)
+        assert r == b"\x00" + bytes(4)
+    c = b.counters
+    assert c["replies"] == 20 and c["timeouts"] == 0
+    assert c["up_noise"] > 0 and c["down_noise"] > 0
+    # everything the jig sent to the PC is exactly the 20 replies
+    assert [w for _t0, _t1, w in b.hal.up.writes] == [w for _t, w in b.pc.frames]
+
+
+def test_pc_retry_while_waiting_gets_one_answer():
+    b = make()
+    d = b.drivers[2]
+    d.late_us = 8000.0
+    wire = F.encode(2, GCP)
+    t = b.send(wire)
+    b.clock.run_until(t + 3000.0)
+    b.send(wire)  # the PC gives up waiting and re-sends
+    b.run_for(40000.0)
+    c = b.counters
+    assert c["aborts"] == 1 and c["replies"] == 1 and c["stale_drops"] == 1
+    assert len(b.pc.frames) == 1 and d.requests == 2
+    assert c["forwards"] == c["replies"] + c["timeouts"] + c["aborts"]
+
+
+def test_new_local_request_aborts_the_wait():
+    b = make()
+    b.drivers[2].late_us = 8000.0
+    b.send(F.encode(2, GCP))
+    b.run_for(3000.0)
+    _w, r = b.request(1, GCP)
+    assert r == b"\x00" + bytes(4)
+    b.run_for(20000.0)
+    c = b.counters
+    assert c["aborts"] == 1 and c["stale_drops"] == 1 and len(b.pc.frames) == 1
+
+
+def test_unsolicited_driver_bus_frame_never_reaches_pc():
+    b = make()
+    b.down_bus.inject(F.encode(7, GCP, b"\x00\x01\x02\x03\x04"))
+    b.run_for(10000.0)
+    assert b.counters["stale_drops"] == 1 and b.pc.raw == b""
+
+
+def test_rx_overflow_counted_and_recovered():
+    b = make(rxsize=64)
+    burst = F.encode(2, F.SET_PARAMETER, b"\x03" + bytes(4)) * 10  # 130 bytes in one go
+    b.send(burst)
+    b.run_for(50000.0)
+    c = b.counters
+    assert c["up_rx_overflows"] > 0
+    _w, r = b.request(3, GCP)
+    assert r == b"\x00" + bytes(4)
+
+
+def test_echo_on_upstream_port_discarded():
+    b = make(echo_up=True)
+    sent = 0
+    for k in range(5):
+        wire, r = b.request(1 + k % 3, GCP)
+        assert r == b"\x00" + bytes(4)
+        sent += len(wire)
+    c = b.counters
+    assert c["echo_drops"] == sent
+    assert c["up_frames_in"] == 5 and c["up_good"] == 5  # the echo never parsed as a PC frame
+    assert c["up_frames_out"] == 5
+
+
+def test_echo_on_downstream_port_discarded():
+    b = make(echo_down=True)
+    wire, r = b.request(2, GCP)
+    assert r is not None
+    c = b.counters
+    assert c["echo_drops"] == len(F.encode(2, GCP)) and c["stale_drops"] == 0 and c["down_good"] == 1
+
+
+def test_absent_ids_are_silent_and_slow_types_wait_longer():
+    b = make()
+    d = b.drivers[2]
+    d.late_us = 200000.0  # SaveAllParameters may take 5 x 50 ms
+    _w, r = b.request(2, F.SAVE_ALL_PARAMETERS, timeout_us=300000.0)
+    assert r == b"\x00"
+    d.late_us = 60000.0  # a normal type is given up after 50 ms
+    assert b.request(2, GCP, timeout_us=100000.0) == (None, None)
+    c = b.counters
+    assert c["replies"] == 1 and c["timeouts"] == 1

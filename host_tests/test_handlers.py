@@ -1,0 +1,152 @@
+"""Frames for the jig's own id, answered locally (through the bench: the PC's view)."""
+
+import struct
+
+import pytest
+
+from jig import diag
+from jig import frame as F
+from jig import params as P
+from motorjig.sim import SimBench
+
+
+@pytest.fixture
+def b():
+    return SimBench(driver_ids=(2, 3))
+
+
+def ask(b, ftype, data=b"", slave=None):
+    wire, r = b.request(b.jig_id if slave is None else slave, ftype, data)
+    assert wire is not None, "no reply to 0x%02X" % ftype
+    return r
+
+
+def test_discovery_frames_have_documented_lengths(b):
+    assert ask(b, F.GET_COMMAND_POS) == b"\x00" + bytes(4)
+    assert ask(b, F.GET_AXIS_STATUS) == b"\x00" + bytes(4)
+    assert ask(b, F.GET_ALL_STATUS) == b"\x00" + bytes(32)
+    info = ask(b, F.GET_SLAVE_INFO)
+    assert info[:2] == bytes([0, diag.SLAVE_TYPE]) and info[-1] == 0
+    assert info[2:-1] == diag.NAME + b" " + diag.VERSION
+    assert b.counters["forwards"] == 0  # nothing went to the drivers
+
+
+def test_vendor_style_probe_of_ids_0_to_15(b):
+    """Like the vendor library at connect: GetCommandPos to every id, exact length."""
+    answered = []
+    for i in range(16):
+        wire, r = b.request(i, F.GET_COMMAND_POS, timeout_us=100000.0)
+        if r is not None:
+            assert len(r) == 5 and r[0] == 0
+            answered.append(i)
+    assert answered == [1, 2, 3]
+
+
+def test_unknown_type_and_bad_length(b):
+    assert ask(b, 0x77) == bytes([F.STATUS_FRAME_TYPE_ERROR])
+    assert ask(b, F.GET_SLAVE_INFO, b"\x00") == bytes([F.STATUS_FRAME_ERROR])
+    assert ask(b, F.SET_PARAMETER, b"\x01\x00") == bytes([F.STATUS_FRAME_ERROR])
+    assert ask(b, F.SET_IO_OUTPUT, bytes(7)) == bytes([F.STATUS_FRAME_ERROR])
+    assert b.counters["local_errors"] == 4
+
+
+def test_parameters_get_set_rom_save(b):
+    assert ask(b, F.GET_PARAMETER, bytes([P.P_REPLY_TIMEOUT_MS])) == b"\x00" + struct.pack("<i", 50)
+    assert ask(b, F.SET_PARAMETER, bytes([P.P_REPLY_TIMEOUT_MS]) + struct.pack("<i", 120)) == b"\x00"
+    assert ask(b, F.GET_PARAMETER, bytes([P.P_REPLY_TIMEOUT_MS])) == b"\x00" + struct.pack("<i", 120)
+    assert ask(b, F.GET_ROM_PARAMETER, bytes([P.P_REPLY_TIMEOUT_MS])) == b"\x00" + struct.pack("<i", 50)
+    # out of range, unknown number
+    assert ask(b, F.SET_PARAMETER, bytes([P.P_REPLY_TIMEOUT_MS]) + struct.pack("<i", 0)) == b"\x81"
+    assert ask(b, F.SET_PARAMETER, bytes([P.P_UP_BAUD]) + struct.pack("<i", 12345)) == b"\x81"
+    assert ask(b, F.SET_PARAMETER, bytes([200]) + struct.pack("<i", 1)) == b"\x81"
+    assert ask(b, F.GET_PARAMETER, bytes([P.COUNT])) == b"\x81"
+    assert ask(b, F.GET_ROM_PARAMETER, bytes([P.COUNT])) == b"\x81"
+    assert ask(b, F.SAVE_ALL_PARAMETERS) == b"\x00"
+    assert ask(b, F.GET_ROM_PARAMETER, bytes([P.P_REPLY_TIMEOUT_MS])) == b"\x00" + struct.pack("<i", 120)
+    assert b.counters["param_saves"] == 1
+    # immediate: the new timeout is used at once
+    assert b.app.bridge.params.ram[P.P_REPLY_TIMEOUT_MS] == 120
+
+
+def test_saved_parameters_survive_restart_and_restart_params_apply():
+    b = SimBench(driver_ids=(2,))
+    assert ask(b, F.SET_PARAMETER, bytes([P.P_DOWN_BAUD]) + struct.pack("<i", 460800)) == b"\x00"
+    assert b.down_bus.baud == 115200  # takes effect at restart
+    assert ask(b, F.SAVE_ALL_PARAMETERS) == b"\x00"
+    b2 = SimBench(driver_ids=(2,), fs=b.fs)
+    assert b2.down_bus.baud == 460800 and b2.app.params.get(P.P_DOWN_BAUD) == 460800
+    assert b2.counters["param_errors"] == 0
+
+
+def test_corrupt_parameter_file_counted():
+    b = SimBench(driver_ids=(2,))
+    path = b.hal.param_path
+    b.fs.files[path] = b"MJP1" + bytes(10)
+    b2 = SimBench(driver_ids=(2,), fs=b.fs)
+    assert b2.counters["param_errors"] == 1 and b2.jig_id == 1
+
+
+def test_changing_the_jig_id_answers_with_the_old_one_first(b):
+    wire, r = b.request(1, F.SET_PARAMETER, bytes([P.P_SLAVE_ID]) + struct.pack("<i", 4))
+    assert r == b"\x00" and wire[2] == 1
+    assert b.request(1, F.GET_COMMAND_POS) == (None, None) or b.drivers.get(1)
+    assert ask(b, F.GET_SLAVE_INFO, slave=4)[1] == diag.SLAVE_TYPE
+
+
+def test_io_outputs_and_inputs(b):
+    assert ask(b, F.SET_IO_OUTPUT, struct.pack("<II", 0x0005, 0)) == b"\x00"
+    assert b.hal.outputs == 0x0005
+    assert ask(b, F.SET_IO_OUTPUT, struct.pack("<II", 0x0100, 0x0001)) == b"\x00"
+    assert b.hal.outputs == 0x0104
+    assert ask(b, F.GET_IO_OUTPUT) == b"\x00" + struct.pack("<I", 0x0104)
+    b.hal.inputs = 0x0003
+    assert ask(b, F.GET_IO_INPUT) == b"\x00" + struct.pack("<I", 3)
+    # bits above 15 are not the jig's: ignored
+    assert ask(b, F.SET_IO_OUTPUT, struct.pack("<II", 0xFFFF0000, 0)) == b"\x00"
+    assert b.hal.outputs == 0x0104
+
+
+def test_counters_read_and_reset(b):
+    b.request(2, F.GET_COMMAND_POS)
+    b.request(9, F.GET_COMMAND_POS)
+    r = ask(b, diag.READ_COUNTERS)
+    c = diag.decode_counters(r)
+    assert list(c) == list(diag.WIRE_NAMES)
+    assert c["forwards"] == 2 and c["replies"] == 1 and c["timeouts"] == 1
+    assert c["up_frames_in"] == 3 and c["local_requests"] == 1 and c["up_good"] == 3
+    assert len(r) == 2 + 4 * len(diag.WIRE_NAMES) <= F.MAX_DATA
+    assert ask(b, diag.RESET_COUNTERS) == b"\x00"
+    c = diag.decode_counters(ask(b, diag.READ_COUNTERS))
+    assert c["forwards"] == 0 and c["up_frames_in"] == 1 and c["local_requests"] == 1
+
+
+def test_bus_scan_runs_in_background(b):
+    b.drivers[3].slave_type = 60
+    assert ask(b, diag.START_BUS_SCAN) == b"\x00"
+    state, ids = diag.decode_scan(ask(b, diag.GET_BUS_SCAN_RESULT))
+    assert state == "running"
+    # PC traffic keeps flowing during the scan
+    for _ in range(5):
+        assert b.request(2, F.GET_AXIS_STATUS)[1] is not None
+    for _ in range(100):
+        b.run_for(10000.0)
+        state, ids = diag.decode_scan(ask(b, diag.GET_BUS_SCAN_RESULT))
+        if state == "done":
+            break
+    assert state == "done" and ids == {2: 20, 3: 60}
+    c = b.counters
+    assert c["int_requests"] == c["int_replies"] + c["int_timeouts"] + c["int_aborts"]
+    assert c["int_replies"] >= 2
+    # no reply from the scan ever reached the PC
+    assert all(w[3] != F.GET_SLAVE_INFO for _t, w in b.pc.frames)
+
+
+def test_local_replies_are_fast(b):
+    for ftype, data in ((F.GET_SLAVE_INFO, b""), (diag.READ_COUNTERS, b""), (F.SAVE_ALL_PARAMETERS, b"")):
+        wire = b.encode(1, ftype, data)
+        t_end = b.send(wire)
+        n0 = len(b.pc.frames)
+        b.clock.run_while(lambda: len(b.pc.frames) == n0, 100000.0)
+        t_reply, reply = b.pc.frames[n0]
+        reply_time = len(reply) * 10e6 / 115200
+        assert t_reply - t_end - reply_time < 100.0  # µs on the virtual timeline

@@ -1,0 +1,69 @@
+"""Master-silence safety stop: opt-in, once per silence, only to drivers seen."""
+
+import struct
+
+from jig import frame as F
+from jig import params as P
+from motorjig.sim import SimBench
+
+
+def setup(action=0, timeout_ms=200):
+    b = SimBench(driver_ids=(2, 3, 4), servo_on=True)
+    for d in b.drivers.values():
+        d.record_requests = True
+    data = bytes([P.P_SAFETY_TIMEOUT_MS]) + struct.pack("<i", timeout_ms)
+    assert b.request(1, F.SET_PARAMETER, data)[1] == b"\x00"
+    assert b.request(1, F.SET_PARAMETER, bytes([P.P_SAFETY_ACTION]) + struct.pack("<i", action))[1] == b"\x00"
+    return b
+
+
+def stops(d):
+    return [t for t, ft in d.received if ft in (F.MOVE_STOP, F.EMERGENCY_STOP)]
+
+
+def test_off_by_default():
+    b = SimBench(driver_ids=(2,), servo_on=True)
+    b.request(2, F.MOVE_VELOCITY, struct.pack("<IB", 1000, 1))
+    b.run_for(5e6)
+    assert b.counters["safety_stops"] == 0 and b.counters["int_requests"] == 0
+    assert b.drivers[2].motion.moving
+
+
+def test_silence_stops_seen_drivers_once():
+    b = setup(action=0, timeout_ms=200)
+    for i in (2, 3):
+        assert b.request(i, F.MOVE_VELOCITY, struct.pack("<IB", 2000, 1))[1] == b"\x00"
+    t_last = b.pc.node.tx_until  # end of the PC's last frame
+    b.run_for(150000.0)
+    assert b.counters["safety_stops"] == 0
+    b.run_for(2e6)
+    c = b.counters
+    assert c["safety_stops"] == 1
+    for i in (2, 3):
+        s = stops(b.drivers[i])
+        assert len(s) == 1 and s[0] - t_last >= 200000.0
+        assert b.drivers[i].received[-1][1] == F.MOVE_STOP
+        assert not b.drivers[i].flags() & (1 << 27)  # decelerated to a stop
+    assert stops(b.drivers[4]) == []  # never seen: not addressed
+    assert c["int_requests"] == 2 and c["int_replies"] == 2
+    assert b.pc.frames[-1][1][3] == F.MOVE_VELOCITY  # nothing reached the PC
+    # talks again, goes silent again: fires again
+    b.request(2, F.GET_AXIS_STATUS)
+    b.run_for(1e6)
+    assert b.counters["safety_stops"] == 2 and len(stops(b.drivers[2])) == 2
+
+
+def test_emergency_stop_action():
+    b = setup(action=1, timeout_ms=100)
+    b.request(3, F.MOVE_VELOCITY, struct.pack("<IB", 2000, 0))
+    b.run_for(500000.0)
+    d = b.drivers[3]
+    assert d.received[-1][1] == F.EMERGENCY_STOP and d.estop
+
+
+def test_traffic_keeps_it_quiet():
+    b = setup(timeout_ms=100)
+    for _ in range(30):
+        b.request(2, F.GET_AXIS_STATUS)
+        b.run_for(50000.0)
+    assert b.counters["safety_stops"] == 0

@@ -1,0 +1,89 @@
+"""The interactive bench: Bench API, pty and TCP, the pyserial example, the CLI."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+import serial
+
+from jig import frame as F
+from jig.parser import FrameParser
+from motorjig.sim import Bench
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+EXAMPLE = os.path.join(ROOT, "tools", "examples", "pyserial_scan_move.py")
+ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.join(ROOT, "firmware"), os.path.join(ROOT, "tools")]))
+
+
+def read_frame(ser, deadline_reads=20):
+    p = FrameParser()
+    for _ in range(deadline_reads):
+        chunk = ser.read(64)
+        i = 0
+        while i < len(chunk):
+            i = p.feed(chunk, i)
+            if p.ready:
+                return bytes(p.body[: p.body_len])
+    return None
+
+
+@pytest.fixture(scope="module")
+def bench():
+    with Bench(driver_ids=(2, 3), baud=115200) as b:
+        yield b
+
+
+def test_bench_tcp_and_pty(bench):
+    assert bench.tcp_url.startswith("socket://127.0.0.1:")
+    assert bench.pty_path and os.path.exists(bench.pty_path)
+    for url in (bench.tcp_url, bench.pty_path):
+        with serial.serial_for_url(url, baudrate=115200, timeout=0.05) as s:
+            s.write(F.encode(1, F.GET_SLAVE_INFO))
+            body = read_frame(s)
+            assert body is not None and body[:3] == b"\x01\x01\x00"
+            s.write(F.encode(3, F.GET_COMMAND_POS))
+            body = read_frame(s)
+            assert body is not None and body[:3] == b"\x03\x51\x00"
+
+
+@pytest.mark.parametrize("which", ["tcp", "pty"])
+def test_pyserial_example_scans_and_moves(bench, which):
+    url = bench.tcp_url if which == "tcp" else bench.pty_path
+    r = subprocess.run([sys.executable, EXAMPLE, url, "2"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "found ids: [1, 2, 3]" in r.stdout
+    pos = int(r.stdout.strip().splitlines()[-1].split()[-1])
+    assert pos % 4000 == 0 and pos > 0
+
+
+def test_cli_help_and_bad_args():
+    r = subprocess.run([sys.executable, "-m", "motorjig.sim", "--help"], capture_output=True, text=True, env=ENV, timeout=30)
+    assert r.returncode == 0 and "--tcp-port" in r.stdout and "--duration" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "motorjig.sim", "--drivers", "2,x"], capture_output=True, text=True, env=ENV, timeout=30)
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "motorjig.sim", "--baud", "1234", "--duration", "0.1"], capture_output=True, text=True, env=ENV, timeout=30)
+    assert r.returncode != 0 and "Traceback" not in r.stderr and "baud" in r.stderr
+
+
+def test_cli_demo_runs_bounded():
+    r = subprocess.run([sys.executable, "-m", "motorjig.sim", "--duration", "0.2", "--drivers", "2,5"],
+                       capture_output=True, text=True, env=ENV, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "pty: /dev/" in out and "tcp: socket://127.0.0.1:" in out
+    assert "id  1: slave type 200" in out and "id  5: slave type  20" in out
+    assert "servo on id 2 -> status 0x00" in out and "move id 2" in out
+    assert "pos  10000" in out
+
+
+def test_cli_port_in_use_is_a_clean_error():
+    import socket
+
+    with socket.socket() as blocker:
+        blocker.bind(("127.0.0.1", 0))
+        blocker.listen(1)
+        port = blocker.getsockname()[1]
+        r = subprocess.run([sys.executable, "-m", "motorjig.sim", "--tcp-port", str(port), "--no-demo", "--duration", "0.1"],
+                           capture_output=True, text=True, env=ENV, timeout=30)
+    assert r.returncode == 1 and "cannot start the bench" in r.stderr and "Traceback" not in r.stderr

@@ -1,0 +1,11 @@
+"""Virtual bench: simulated RS-485 links, simulated Ezi-STEP Plus-R drives, and the
+real jig firmware on a simulated HAL. ``python -m motorjig.sim`` runs it interactively.
+"""
+
+from .bench import Bench, SimBench
+from .clock import RealClock, VirtualClock
+from .driver import SimDriver
+from .hal import PowerLoss, SimFS, SimHAL
+from .link import Bus
+
+__all__ = ["Bench", "SimBench", "SimDriver", "SimFS", "SimHAL", "PowerLoss", "Bus", "VirtualClock", "RealClock"]

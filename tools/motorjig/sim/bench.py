@@ -1,0 +1,373 @@
+"""The virtual bench: PC, jig and drivers on two simulated RS-485 buses.
+
+``SimBench`` wires it up on a virtual clock (tests drive it step by step);
+``Bench`` runs the same thing in real time on a background thread and exposes
+the PC side as a pseudo-terminal and a TCP port, for any pyserial program::
+
+    from motorjig.sim import Bench
+    with Bench(driver_ids=(2, 3), baud=115200) as bench:
+        serial.serial_for_url(bench.tcp_url)      # or bench.pty_path
+
+The jig is the real firmware (``jig.app.App``) on ``SimHAL``; its main loop is
+polled whenever bytes reach one of its ports and whenever ``App.wait_us`` says a
+deadline is due.
+"""
+
+import os
+import queue
+import select
+import socket
+import threading
+
+from jig import frame as F
+from jig import params as P
+from jig.app import App
+from jig.parser import FrameParser
+
+from .clock import RealClock, VirtualClock
+from .driver import SimDriver
+from .hal import SimFS, SimHAL
+from .link import Bus
+
+# Start the virtual clock 3 s before the 2**30 µs tick wrap, so every test also
+# crosses the wrap that MicroPython's ticks_us has every ~18 minutes.
+VIRTUAL_START_US = float((1 << 30) - 3000000)
+
+
+class PcPort:
+    """The PC's RS-485 adapter (automatic direction) on the upstream bus."""
+
+    def __init__(self, bench, bus, ver8=False):
+        self.bench = bench
+        self.node = bus.add_node("pc", self._rx, auto_de=True, record=False)
+        self.parser = FrameParser(ver8)
+        self.raw = bytearray()  # every byte received, in order
+        self.frames = []  # (time µs, wire bytes of a good frame)
+        self.listeners = []  # fn(data) called with raw bytes (pty/TCP)
+        self.keep = True  # False: only pass bytes to the listeners (long interactive runs)
+
+    def send(self, data):
+        return self.node.transmit(data)
+
+    def _rx(self, data, t):
+        for fn in self.listeners:
+            fn(data)
+        if not self.keep:
+            return
+        self.raw += data
+        p = self.parser
+        i = 0
+        n = len(data)
+        while i < n:
+            j = p.feed(data, i, n, int(t))
+            if p.ready:
+                # wire bytes of the frame = re-stuffed body (stuffing is canonical)
+                out = bytearray(F.MAX_WIRE)
+                m = F.stuff_into(out, p.body, p.body_len)
+                self.frames.append((t, bytes(out[:m])))
+            i = j
+
+    def clear(self):
+        self.raw = bytearray()
+        self.frames = []
+
+
+class JigRunner:
+    """Runs App.poll on the bench clock: on input, and at the app's deadlines."""
+
+    def __init__(self, clock, hal):
+        self.clock = clock
+        self.hal = hal
+        hal.rx_callback = self.wake
+        self.app = App(hal)
+        self.in_poll = False
+        self.t_next = None
+        self.polls = 0
+        self._reschedule()
+
+    def wake(self):
+        self._schedule(self.clock.now)
+
+    def _schedule(self, t):
+        if self.t_next is not None and self.t_next <= t:
+            return
+        self.t_next = t
+        self.clock.at(t, self._run, t)
+
+    def _run(self, t):
+        if t != self.t_next:
+            return  # superseded by an earlier poll
+        self.t_next = None
+        if self.in_poll:
+            return  # the running poll reschedules when it returns
+        self.in_poll = True
+        try:
+            self.app.poll()
+            self.polls += 1
+        finally:
+            self.in_poll = False
+        self._reschedule()
+
+    def _reschedule(self):
+        w = self.app.wait_us()
+        if w < 0:
+            return
+        self._schedule(self.clock.now + max(w, 1))
+
+
+class SimBench:
+    """PC + jig + drivers on a virtual clock (``realtime=True``: on the wall clock)."""
+
+    def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
+                 jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
+                 echo_down=False, record=True, servo_on=False, start_us=None):
+        if realtime:
+            self.clock = RealClock()
+        else:
+            self.clock = VirtualClock(VIRTUAL_START_US if start_us is None else start_us)
+        fresh = fs is None
+        settings = dict(jig_params or {})
+        if baud is not None:
+            settings.setdefault(P.P_UP_BAUD, baud)
+        if down_baud is not None or baud is not None:
+            settings.setdefault(P.P_DOWN_BAUD, down_baud or baud)
+        if ver8:
+            settings.setdefault(P.P_PROTOCOL, 1)
+        baud = baud or 115200
+        down_baud = down_baud or baud
+        self.up_bus = Bus(self.clock, baud, "up")
+        self.down_bus = Bus(self.clock, down_baud, "down")
+        self.ver8 = ver8
+        self.pc = PcPort(self, self.up_bus, ver8)
+        self.drivers = {}
+        for i in driver_ids:
+            self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, ver8, servo_on=servo_on)
+        self.fs = fs if fs is not None else SimFS()
+        self.hal = SimHAL(self.clock, self.up_bus, self.down_bus, self.fs, rxsize=rxsize,
+                          echo_up=echo_up, echo_down=echo_down, record=record)
+        if settings or fresh:
+            self.write_params(settings)
+        self.runner = JigRunner(self.clock, self.hal)
+        self.app = self.runner.app
+        self._sync = 0
+
+    def write_params(self, settings):
+        """Store a parameter file (as SaveAllParameters would) for the next boot."""
+        pr = P.Params(self.fs, self.hal.param_path)
+        pr.load()
+        for num, value in settings.items():
+            if not pr.set(num, value):
+                raise ValueError("jig parameter %d: %r not allowed" % (num, value))
+        pr.save()
+
+    @property
+    def jig_id(self):
+        return self.app.params.ram[P.P_SLAVE_ID]
+
+    @property
+    def counters(self):
+        vals = self.app.counter_values([0] * len(DIAG_NAMES))
+        return dict(zip(DIAG_NAMES, vals))
+
+    # --- running -----------------------------------------------------------------
+    def run_for(self, us):
+        self.clock.run_until(self.clock.now + us)
+
+    def encode(self, slave, ftype, data=b""):
+        sync = -1
+        if self.ver8:
+            sync = self._sync
+            self._sync = (self._sync + 1) & 0xFF
+        return F.encode(slave, ftype, bytes(data), sync)
+
+    def send(self, wire):
+        """PC transmits raw bytes now; returns the time the last stop bit ends."""
+        return self.pc.send(wire)
+
+    def transact(self, wire, timeout_us=100000.0):
+        """Send wire bytes from the PC; return the first frame the PC gets (or None)."""
+        n0 = len(self.pc.frames)
+        end = self.pc.send(wire)
+        deadline_from = end
+        self.clock.run_while(lambda: len(self.pc.frames) == n0, (deadline_from - self.clock.now) + timeout_us)
+        if len(self.pc.frames) > n0:
+            return self.pc.frames[n0][1]
+        return None
+
+    def request(self, slave, ftype, data=b"", timeout_us=100000.0):
+        """Encode, send, wait: returns (reply wire bytes, reply data incl. status) or (None, None)."""
+        wire = self.transact(self.encode(slave, ftype, data), timeout_us)
+        if wire is None:
+            return None, None
+        p = FrameParser(self.ver8)
+        p.feed(wire)
+        if not p.ready:
+            return wire, None
+        return wire, bytes(p.body[p.data_start : p.data_end])
+
+
+def _diag_names():
+    from jig.diag import WIRE_NAMES
+
+    return WIRE_NAMES
+
+
+DIAG_NAMES = _diag_names()
+
+
+class Bench:
+    """The bench in real time on a background thread, reachable by pty and TCP."""
+
+    def __init__(self, driver_ids=(2, 3), baud=115200, tcp_port=0, pty=True, **kw):
+        self.driver_ids = tuple(driver_ids)
+        self.baud = baud
+        self.tcp_port = tcp_port
+        self.want_pty = pty
+        self.kw = kw
+        self.sim = None
+        self.pty_path = None
+        self.tcp_url = None
+        self._inbox = queue.Queue()
+        self._stop = threading.Event()
+        self._threads = []
+        self._clients = []
+        self._lock = threading.Lock()
+        self._master = self._slave = None
+        self._server = None
+        self.error = None
+
+    # --- lifecycle -----------------------------------------------------------------
+    def start(self):
+        self.sim = SimBench(self.driver_ids, self.baud, realtime=True, record=False, **self.kw)
+        self.sim.clock.pump = self._pump
+        self.sim.pc.listeners.append(self._to_pc)
+        self.sim.pc.keep = False
+        if self.want_pty:
+            self._open_pty()
+        self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._server.bind(("127.0.0.1", self.tcp_port))
+        self._server.listen(4)
+        self._server.settimeout(0.2)
+        port = self._server.getsockname()[1]
+        self.tcp_url = "socket://127.0.0.1:%d" % port
+        self._spawn(self._accept_loop)
+        self._spawn(self._sim_loop)
+        return self
+
+    def _spawn(self, fn, *args):
+        t = threading.Thread(target=fn, args=args, daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def stop(self):
+        self._stop.set()
+        for t in self._threads:
+            t.join(2.0)
+        if self._server is not None:
+            self._server.close()
+        with self._lock:
+            for c in self._clients:
+                try:
+                    c.close()
+                except OSError:
+                    pass
+            self._clients = []
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+        return False
+
+    # --- pty -----------------------------------------------------------------------
+    def _open_pty(self):
+        import tty
+
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.pty_path = os.ttyname(self._slave)
+        self._spawn(self._pty_loop)
+
+    def _pty_loop(self):
+        fd = self._master
+        while not self._stop.is_set():
+            r, _, _ = select.select([fd], [], [], 0.2)
+            if r:
+                try:
+                    data = os.read(fd, 4096)
+                except OSError:
+                    continue
+                if data:
+                    self._inbox.put(data)
+
+    # --- TCP -----------------------------------------------------------------------
+    def _accept_loop(self):
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._server.accept()
+            except (socket.timeout, OSError):
+                continue
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._clients.append(conn)
+            self._spawn(self._client_loop, conn)
+
+    def _client_loop(self, conn):
+        conn.settimeout(0.2)
+        while not self._stop.is_set():
+            try:
+                data = conn.recv(4096)
+            except socket.timeout:
+                continue
+            except OSError:
+                break
+            if not data:
+                break
+            self._inbox.put(data)
+        with self._lock:
+            if conn in self._clients:
+                self._clients.remove(conn)
+        try:
+            conn.close()
+        except OSError:
+            pass
+
+    # --- simulation thread -------------------------------------------------------------
+    def _pump(self):
+        try:
+            while True:
+                data = self._inbox.get_nowait()
+                self.sim.pc.send(data)
+        except queue.Empty:
+            pass
+
+    def _to_pc(self, data):
+        if self._master is not None:
+            try:
+                os.write(self._master, data)
+            except OSError:
+                pass
+        with self._lock:
+            clients = list(self._clients)
+        for c in clients:
+            try:
+                c.sendall(data)
+            except OSError:
+                pass
+
+    def _sim_loop(self):
+        clock = self.sim.clock
+        try:
+            while not self._stop.is_set():
+                clock.run_until(clock.now + 2000.0)
+        except Exception as exc:  # reported by the CLI, never a silent death
+            self.error = exc
+            self._stop.set()

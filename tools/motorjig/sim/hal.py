@@ -1,0 +1,157 @@
+"""The simulated HAL the real firmware (``jig.app.App``) runs on in the bench.
+
+Implements docs/hal.md: two UART-like ports on simulated buses (receive ring
+buffers filled as bytes arrive, ``write`` that blocks on the virtual timeline until
+the last stop bit has left), DE pins that record every transition with its time
+stamp, LEDs/relays/buttons as integers, a watchdog counter and an in-memory
+filesystem that can lose power in the middle of a write.
+"""
+
+from jig.ringbuf import RingBuffer
+
+
+class PowerLoss(Exception):
+    """Raised by SimFS when the simulated supply fails during a write."""
+
+
+class SimFS:
+    """In-memory files. ``fail_after`` = n: the write that would pass byte n dies there."""
+
+    def __init__(self):
+        self.files = {}
+        self.fail_after = None
+        self.written = 0  # bytes written since fail_after was set
+        self.replace_ok = True  # False: rename onto an existing file fails (FAT-like)
+
+    def read_into(self, path, buf):
+        data = self.files.get(path)
+        if data is None:
+            return -1
+        n = min(len(data), len(buf))
+        buf[0:n] = data[0:n]
+        return len(data) if len(data) <= len(buf) else len(buf)
+
+    def _budget(self, n):
+        if self.fail_after is None:
+            return n
+        left = self.fail_after - self.written
+        return max(0, min(n, left))
+
+    def write(self, path, buf, n):
+        k = self._budget(n)
+        self.files[path] = bytes(buf[0:k])
+        self.written += k
+        if k < n:
+            raise PowerLoss()
+        if self.fail_after is not None and self.written >= self.fail_after:
+            raise PowerLoss()
+
+    def rename(self, src, dst):
+        if src not in self.files:
+            raise OSError(2, "no such file")
+        if dst in self.files and not self.replace_ok:
+            raise OSError(17, "exists")
+        self.files[dst] = self.files.pop(src)
+
+    def remove(self, path):
+        self.files.pop(path, None)
+
+
+class SimPort:
+    """One jig UART + RS-485 transceiver on a simulated bus."""
+
+    def __init__(self, hal, bus, name, rxsize=4096, echo=False):
+        self.hal = hal
+        self.bus = bus
+        self.node = bus.add_node(name, self._rx, echo=echo, record=hal.record)
+        self.ring = RingBuffer(rxsize)
+        self.baud = bus.baud
+        self.tx_blocks = True
+        self.t_last = 0
+        self.writes = []  # (t_start, t_end, bytes) of every write, if hal.record
+
+    @property
+    def overflows(self):
+        return self.ring.overflows
+
+    def any(self):
+        return self.ring.any()
+
+    def readinto(self, buf, n):
+        return self.ring.read_into(buf, n)
+
+    def write(self, buf, n):
+        clock = self.hal.clock
+        data = bytes(buf[0:n])
+        t0 = clock.now
+        end = self.bus.transmit(self.node, data)
+        if self.hal.record:
+            self.writes.append((max(t0, end - self.bus.bt * n), end, data))
+        clock.run_until(end)  # like stm32 UART.write: returns after transmit-complete
+
+    def de(self, v):
+        self.node.set_de(v)
+
+    def hw_de(self, on, pre16, post16):
+        bit_us = 1e6 / self.baud
+        self.node.hw_de = bool(on)
+        self.node.hw_pre_us = pre16 * bit_us / 16
+        self.node.hw_post_us = post16 * bit_us / 16
+        return True
+
+    def _rx(self, data, t):
+        self.ring.write(data, len(data), int(t) & 0x3FFFFFFF)
+        self.t_last = int(t) & 0x3FFFFFFF
+        self.hal.on_rx()
+
+
+class SimHAL:
+    def __init__(self, clock, up_bus, down_bus, fs=None, param_path="/flash/jigparams.bin",
+                 rxsize=4096, echo_up=False, echo_down=False, record=True):
+        self.clock = clock
+        self.up_bus = up_bus
+        self.down_bus = down_bus
+        self.fs = fs if fs is not None else SimFS()
+        self.param_path = param_path
+        self.rxsize = rxsize
+        self.echo_up = echo_up
+        self.echo_down = echo_down
+        self.record = record
+        self.outputs = 0
+        self.inputs = 0
+        self.wdt_feeds = 0
+        self.beats = 0
+        self.up = None
+        self.down = None
+        self.rx_callback = None  # the bench's "wake the main loop"
+
+    def open(self, up_baud, down_baud):
+        self.up_bus.set_baud(up_baud)
+        self.down_bus.set_baud(down_baud)
+        self.up = SimPort(self, self.up_bus, "jig-up", self.rxsize, self.echo_up)
+        self.down = SimPort(self, self.down_bus, "jig-down", self.rxsize, self.echo_down)
+
+    def ticks_us(self):
+        return self.clock.ticks_us()
+
+    def sleep_us(self, us):
+        self.clock.run_until(self.clock.now + us)
+
+    def set_outputs(self, mask):
+        self.outputs = mask
+
+    def get_outputs(self):
+        return self.outputs
+
+    def get_inputs(self):
+        return self.inputs
+
+    def heartbeat(self, on):
+        self.beats += 1
+
+    def wdt_feed(self):
+        self.wdt_feeds += 1
+
+    def on_rx(self):
+        if self.rx_callback is not None:
+            self.rx_callback()

@@ -1,0 +1,210 @@
+"""Simulated RS-485 buses: wire time per byte, half-duplex, DE, collisions.
+
+A ``Bus`` carries bytes between its ``Node``s at the configured baud, 10 bit
+times per byte (8N1). A transmission is one ``Segment``: byte i occupies
+``[t0 + i*bt, t0 + (i+1)*bt)``. When a segment has left the wire its bytes are
+delivered, all at once, to every other node (and to the sender too if its
+receiver hears its own transmission: ``echo``), with these rules:
+
+* a byte is only on the line if the sender's DE was high for its whole span --
+  bytes sent while DE is low are lost (DE transitions are recorded with their
+  time stamps in ``Node.de_log``);
+* bytes of two segments that overlap in time corrupt each other (collision);
+* nodes with ``auto_de`` (USB adapters with automatic direction control, the
+  simulated drivers) drive DE exactly around their own segments.
+"""
+
+from collections import deque
+
+BITS_PER_BYTE = 10
+
+
+def _garbage(b):
+    return (b ^ 0x5A ^ 0xFF) & 0xFF
+
+
+class Node:
+    def __init__(self, bus, name, on_rx=None, echo=False, auto_de=False, record=True):
+        self.bus = bus
+        self.name = name
+        self.on_rx = on_rx
+        self.echo = echo
+        self.auto_de = auto_de
+        self.record = record
+        self.de = False
+        self.t_rise = None
+        self.t_fall = None
+        self.de_log = []  # (time µs, 0/1)
+        self.tx_until = 0.0  # end of our last scheduled segment
+        self.hw_pre_us = 0.0  # hardware-DE mode of a UART: DE lead/lag around segments
+        self.hw_post_us = 0.0
+        self.hw_de = False
+
+    def set_de(self, on, t=None):
+        on = bool(on)
+        if on == self.de:
+            return
+        if t is None:
+            t = self.bus.clock.now
+        self.de = on
+        if on:
+            self.t_rise = t
+        else:
+            self.t_fall = t
+        if self.record:
+            self.de_log.append((t, 1 if on else 0))
+
+    def driven_range(self, seg):
+        """Indices [i0, i1) of seg's bytes sent while our DE was high."""
+        if self.auto_de or self.hw_de:
+            return 0, len(seg.data)
+        if self.t_rise is None:
+            return 0, 0
+        bt = seg.bt
+        t0 = seg.t0
+        n = len(seg.data)
+        # first byte whose start is at or after the rise
+        d = (self.t_rise - t0) / bt
+        i0 = 0 if d <= 0 else int(d) + (0 if d == int(d) else 1)
+        if self.de:
+            i1 = n
+        else:
+            if self.t_fall < self.t_rise:
+                return 0, 0
+            i1 = int((self.t_fall - t0) / bt + 1e-9)
+            if i1 > n:
+                i1 = n
+        if i0 >= i1:
+            return 0, 0
+        return i0, i1
+
+    def transmit(self, data):
+        return self.bus.transmit(self, data)
+
+
+class Segment:
+    __slots__ = ("node", "t0", "bt", "data", "end")
+
+    def __init__(self, node, t0, bt, data):
+        self.node = node
+        self.t0 = t0
+        self.bt = bt
+        self.data = data
+        self.end = t0 + bt * len(data)
+
+
+class Bus:
+    def __init__(self, clock, baud, name="bus"):
+        self.clock = clock
+        self.name = name
+        self.nodes = []
+        self.in_flight = []  # segments still on the wire
+        self.recent = deque()  # delivered segments that may still overlap one in flight
+        self.set_baud(baud)
+        self.collisions = 0  # bytes corrupted by overlapping transmissions
+        self.lost = 0  # bytes sent with DE low
+        self.monitor = None  # optional fn(segment, delivered bytes) for tests
+
+    def set_baud(self, baud):
+        self.baud = baud
+        self.bt = BITS_PER_BYTE * 1e6 / baud
+
+    def add_node(self, name, on_rx=None, echo=False, auto_de=False, record=True):
+        node = Node(self, name, on_rx, echo, auto_de, record)
+        self.nodes.append(node)
+        return node
+
+    def transmit(self, node, data, t0=None):
+        """Queue data from node (after its previous segment); returns the end time."""
+        clock = self.clock
+        now = clock.now
+        if t0 is None or t0 < now:
+            t0 = now
+        if node.hw_de:
+            # The UART raises DE itself, waits the lead time, sends, waits the lag.
+            if t0 < node.tx_until:
+                t0 = node.tx_until
+            node.set_de(1, t0)
+            t0 += node.hw_pre_us
+        elif t0 < node.tx_until:
+            t0 = node.tx_until
+        seg = Segment(node, t0, self.bt, bytes(data))
+        node.tx_until = seg.end
+        self.in_flight.append(seg)
+        if node.auto_de:
+            node.set_de(1, t0)
+        clock.at(seg.end, self._deliver, seg)
+        return seg.end
+
+    def _overlapping(self, seg):
+        for other in self.in_flight:
+            if other.node is not seg.node and other.t0 < seg.end and other.end > seg.t0:
+                yield other
+        for other in self.recent:
+            if other.node is not seg.node and other.t0 < seg.end and other.end > seg.t0:
+                yield other
+
+    def _retire(self, seg):
+        self.in_flight.remove(seg)
+        recent = self.recent
+        recent.append(seg)  # deliveries come in order of end time
+        lo = self.clock.now
+        for s in self.in_flight:
+            if s.t0 < lo:
+                lo = s.t0
+        while recent and recent[0].end <= lo:
+            recent.popleft()
+
+    def _deliver(self, seg):
+        node = seg.node
+        n = len(seg.data)
+        i0, i1 = node.driven_range(seg)
+        if node.auto_de:
+            node.set_de(0, seg.end)
+        elif node.hw_de:
+            node.set_de(0, seg.end + node.hw_post_us)
+        self.lost += n - (i1 - i0)
+        others = list(self._overlapping(seg)) if len(self.in_flight) > 1 or self.recent else ()
+        self._retire(seg)
+        if i0 >= i1:
+            self._hand_out(seg, b"")
+            return
+        data = seg.data
+        out = None
+        bt = seg.bt
+        for other in others:
+            if out is None:
+                out = bytearray(data)
+            # our bytes overlapping [other.t0, other.end)
+            a = max(i0, int((other.t0 - seg.t0) / bt))
+            b = min(i1, int((other.end - seg.t0) / bt + 0.999999))
+            for i in range(a, b):
+                out[i] = _garbage(out[i])
+                self.collisions += 1
+        if out is not None:
+            data = bytes(out)
+        if i0 or i1 != n:
+            data = data[i0:i1]
+        self._hand_out(seg, data)
+
+    def _hand_out(self, seg, data):
+        if self.monitor is not None:
+            self.monitor(seg, data)
+        if not data:
+            return
+        t = seg.end
+        for nd in self.nodes:
+            if nd.on_rx is None:
+                continue
+            if nd is seg.node and not nd.echo:
+                continue
+            nd.on_rx(data, t)
+
+    def inject(self, data, t=None):
+        """Noise/foreign bytes on the line from an anonymous talker at time t."""
+        if not hasattr(self, "_noise"):
+            self._noise = self.add_node("noise", auto_de=True, record=False)
+        if t is None:
+            self.transmit(self._noise, data)
+        else:
+            self.clock.at(t, self.transmit, self._noise, data)
