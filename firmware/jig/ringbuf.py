@@ -61,9 +61,11 @@ class RingBuffer:
         return True
 
     def read_into(self, dst, limit=-1):
-        """Move up to len(dst) (or limit) bytes into dst[0:]; returns the count."""
+        """Move up to min(len(dst), limit) bytes into dst[0:]; returns the count."""
         n = (self.head - self.tail) & self.mask
-        room = len(dst) if limit < 0 else limit
+        room = len(dst)
+        if 0 <= limit < room:
+            room = limit  # a limit never lets the copy run past the end of dst
         if n > room:
             n = room
         tail = self.tail

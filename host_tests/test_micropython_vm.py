@@ -1,0 +1,112 @@
+"""The same parser on a real MicroPython VM (the WebAssembly build, run by Node).
+
+* every capture replays on MicroPython exactly as on CPython, frame by frame;
+* parsing allocates nothing per frame in the steady state (gc.mem_alloc with the
+  collector disabled), on the bulk and table paths, for any chunk size;
+* the VM is what we think it is: MicroPython, no viper (so crc/mem use the portable
+  code there), bytearray.find available.
+
+Skipped, with the reason printed, when node or host_tests/wasm/node_modules is
+missing -- except when CI=true, where that is a failure.
+"""
+
+import glob
+import os
+import shutil
+import subprocess
+import warnings
+
+import pytest
+
+import capture_format as cf
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RUNNER = os.path.join(HERE, "wasm", "run_vm.mjs")
+PACKAGE = os.path.join(HERE, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
+CAPTURES = sorted(glob.glob(os.path.join(HERE, "captures", "*.cap")))
+NAMES = [os.path.basename(p) for p in CAPTURES]
+
+VM_CODE = """
+import sys, os
+import capture_format, vm_probe
+from jig import compat, crc, mem
+print("@@env", sys.implementation.name, compat.IS_MICROPYTHON, compat.NATIVE is None,
+      crc.crc16 is crc.crc16_table, mem.copy is mem._copy_loop, hasattr(bytearray, "find"))
+paths = ["/captures/" + n for n in %r]
+print("@@report")
+vm_probe.print_reports(paths, False)
+v8 = [p for p in paths if capture_format.load(p).ver8]
+v6 = [p for p in paths if p not in v8]
+print("@@alloc")
+vm_probe.print_alloc(v6, v8, 5)
+print("@@leak")
+from jig.parser import FrameParser
+class Leaky(FrameParser):
+    def copy_frame(self, dst, dst_off=0):
+        self.keep = bytearray(8)
+        return FrameParser.copy_frame(self, dst, dst_off)
+bursts, span = vm_probe.load_bursts(v6)
+print(*vm_probe.alloc_per_frame(bursts, span, rounds=3, parser_class=Leaky))
+"""
+
+
+def _missing():
+    if shutil.which("node") is None:
+        return "node is not installed (Debian: apt-get install nodejs npm)"
+    if not os.path.isdir(PACKAGE):
+        return "host_tests/wasm/node_modules is missing (run tools/setup.sh, which needs npm)"
+    return None
+
+
+@pytest.fixture(scope="module")
+def vm_output():
+    why = _missing()
+    if why:
+        if os.environ.get("CI") == "true":
+            pytest.fail("MicroPython VM replay is required in CI: " + why)
+        # A warning shows in pytest's summary even with -q, so the skip is not silent.
+        warnings.warn("MicroPython VM replay skipped: " + why)
+        pytest.skip(why)
+    result = subprocess.run(["node", RUNNER, VM_CODE % (NAMES,)], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, "the VM run failed:\n" + result.stderr[-3000:]
+    sections = {}
+    current = None
+    for line in result.stdout.splitlines():
+        if line.startswith("@@"):
+            head = line.split()
+            current = head[0][2:]
+            sections[current] = head[1:]
+            sections[current + "_lines"] = []
+        elif current:
+            sections[current + "_lines"].append(line)
+    return sections
+
+
+def test_vm_is_micropython_without_viper(vm_output):
+    assert vm_output["env"] == ["micropython", "True", "True", "True", "True", "True"]
+
+
+def test_captures_replay_identically_on_micropython(vm_output):
+    expected = []
+    for path in CAPTURES:
+        expected.extend(cf.report(cf.load(path), every_split=False))
+    got = vm_output["report_lines"]
+    assert len(got) == len(expected)
+    for want_line, got_line in zip(expected, got):
+        assert got_line == want_line
+    assert got.count("check ok") == len(CAPTURES)
+    assert got.count("strategies all same") == len(CAPTURES)
+
+
+def test_no_allocation_per_frame_on_micropython(vm_output):
+    lines = vm_output["alloc_lines"]
+    assert len(lines) == 16  # ver6/ver8 x bulk/table x 4 chunk sizes
+    for line in lines:
+        _, label, grew, frames = line.split()
+        assert int(frames) > 0, label
+        assert int(grew) == 0, "%s: %s bytes allocated over %s frames" % (label, grew, frames)
+
+
+def test_the_allocation_probe_sees_an_allocation(vm_output):
+    grew, frames = map(int, vm_output["leak_lines"][0].split())
+    assert frames > 0 and grew >= frames * 8
