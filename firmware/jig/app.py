@@ -60,8 +60,10 @@ class App:
         hw = pr[P.P_DE_MODE] == 1
         self.up = Rs485(hal, hal.up, pr[P.P_DE_PRE_US], pr[P.P_DE_POST_US], hw)
         self.down = Rs485(hal, hal.down, pr[P.P_DE_PRE_US], pr[P.P_DE_POST_US], hw)
-        self.up_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US])
-        self.down_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US])
+        # byte_us (one character time) lets the parser judge a gap from when a
+        # late-drained burst began, not from its last byte.
+        self.up_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_UP_BAUD])
+        self.down_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_DOWN_BAUD])
         self.handlers = Handlers(self)
         self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8)
         self.scanner = Scanner(self.bridge, self.params)

@@ -122,8 +122,12 @@ def get_u32(buf, off):
 
 
 def get_i32(buf, off):
-    v = get_u32(buf, off)
-    return v - 0x100000000 if v & 0x80000000 else v
+    # Sign-extend through the top byte: no constant wider than a MicroPython small
+    # int is involved, so values within +-2**30 never allocate.
+    hi = buf[off + 3]
+    if hi & 0x80:
+        hi -= 256
+    return (hi << 24) | (buf[off + 2] << 16) | (buf[off + 1] << 8) | buf[off]
 
 
 def put_u16(buf, off, value):

@@ -1,0 +1,428 @@
+"""Checks and figures for the firmware on an emulated Cortex-M7 (MicroPython qemu port).
+
+Frozen into MicroPython's ``qemu`` port (board MPS2_AN500: Cortex-M7 with
+double-precision FPU) together with the ``jig`` package by tools/test_qemu.sh,
+which runs ``import qemu_suite; qemu_suite.main()`` in qemu-system-arm with
+``-icount shift=0``: one instruction takes exactly 1 ns of virtual time, so a
+``ticks_us`` difference times 1 000 is an instruction count.
+
+1. capture replay: every capture of host_tests/captures through the frozen
+   parser, compared line by line with the report CPython produced for it;
+2. CRC parity: the viper CRC and copy (jig.native, which must load here) against
+   the table CRC and a plain loop, on pseudo-random buffers;
+3. jig.board on real MicroPython with stand-in machine/stm modules: the RX
+   interrupt handler runs with the heap locked, as in a hard IRQ (board_check);
+4. figures: instructions per byte for the CRC and the parser, and per forwarded
+   transaction (PC request -> driver -> reply relayed) through ``jig.app.App``
+   on a HAL whose ports are memory buffers, plus heap bytes allocated in steady
+   state (expected 0).
+
+Lines starting with ``RESULT`` are the summary the shell script prints; a line
+starting with ``FAIL`` makes it exit non-zero. The module also runs under CPython
+(``main(quick=True)``) so the host tests keep it working; figures there mean
+nothing.
+"""
+
+import gc
+import sys
+
+from jig import compat, crc, frame, mem, parser
+from jig.compat import ticks_diff, ticks_us
+
+try:
+    import qemu_captures
+except ImportError:
+    qemu_captures = None
+
+try:
+    import capture_format
+except ImportError:
+    capture_format = None
+
+try:
+    import bridge_probe  # host_tests' in-memory rig (also used on the WebAssembly VM)
+except ImportError:
+    bridge_probe = None
+
+INSTR_PER_US = 1000  # qemu -icount shift=0: 1 instruction = 1 ns
+failures = []
+
+
+def fail(msg):
+    failures.append(msg)
+    print("FAIL " + msg)
+
+
+def result(msg):
+    print("RESULT " + msg)
+
+
+def instr(us):
+    return us * INSTR_PER_US
+
+
+def alloc_bytes():
+    try:
+        return gc.mem_alloc()
+    except AttributeError:
+        return 0
+
+
+# --- 1. capture replay ---------------------------------------------------------------
+def minimal_replay():
+    """Without the capture files: the protocol notes' examples, fed byte by byte."""
+    examples = (
+        (b"\xaa\xcc\x01\x01\xc1\xe0\xaa\xee", b"\x01\x01"),
+        (b"\xaa\xcc\x02\x50\xaa\xaa\x00\x00\x00\xe0\x2d\xaa\xee", b"\x02\x50\xaa\x00\x00\x00"),
+        (b"\xaa\xcc\x04\x26\x82\xaa\xaa\xaa\xee", b"\x04\x26"),
+    )
+    p = parser.FrameParser()
+    ok = 0
+    for wire, body in examples:
+        got = None
+        for i in range(len(wire)):
+            p.feed(wire, i, i + 1, 0)
+            if p.ready:
+                got = bytes(p.body[0 : p.body_len - 2])
+        if got == body:
+            ok += 1
+        else:
+            fail("minimal replay: %r gave %r" % (wire, got))
+    return ok, len(examples)
+
+
+def replay_captures():
+    if qemu_captures is None or capture_format is None or not qemu_captures.CAPTURES:
+        ok, n = minimal_replay()
+        result("capture replay: capture files not frozen in; minimal replay %d/%d ok" % (ok, n))
+        return
+    ok = 0
+    for name, text, expected in qemu_captures.CAPTURES:
+        try:
+            cap = capture_format.parse(text, name)
+            lines = capture_format.report(cap, False)
+        except Exception as e:  # report it, keep going
+            fail("capture %s raised %s: %s" % (name, type(e).__name__, e))
+            continue
+        got = "\n".join(lines)
+        if got == expected:
+            ok += 1
+        else:
+            exp_lines = expected.split("\n")
+            for k in range(max(len(lines), len(exp_lines))):
+                a = lines[k] if k < len(lines) else "<none>"
+                b = exp_lines[k] if k < len(exp_lines) else "<none>"
+                if a != b:
+                    fail("capture %s line %d: MicroPython %r, CPython %r" % (name, k, a, b))
+                    break
+    n = len(qemu_captures.CAPTURES)
+    result("capture replay: %d/%d captures give CPython's report line for line" % (ok, n))
+    if ok != n:
+        fail("capture replay: %d of %d captures differ" % (n - ok, n))
+
+
+# --- 2. viper vs table -------------------------------------------------------------------
+class Lcg:
+    def __init__(self, seed):
+        self.x = seed
+
+    def next(self):
+        self.x = (self.x * 1103515245 + 12345) & 0x3FFFFFFF
+        return self.x >> 8
+
+
+def crc_parity(cases=300):
+    native = compat.NATIVE
+    if compat.IS_MICROPYTHON and native is None:
+        fail("jig.native (viper) did not load on this port")
+        return
+    if crc.crc16(b"123456789") != 0x4B37 or crc.crc16_table(b"123456789") != 0x4B37:
+        fail("CRC check value of b'123456789' is not 0x4B37")
+    rnd = Lcg(12345)
+    bad = 0
+    for k in range(cases):
+        n = rnd.next() % 300
+        buf = bytearray(n)
+        for i in range(n):
+            buf[i] = rnd.next() & 0xFF
+        start = rnd.next() % (n + 1)
+        end = start + rnd.next() % (n - start + 1)
+        init = rnd.next() & 0xFFFF
+        if crc.crc16(buf, start, end, init) != crc.crc16_table(buf, start, end, init):
+            bad += 1
+        dst = bytearray(n + 8)
+        ref = bytearray(n + 8)
+        off = rnd.next() % 8
+        mem.copy(dst, off, buf, start, end - start)
+        for i in range(end - start):
+            ref[off + i] = buf[start + i]
+        if dst != ref:
+            bad += 1
+    path = "viper" if native is not None else "table only (no native emitter)"
+    result("crc/copy parity (%s vs table/loop): %d cases, %d mismatches" % (path, cases, bad))
+    if bad:
+        fail("viper CRC/copy differ from the portable versions in %d cases" % bad)
+
+
+# --- 3. figures ------------------------------------------------------------------------------
+def timed(fn, *args):
+    gc.collect()
+    t0 = ticks_us()
+    fn(*args)
+    return ticks_diff(ticks_us(), t0)
+
+
+def bench_crc(size=4096, rounds=4):
+    buf = bytearray(size)
+    for i in range(size):
+        buf[i] = (i * 7) & 0xFF
+
+    def run(f):
+        for _ in range(rounds):
+            f(buf, 0, size)
+
+    nbytes = size * rounds
+    t_table = timed(run, crc.crc16_table)
+    t_fast = timed(run, crc.crc16)
+    result("crc16 table: %d instructions/byte" % (instr(t_table) // nbytes))
+    result("crc16 %s: %d instructions/byte" % ("viper" if compat.NATIVE else "table", instr(t_fast) // nbytes))
+
+
+def traffic(repeat):
+    """A realistic byte stream: status polls, replies, a long frame with stuffing."""
+    one = bytearray()
+    one += frame.encode(2, frame.GET_AXIS_STATUS)
+    one += frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08")
+    one += frame.encode(3, frame.MOVE_INC_POS, b"\x10\x27\x00\x00\x88\x13\x00\x00")
+    one += frame.encode(3, frame.MOVE_INC_POS, b"\x00")
+    one += frame.encode(2, frame.GET_ACTUAL_POS, b"\x00\xaa\xaa\x00\x00")
+    one += frame.encode(2, frame.GET_SLAVE_INFO, b"\x00\x14" + b"Ezi-STEP Plus-R \xaa" * 14)
+    per = 6
+    out = bytearray()
+    for _ in range(repeat):
+        out += one
+    return out, per * repeat
+
+
+def bench_parser(repeat=40, chunk=256):
+    stream, frames = traffic(repeat)
+    n = len(stream)
+    buf = bytearray(chunk)
+    p = parser.FrameParser()
+
+    def run():
+        pos = 0
+        got = 0
+        while pos < n:
+            k = n - pos if n - pos < chunk else chunk
+            mem.copy(buf, 0, stream, pos, k)
+            pos += k
+            i = 0
+            now = ticks_us()
+            while i < k:
+                i = p.feed(buf, i, k, now)
+                if p.ready:
+                    got += 1
+        return got
+
+    gc.collect()
+    a0 = alloc_bytes()
+    t0 = ticks_us()
+    got = run()
+    dt = ticks_diff(ticks_us(), t0)
+    a1 = alloc_bytes()
+    if got != frames:
+        fail("parser benchmark: %d frames of %d" % (got, frames))
+    result("parser: %d bytes, %d frames: %d instructions/byte, %d instructions/frame, heap +%d bytes"
+           % (n, frames, instr(dt) // n, instr(dt) // frames, a1 - a0))
+
+
+class MemPort:
+    """A HAL port over memory: ``feed`` queues received bytes, ``write`` records or answers."""
+
+    def __init__(self, baud, answer=None):
+        self.baud = baud
+        self.tx_blocks = True
+        self.overflows = 0
+        self.t_last = 0
+        self.rx = bytearray(512)
+        self.rx_n = 0
+        self.rx_pos = 0
+        self.answer = answer  # reply bytes of a simulated driver behind this port
+        self.pending = None  # the driver's reply, on the line once the request is out
+        self.writes = 0
+        self.tx_bytes = 0
+
+    def feed(self, data, n):
+        mem.copy(self.rx, 0, data, 0, n)
+        self.rx_n = n
+        self.rx_pos = 0
+        self.t_last = ticks_us()
+
+    def any(self):
+        return self.rx_n - self.rx_pos
+
+    def readinto(self, buf, n):
+        if self.pending is not None:
+            # Delivered at the next read, not during write: the reply comes after
+            # the request, and bytes arriving during write would count as echo.
+            self.feed(self.pending, len(self.pending))
+            self.pending = None
+        k = self.rx_n - self.rx_pos
+        if k > n:
+            k = n
+        mem.copy(buf, 0, self.rx, self.rx_pos, k)
+        self.rx_pos += k
+        return k
+
+    def write(self, buf, n):
+        self.writes += 1
+        self.tx_bytes += n
+        if self.answer is not None:
+            self.pending = self.answer
+
+    def de(self, v):
+        pass
+
+    def hw_de(self, on, pre16, post16):
+        return False
+
+
+class MemHal:
+    def __init__(self, driver_reply):
+        self.ticks_us = ticks_us
+        self.up = None
+        self.down = None
+        self.driver_reply = driver_reply
+        self.outputs = 0
+        self.feeds = 0
+
+    def sleep_us(self, us):
+        pass  # DE delays are waiting, not work: left out of the instruction count
+
+    def open(self, up_baud, down_baud):
+        self.up = MemPort(up_baud)
+        self.down = MemPort(down_baud, self.driver_reply)
+
+    def set_outputs(self, mask):
+        self.outputs = mask
+
+    def get_outputs(self):
+        return self.outputs
+
+    def get_inputs(self):
+        return 0
+
+    def heartbeat(self, on):
+        pass
+
+    def wdt_feed(self):
+        self.feeds += 1
+
+
+def bench_bridge(transactions=200):
+    from jig.app import App
+
+    request = frame.encode(2, frame.GET_AXIS_STATUS)
+    reply = frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08")
+    local = frame.encode(1, frame.GET_SLAVE_INFO)
+    hal = MemHal(reply)
+    app = App(hal)
+    up = hal.up
+
+    def forward(count):
+        polls = 0
+        for k in range(count):
+            up.feed(request, len(request))
+            target = up.writes + 1
+            while up.writes < target:
+                app.poll()
+                polls += 1
+                if polls > 20 * count:
+                    return -1
+        return polls
+
+    def answer_local(count):
+        for k in range(count):
+            up.feed(local, len(local))
+            target = up.writes + 1
+            while up.writes < target:
+                app.poll()
+
+    def idle(count):
+        for k in range(count):
+            app.poll()
+
+    forward(10)  # warm up: first-use allocations (dict growth, caches) happen here
+    answer_local(10)
+    gc.collect()
+    gc.disable()
+    a0 = alloc_bytes()
+    t0 = ticks_us()
+    polls = forward(transactions)
+    dt = ticks_diff(ticks_us(), t0)
+    a1 = alloc_bytes()
+    gc.enable()
+    if polls < 0:
+        fail("bridge benchmark: a forwarded request never got its reply relayed")
+        return
+    rx_bytes = len(request) + len(reply)
+    per_t = instr(dt) // transactions
+    result("bridge forward (GetAxisStatus to id 2, %d+%d bytes): %d instructions/transaction, "
+           "%d instructions/received byte, %d polls/transaction, heap +%d bytes over %d transactions"
+           % (len(request), len(reply), per_t, per_t // rx_bytes, polls // transactions, a1 - a0, transactions))
+    if a1 - a0 > 0 and compat.IS_MICROPYTHON:
+        fail("bridge: %d heap bytes allocated in steady state (expected 0)" % (a1 - a0))
+    t_local = timed(answer_local, transactions)
+    result("bridge local (GetSlaveInfo to id 1): %d instructions/transaction" % (instr(t_local) // transactions))
+    t_idle = timed(idle, 1000)
+    result("main loop idle pass: %d instructions" % (instr(t_idle) // 1000))
+
+
+def probe_cross_check(n=200):
+    """The same figures through host_tests/bridge_probe.Rig, the harness the other
+    benchmarks use: a second opinion on the numbers above."""
+    if bridge_probe is None:
+        result("bridge_probe not frozen in: cross-check skipped")
+        return
+    rig = bridge_probe.Rig()
+    dt = timed(lambda: [rig.forward_once() for _ in range(n)] and None)
+    result("bridge_probe.Rig forward: %d instructions/transaction" % (instr(dt) // n))
+    if compat.IS_MICROPYTHON:
+        used, ok = bridge_probe.forward_alloc(n)
+        used_l, ok_l = bridge_probe.local_alloc(n, counters=True)
+        result("bridge_probe heap: forward +%d bytes, ReadCounters +%d bytes over %d transactions" % (used, used_l, n))
+        if not (ok and ok_l):
+            fail("bridge_probe: transactions did not complete")
+        if used or used_l:
+            fail("bridge_probe: %d/%d heap bytes allocated in steady state (expected 0)" % (used, used_l))
+
+
+def check_board():
+    """jig.board with stand-in hardware modules (MicroPython only: see board_check)."""
+    if not compat.IS_MICROPYTHON:
+        return
+    try:
+        import board_check
+    except ImportError:
+        result("board_check not frozen in: skipped")
+        return
+    board_check.run(result, fail, instr)
+
+
+def main(quick=False):
+    del failures[:]
+    print("qemu_suite on %s (%s)" % (sys.platform, sys.implementation.name))
+    replay_captures()
+    crc_parity(40 if quick else 300)
+    if quick:
+        bench_parser(2)
+        bench_bridge(5)
+    else:
+        bench_crc()
+        bench_parser()
+        bench_bridge()
+        probe_cross_check()
+        check_board()
+    result("%s" % ("all checks passed" if not failures else "%d FAILED" % len(failures)))
+    return len(failures)
