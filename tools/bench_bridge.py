@@ -31,24 +31,20 @@ from jig import params as P  # noqa: E402
 from motorjig.sim import SimBench  # noqa: E402
 
 
+def _seconds_per_call(fn, n, warmup=0):
+    for _ in range(warmup):
+        fn()
+    t0 = time.perf_counter()
+    for _ in range(n):
+        fn()
+    return (time.perf_counter() - t0) / n
+
+
 def cpu_per_transaction(n):
     r = bridge_probe.Rig()
-    for _ in range(200):
-        r.forward_once()
-    t0 = time.perf_counter()
-    for _ in range(n):
-        r.forward_once()
-    fwd = (time.perf_counter() - t0) / n
-    for _ in range(200):
-        r.local_once()
-    t0 = time.perf_counter()
-    for _ in range(n):
-        r.local_once()
-    loc = (time.perf_counter() - t0) / n
-    t0 = time.perf_counter()
-    for _ in range(n):
-        r.app.poll()
-    idle = (time.perf_counter() - t0) / n
+    fwd = _seconds_per_call(r.forward_once, n, warmup=200)
+    loc = _seconds_per_call(r.local_once, n, warmup=200)
+    idle = _seconds_per_call(r.app.poll, n)
     return fwd, loc, idle
 
 
@@ -82,8 +78,11 @@ def micropython_heap(n):
     return [int(x) / n for x in r.stdout.split()]
 
 
+DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
+
+
 def timeline(baud):
-    b = SimBench(driver_ids=(2,), baud=baud, turnaround_us=100.0)
+    b = SimBench(driver_ids=(2,), baud=baud, turnaround_us=DRIVER_TURNAROUND_US)
     segs = []
     for bus in (b.up_bus, b.down_bus):
         bus.monitor = lambda seg, data: segs.append((seg.node.name, seg.t0, seg.end))
@@ -99,7 +98,7 @@ def timeline(baud):
     bt = 10e6 / baud
     req = len(F.encode(2, F.GET_ALL_STATUS)) * bt
     rep = len(wire) * bt
-    direct = req + 100.0 + rep
+    direct = req + DRIVER_TURNAROUND_US + rep
     store_forward = direct + req + rep
     return dict(baud=baud, byte_us=bt, pre=pre, fwd=max(added_fwd), rel=max(added_rel),
                 rt=max(rt), direct=direct, sf=store_forward)

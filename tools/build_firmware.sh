@@ -17,6 +17,8 @@ MPY_CROSS_FLAGS=${MPY_CROSS_FLAGS:--march=armv7emdp}
 
 say() { printf 'firmware: %s\n' "$*"; }
 die() { printf 'firmware: %s\n' "$*" >&2; exit 1; }
+# shellcheck source=tools/micropython_build.sh
+. "$(dirname "$0")/micropython_build.sh"
 
 explain_checkout() {
     cat >&2 <<'EOF'
@@ -50,11 +52,7 @@ esac
 
 # --- tools --------------------------------------------------------------------------
 missing=()
-command -v arm-none-eabi-gcc >/dev/null || missing+=(gcc-arm-none-eabi)
-if command -v arm-none-eabi-gcc >/dev/null; then
-    libc=$(arm-none-eabi-gcc -mcpu=cortex-m7 -mthumb -print-file-name=libc.a 2>/dev/null || true)
-    [ -f "$libc" ] || missing+=(libnewlib-arm-none-eabi)
-fi
+check_arm_toolchain
 command -v make >/dev/null || missing+=(make)
 command -v python3 >/dev/null || missing+=(python3)
 command -v gcc >/dev/null || missing+=(gcc)
@@ -79,11 +77,7 @@ fi
 say "MicroPython $version at $MICROPY_DIR"
 
 # --- mpy-cross from the same tree (frozen .mpy must match the runtime) ---------------
-if [ ! -x "$MICROPY_DIR/mpy-cross/build/mpy-cross" ]; then
-    say "building mpy-cross"
-    make -C "$MICROPY_DIR/mpy-cross" -j"$JOBS" >"$BUILD/mpy-cross.log" 2>&1 \
-        || die "building mpy-cross failed; see $BUILD/mpy-cross.log (a host C compiler is needed: sudo apt-get install build-essential)."
-fi
+build_mpy_cross "$MICROPY_DIR" "$BUILD/mpy-cross.log"
 
 # --- frozen code: recompile everything when the mpy-cross flags change ---------------
 # The manifest step only recompiles a .py newer than its .mpy, so stale frozen code
@@ -94,11 +88,8 @@ if [ ! -f "$flags_stamp" ] || [ "$(cat "$flags_stamp")" != "$MPY_CROSS_FLAGS" ];
     printf '%s' "$MPY_CROSS_FLAGS" >"$flags_stamp"
 fi
 
-# The manifest machinery insists on a micropython-lib folder with a README.md even
-# though this board require()s nothing from it.
 mpy_lib="$BUILD/no-micropython-lib"
-mkdir -p "$mpy_lib"
-[ -f "$mpy_lib/README.md" ] || printf 'Empty on purpose: STM32H7_JIG freezes nothing from micropython-lib.\n' >"$mpy_lib/README.md"
+empty_micropython_lib "$mpy_lib"
 
 say "building STM32H7_JIG into $BUILD (make -j$JOBS; a first build takes a few minutes)"
 log="$BUILD/build.log"

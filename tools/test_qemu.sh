@@ -20,6 +20,8 @@ PY=${PYTHON:-$ROOT/.venv/bin/python}
 
 say() { printf 'test-qemu: %s\n' "$*"; }
 die() { printf 'test-qemu: %s\n' "$*" >&2; exit 1; }
+# shellcheck source=tools/micropython_build.sh
+. "$ROOT/tools/micropython_build.sh"
 
 if [ -z "$MICROPY_DIR" ]; then
     say "skipped: MICROPY_DIR is not set (make test-qemu MICROPY_DIR=/path/to/micropython)."
@@ -34,23 +36,15 @@ OUT=$(cd "$OUT" && pwd)
 
 missing=()
 command -v qemu-system-arm >/dev/null || missing+=(qemu-system-arm)
-command -v arm-none-eabi-gcc >/dev/null || missing+=(gcc-arm-none-eabi)
-if command -v arm-none-eabi-gcc >/dev/null; then
-    libc=$(arm-none-eabi-gcc -mcpu=cortex-m7 -mthumb -print-file-name=libc.a 2>/dev/null || true)
-    [ -f "$libc" ] || missing+=(libnewlib-arm-none-eabi)
-fi
+check_arm_toolchain
 if [ ${#missing[@]} -gt 0 ]; then
     die "missing tools: install them with 'sudo apt-get install ${missing[*]}' and run again."
 fi
 
-if [ ! -x "$MICROPY_DIR/mpy-cross/build/mpy-cross" ]; then
-    say "building mpy-cross"
-    make -C "$MICROPY_DIR/mpy-cross" -j"$JOBS" >"$OUT/mpy-cross.log" 2>&1 \
-        || die "building mpy-cross failed; see $OUT/mpy-cross.log."
-fi
+build_mpy_cross "$MICROPY_DIR" "$OUT/mpy-cross.log"
 
 # Frozen content: the firmware package, the capture replay module with every
-# capture and CPython's report for it, and the suite.
+# capture and CPython's report for it, the suite and the modules it imports.
 gen="$OUT/gen"
 mkdir -p "$gen"
 "$PY" "$ROOT/tools/qemu/gen_captures.py" "$gen"
@@ -58,20 +52,16 @@ capture_line=""
 if [ -f "$ROOT/host_tests/capture_format.py" ]; then
     capture_line="module(\"capture_format.py\", base_path=\"$ROOT/host_tests\")"
 fi
-probe_line=""
-if [ -f "$ROOT/host_tests/bridge_probe.py" ]; then
-    probe_line="module(\"bridge_probe.py\", base_path=\"$ROOT/host_tests\")"
-fi
 cat >"$gen/manifest.py" <<EOF
 package("jig", base_path="$ROOT/firmware")
 $capture_line
-$probe_line
+module("bridge_probe.py", base_path="$ROOT/host_tests")
 module("qemu_suite.py", base_path="$ROOT/tools/qemu")
 module("board_check.py", base_path="$ROOT/tools/qemu")
+module("memrx.py", base_path="$ROOT/tools/qemu")
 module("qemu_captures.py", base_path="$gen")
 EOF
-mkdir -p "$OUT/no-micropython-lib"
-[ -f "$OUT/no-micropython-lib/README.md" ] || echo "Empty on purpose." >"$OUT/no-micropython-lib/README.md"
+empty_micropython_lib "$OUT/no-micropython-lib"
 # Recompile all frozen code every time: it is small, and stale .mpy files would
 # otherwise survive a change of flags or of the generated captures.
 rm -rf "$OUT/build/frozen_mpy"

@@ -45,6 +45,7 @@ from jig.scan import Scanner
 
 RX_CHUNK = const(256)
 HEARTBEAT_US = const(500000)
+PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
 
 
 class App:
@@ -70,6 +71,7 @@ class App:
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
         self.up_rx = bytearray(RX_CHUNK)
         self.down_rx = bytearray(RX_CHUNK)
+        self._pc_scratch = [0] * PARSER_COUNTERS  # one parser's counters, for counter_values
         self._on_pc = self.bridge.on_pc_frame
         self._on_down = self.bridge.on_down_frame
         self.base_echo = 0
@@ -77,7 +79,6 @@ class App:
         self.base_down_ovf = hal.down.overflows
         self.t_beat = hal.ticks_us()
         self.beat = False
-        self.loops = 0
 
     # --- parameters --------------------------------------------------------------
     def apply_params(self):
@@ -108,25 +109,15 @@ class App:
         n = K.COUNT
         for i in range(n):
             out[i] = v[i]
-        p = self.up_parser
-        out[n] = p.good
-        out[n + 1] = p.noise
-        out[n + 2] = p.stuff_errors
-        out[n + 3] = p.crc_errors
-        out[n + 4] = p.short
-        out[n + 5] = p.overlong
-        out[n + 6] = p.timeouts
-        out[n + 7] = p.resyncs
-        p = self.down_parser
-        out[n + 8] = p.good
-        out[n + 9] = p.noise
-        out[n + 10] = p.stuff_errors
-        out[n + 11] = p.crc_errors
-        out[n + 12] = p.short
-        out[n + 13] = p.overlong
-        out[n + 14] = p.timeouts
-        out[n + 15] = p.resyncs
+        self._put_parser_counters(self.up_parser, out, n)
+        self._put_parser_counters(self.down_parser, out, n + PARSER_COUNTERS)
         return out
+
+    def _put_parser_counters(self, p, out, off):
+        s = self._pc_scratch
+        p.counters(s)
+        for i in range(PARSER_COUNTERS):
+            out[off + i] = s[i]
 
     def reset_counters(self):
         self.counters.reset()
@@ -168,7 +159,6 @@ class App:
             self.t_beat = now
             self.beat = not self.beat
             hal.heartbeat(self.beat)
-        self.loops += 1
 
     def wait_us(self):
         """µs until the app next needs a poll without new input (-1: only on input).

@@ -54,6 +54,9 @@ F_TIMEOUT = const(256)
 F_REFUSED = const(512)
 FLAG_NAMES = ("abort", "local", "forward", "broadcast", "send", "relay", "deliver", "stale", "timeout", "refused")
 
+# Driver ids 0..SEEN_IDS-1 are tracked in the ``seen`` bitmap (a small int on MicroPython).
+SEEN_IDS = const(30)
+
 # TRANSITIONS[state][event] = (action flags, next state)
 TRANSITIONS = (
     # IDLE
@@ -160,19 +163,22 @@ class Bridge:
             self._abort()
         if flags & F_LOCAL:
             self._local(p, t_in)
-        elif flags & F_FORWARD:
-            n = frame.stuff_into(self.txbuf, p.body, p.body_len)
-            self.down.send(self.txbuf, n)
-            self.c.turnaround(ticks_diff(self.down.t_tx_start, t_in))
-            v[K.C_FORWARDS] += 1
+        elif flags & (F_FORWARD | F_BROADCAST):
+            self._send(self.down, p.body, p.body_len, t_in)
             v[K.C_DOWN_OUT] += 1
-            self._pend(None, slave, p.ftype, p.sync, self.params.ram[P_REPLY_TIMEOUT_MS] * TIMEOUT_MULTIPLIER[p.ftype])
-        elif flags & F_BROADCAST:
-            n = frame.stuff_into(self.txbuf, p.body, p.body_len)
-            self.down.send(self.txbuf, n)
-            self.c.turnaround(ticks_diff(self.down.t_tx_start, t_in))
-            v[K.C_BROADCASTS] += 1
-            v[K.C_DOWN_OUT] += 1
+            if flags & F_FORWARD:
+                v[K.C_FORWARDS] += 1
+                self._pend(None, slave, p.ftype, p.sync, self.params.ram[P_REPLY_TIMEOUT_MS] * TIMEOUT_MULTIPLIER[p.ftype])
+            else:
+                v[K.C_BROADCASTS] += 1
+
+    def _send(self, rs, body, blen, t_in):
+        """Stuff body[0:blen] onto rs (re-stuffing a parsed body gives its received
+        wire bytes) and record the turnaround from t_in, when the frame this answers
+        or forwards ended."""
+        n = frame.stuff_into(self.txbuf, body, blen)
+        rs.send(self.txbuf, n)
+        self.c.turnaround(ticks_diff(rs.t_tx_start, t_in))
 
     def _pend(self, client, slave, ftype, sync, timeout_ms):
         self.client = client
@@ -190,9 +196,7 @@ class Bridge:
         if status == frame.STATUS_FRAME_TYPE_ERROR or status == frame.STATUS_DATA_ERROR or status == frame.STATUS_FRAME_ERROR:
             v[K.C_LOCAL_ERRORS] += 1
         blen = frame.build_body(self.body, p.slave, p.ftype, self.reply, 0, n, p.sync)
-        m = frame.stuff_into(self.txbuf, self.body, blen)
-        self.up.send(self.txbuf, m)
-        self.c.turnaround(ticks_diff(self.up.t_tx_start, t_in))
+        self._send(self.up, self.body, blen, t_in)
         v[K.C_UP_OUT] += 1
         self.handlers.after_reply(p)
 
@@ -230,12 +234,10 @@ class Bridge:
             and p.data_end > p.data_start
         )
         flags = self._event(E_REPLY if match else E_DOWN_OTHER)
-        if flags & (F_RELAY | F_DELIVER) and p.slave < 30:
+        if flags & (F_RELAY | F_DELIVER) and p.slave < SEEN_IDS:
             self.seen |= 1 << p.slave
         if flags & F_RELAY:
-            n = frame.stuff_into(self.txbuf, p.body, p.body_len)
-            self.up.send(self.txbuf, n)
-            self.c.turnaround(ticks_diff(self.up.t_tx_start, t_in))
+            self._send(self.up, p.body, p.body_len, t_in)
             v[K.C_REPLIES] += 1
             v[K.C_UP_OUT] += 1
         elif flags & F_DELIVER:

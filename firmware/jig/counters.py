@@ -76,7 +76,8 @@ class Counters:
 
     def __init__(self):
         self.v = [0] * COUNT
-        self.ta_sum = 0
+        self.ta_sum = 0  # sum and count of the turnaround times in the average
+        self.ta_n = 0
         self.reset()
 
     def reset(self):
@@ -84,6 +85,7 @@ class Counters:
         for i in range(COUNT):
             v[i] = 0
         self.ta_sum = 0
+        self.ta_n = 0
 
     def turnaround(self, us):
         """Record one jig handling time in µs."""
@@ -96,10 +98,11 @@ class Counters:
             v[C_TA_MAX] = us
         v[C_TA_COUNT] += 1
         self.ta_sum += us
+        self.ta_n += 1
         if self.ta_sum > 0x3FFFFFFF:  # keep the sum a small int: restart the average window
             self.ta_sum = us
-            v[C_TA_COUNT] = 1
-        v[C_TA_AVG] = self.ta_sum // v[C_TA_COUNT]
+            self.ta_n = 1
+        v[C_TA_AVG] = self.ta_sum // self.ta_n
 
     def get(self, name):
         return self.v[NAMES.index(name)]

@@ -58,7 +58,7 @@ COUNT = const(12)
 BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 
 MAGIC = b"MJP1"
-FILE_SIZE = const(4 + 1 + 4 * 12 + 2)
+FILE_SIZE = const(4 + 1 + 4 * COUNT + 2)
 
 
 def valid(num, value):
@@ -153,9 +153,7 @@ class Params:
             n = self.fs.read_into(self.path + ".tmp", self.buf)
             if self._decode(n):
                 return True
-        for i in range(COUNT):
-            self.rom[i] = self.ram[i] = TABLE[i][5]
-        return False
+        return False  # _decode changed nothing: the defaults set above stay
 
     def encode(self, values):
         """File image of values into self.buf; returns its length."""

@@ -9,6 +9,7 @@ and counts the event. It re-arms when the PC speaks again.
 
 from jig import counters as K
 from jig import frame
+from jig.bridge import SEEN_IDS
 from jig.compat import ticks_diff
 from jig.params import P_REPLY_TIMEOUT_MS, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
 
@@ -22,14 +23,14 @@ class SafetyStop:
         self.todo = 0  # bitmap of ids still to stop
         self.next_id = 0
         self.waiting = False
-        self.sent = 0  # stop frames sent
         self.empty = bytearray(1)
 
     def wait_us(self, now):
-        """µs until the silence limit is reached (-1: not armed)."""
-        ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
+        """µs until the silence limit is reached or the next stop can go out (-1:
+        not armed, or only a reply or the bridge's timeout moves things on)."""
         if self.todo:
-            return 0
+            return -1 if self.waiting or self.bridge.busy() else 0
+        ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
         if ms == 0 or self.bridge.pc_frames == 0 or self.fired_at == self.bridge.pc_frames:
             return -1
         d = ms * 1000 - ticks_diff(now, self.bridge.t_pc)
@@ -38,6 +39,7 @@ class SafetyStop:
     def poll(self, now):
         b = self.bridge
         if not self.todo:
+            # The same armed test as wait_us, inline: this runs on every main-loop pass.
             ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
             if ms == 0 or b.pc_frames == 0 or self.fired_at == b.pc_frames:
                 return
@@ -51,15 +53,14 @@ class SafetyStop:
                 return
         if self.waiting or b.busy():
             return
-        while self.next_id < 30 and not (self.todo & (1 << self.next_id)):
+        while self.next_id < SEEN_IDS and not (self.todo & (1 << self.next_id)):
             self.next_id += 1
-        if self.next_id >= 30:
+        if self.next_id >= SEEN_IDS:
             self.todo = 0
             return
         ftype = frame.EMERGENCY_STOP if self.params.ram[P_SAFETY_ACTION] else frame.MOVE_STOP
         if b.request(self, self.next_id, ftype, self.empty, 0, self.params.ram[P_REPLY_TIMEOUT_MS]):
             self.waiting = True
-            self.sent += 1
 
     def _done(self):
         self.waiting = False

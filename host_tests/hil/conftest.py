@@ -9,12 +9,9 @@ tests; ``--allow-move`` additionally lets one test turn its shaft by 100 pulses;
 ``--usb`` is the jig's USB REPL port, used to restart it with mpremote.
 """
 
-import time
-
 import pytest
 
-from jig import frame
-from jig.parser import FrameParser
+import flash  # tools/flash.py (host_tests/conftest.py puts tools/ on sys.path)
 
 
 def pytest_addoption(parser):
@@ -46,18 +43,7 @@ class Link:
 
     def request(self, slave, ftype, data=b"", timeout=0.3):
         """Reply data (status first) of the first matching frame, or None."""
-        p = FrameParser()
-        self.ser.reset_input_buffer()
-        self.ser.write(frame.encode(slave, ftype, data))
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            chunk = self.ser.read(256)
-            i = 0
-            while i < len(chunk):
-                i = p.feed(chunk, i, len(chunk))
-                if p.ready and p.slave == slave and p.ftype == ftype:
-                    return bytes(p.body[p.data_start : p.data_end])
-        return None
+        return flash.transact(self.ser, slave, ftype, data, timeout)
 
 
 @pytest.fixture(scope="session")

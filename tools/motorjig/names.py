@@ -153,13 +153,15 @@ ALARM_NAMES = {
     13: "reserved", 14: "high input voltage", 15: "position overflow", 16: "position changed",
 }
 
+
+# --- Slave type codes (§7.5, Ver6 list) -----------------------------------------
 def _add_jig_type():
+    """The jig's own GetSlaveInfo type and name, from the firmware's jig.diag."""
     from jig import diag as D
 
     SLAVE_TYPES[D.SLAVE_TYPE] = D.NAME.decode()
 
 
-# --- Slave type codes (§7.5, Ver6 list) -----------------------------------------
 SLAVE_TYPES = {
     1: "Ezi-SERVO Plus-R ST", 3: "Ezi-SERVO Plus-R ADC", 10: "Ezi-MotionLink",
     11: "Ezi-MotionLink2", 20: "Ezi-STEP Plus-R ST", 30: "Ezi-SERVO Plus-R ALL",

@@ -18,8 +18,8 @@ import sys
 
 import micropython
 
-from jig import mem
 from jig.compat import ticks_diff, ticks_us
+from memrx import MemRx
 
 
 class _Pin:
@@ -46,35 +46,17 @@ class _Pin:
         self.level = v
 
 
-class _UART:
+class _UART(MemRx):
     IRQ_RXIDLE = 16
     last = None
 
     def __init__(self, uart_id, **kw):
-        self.src = bytearray(512)
-        self.n = 0
-        self.pos = 0
+        MemRx.__init__(self)
         self.handler = None
         _UART.last = self
 
     def irq(self, handler, trigger, hard=False):
         self.handler = handler
-
-    def load(self, data):
-        mem.copy(self.src, 0, data, 0, len(data))
-        self.n = len(data)
-        self.pos = 0
-
-    def any(self):
-        return self.n - self.pos
-
-    def readinto(self, buf, n):
-        k = self.n - self.pos
-        if k > n:
-            k = n
-        mem.copy(buf, 0, self.src, self.pos, k)
-        self.pos += k
-        return k
 
     def write(self, buf, n):
         return n
@@ -145,7 +127,7 @@ def _check(board, machine, stm, result, fail, instr):
     err = None
     try:
         for _ in range(rounds):
-            uart.load(burst)
+            uart.load(burst, len(burst))
             handler(uart)
             port.ring.clear()
     except MemoryError as e:
@@ -156,7 +138,7 @@ def _check(board, machine, stm, result, fail, instr):
     if err is not None:
         fail("board: the RX idle handler allocated with the heap locked (as in a hard IRQ)")
         return
-    uart.load(burst)
+    uart.load(burst, len(burst))
     handler(uart)
     out = bytearray(64)
     n = port.readinto(out, 64)

@@ -39,10 +39,8 @@ try:
 except ImportError:
     capture_format = None
 
-try:
-    import bridge_probe  # host_tests' in-memory rig (also used on the WebAssembly VM)
-except ImportError:
-    bridge_probe = None
+import bridge_probe  # host_tests' in-memory rig (also used on the WebAssembly VM)
+from memrx import MemRx
 
 INSTR_PER_US = 1000  # qemu -icount shift=0: 1 instruction = 1 ns
 failures = []
@@ -237,43 +235,18 @@ def bench_parser(repeat=40, chunk=256):
            % (n, frames, instr(dt) // n, instr(dt) // frames, a1 - a0))
 
 
-class MemPort:
-    """A HAL port over memory: ``feed`` queues received bytes, ``write`` records or answers."""
+class MemPort(MemRx):
+    """A HAL port over memory: ``load`` queues received bytes, ``write`` records or
+    answers (the answer arrives at the next read)."""
 
     def __init__(self, baud, answer=None):
+        MemRx.__init__(self)
         self.baud = baud
         self.tx_blocks = True
         self.overflows = 0
-        self.t_last = 0
-        self.rx = bytearray(512)
-        self.rx_n = 0
-        self.rx_pos = 0
         self.answer = answer  # reply bytes of a simulated driver behind this port
-        self.pending = None  # the driver's reply, on the line once the request is out
         self.writes = 0
         self.tx_bytes = 0
-
-    def feed(self, data, n):
-        mem.copy(self.rx, 0, data, 0, n)
-        self.rx_n = n
-        self.rx_pos = 0
-        self.t_last = ticks_us()
-
-    def any(self):
-        return self.rx_n - self.rx_pos
-
-    def readinto(self, buf, n):
-        if self.pending is not None:
-            # Delivered at the next read, not during write: the reply comes after
-            # the request, and bytes arriving during write would count as echo.
-            self.feed(self.pending, len(self.pending))
-            self.pending = None
-        k = self.rx_n - self.rx_pos
-        if k > n:
-            k = n
-        mem.copy(buf, 0, self.rx, self.rx_pos, k)
-        self.rx_pos += k
-        return k
 
     def write(self, buf, n):
         self.writes += 1
@@ -288,14 +261,14 @@ class MemPort:
         return False
 
 
-class MemHal:
+class MemHal(bridge_probe.Hal):
+    """bridge_probe's in-memory HAL on the real clock, with MemPorts whose down
+    port answers every request with ``driver_reply``."""
+
     def __init__(self, driver_reply):
+        bridge_probe.Hal.__init__(self)
         self.ticks_us = ticks_us
-        self.up = None
-        self.down = None
         self.driver_reply = driver_reply
-        self.outputs = 0
-        self.feeds = 0
 
     def sleep_us(self, us):
         pass  # DE delays are waiting, not work: left out of the instruction count
@@ -303,21 +276,6 @@ class MemHal:
     def open(self, up_baud, down_baud):
         self.up = MemPort(up_baud)
         self.down = MemPort(down_baud, self.driver_reply)
-
-    def set_outputs(self, mask):
-        self.outputs = mask
-
-    def get_outputs(self):
-        return self.outputs
-
-    def get_inputs(self):
-        return 0
-
-    def heartbeat(self, on):
-        pass
-
-    def wdt_feed(self):
-        self.feeds += 1
 
 
 def bench_bridge(transactions=200):
@@ -333,7 +291,7 @@ def bench_bridge(transactions=200):
     def forward(count):
         polls = 0
         for k in range(count):
-            up.feed(request, len(request))
+            up.load(request, len(request))
             target = up.writes + 1
             while up.writes < target:
                 app.poll()
@@ -344,7 +302,7 @@ def bench_bridge(transactions=200):
 
     def answer_local(count):
         for k in range(count):
-            up.feed(local, len(local))
+            up.load(local, len(local))
             target = up.writes + 1
             while up.writes < target:
                 app.poll()
@@ -382,9 +340,6 @@ def bench_bridge(transactions=200):
 def probe_cross_check(n=200):
     """The same figures through host_tests/bridge_probe.Rig, the harness the other
     benchmarks use: a second opinion on the numbers above."""
-    if bridge_probe is None:
-        result("bridge_probe not frozen in: cross-check skipped")
-        return
     rig = bridge_probe.Rig()
     dt = timed(lambda: [rig.forward_once() for _ in range(n)] and None)
     result("bridge_probe.Rig forward: %d instructions/transaction" % (instr(dt) // n))

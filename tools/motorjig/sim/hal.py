@@ -29,7 +29,7 @@ class SimFS:
             return -1
         n = min(len(data), len(buf))
         buf[0:n] = data[0:n]
-        return len(data) if len(data) <= len(buf) else len(buf)
+        return n
 
     def _budget(self, n):
         if self.fail_after is None:

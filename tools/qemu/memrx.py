@@ -1,0 +1,43 @@
+"""Received bytes held in a preallocated buffer, for the qemu suite's stand-in ports.
+
+``qemu_suite.MemPort`` (the HAL port of the bridge benchmark) and board_check's
+fake UART both read from it: ``load`` puts bytes on the line, ``any``/``readinto``
+behave like a UART's. Nothing allocates per call (board_check reads with the heap
+locked). The methods do the work themselves rather than call one another: their
+cost is part of the instruction counts the suite reports.
+"""
+
+from jig import mem
+from jig.compat import ticks_us
+
+
+class MemRx:
+    def __init__(self, size=512):
+        self.rx = bytearray(size)
+        self.rx_n = 0
+        self.rx_pos = 0
+        self.t_last = 0  # tick of the last load (the HAL port's t_last)
+        self.pending = None  # bytes that arrive at the next read (a reply after a request)
+
+    def load(self, data, n):
+        """Make data[0:n] the bytes waiting to be read (anything unread is dropped)."""
+        mem.copy(self.rx, 0, data, 0, n)
+        self.rx_n = n
+        self.rx_pos = 0
+        self.t_last = ticks_us()
+
+    def any(self):
+        return self.rx_n - self.rx_pos
+
+    def readinto(self, buf, n):
+        if self.pending is not None:
+            # Delivered at this read, not when it was queued: a reply comes after
+            # its request, and bytes arriving during a write would count as echo.
+            self.load(self.pending, len(self.pending))
+            self.pending = None
+        k = self.rx_n - self.rx_pos
+        if k > n:
+            k = n
+        mem.copy(buf, 0, self.rx, self.rx_pos, k)
+        self.rx_pos += k
+        return k
