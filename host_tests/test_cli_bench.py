@@ -2,47 +2,25 @@
 
 Commands run in-process through ``motorjig.cli.main`` (fast, output captured);
 a few run the installed console script to prove there is never a traceback.
+Set-up shared with test_master_bench.py is in bench_fixtures.py.
 """
 
 import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
+from bench_fixtures import DRIVE, OTHER, TIMEOUT, TIMEOUT_MS, bench, port  # noqa: F401 (fixtures)
 from jig import frame as F
 from motorjig import cli
 from motorjig.master import Master
 from motorjig.sim import Bench
 
-DRIVE = 2
-OTHER = 3
 FAST = "200000"
 JIGCTL = os.path.join(os.path.dirname(sys.executable), "jigctl")
-
-
-@pytest.fixture(scope="module")
-def bench():
-    with Bench(driver_ids=(DRIVE, OTHER), baud=115200) as b:
-        yield b
-
-
-@pytest.fixture(params=["pty", "tcp"])
-def port(request, bench):
-    url = bench.pty_path if request.param == "pty" else bench.tcp_url
-    for d in bench.sim.drivers.values():
-        d.silent = False
-        d.limit_plus = None
-    with Master(url, timeout=0.5) as m:
-        for s in (DRIVE, OTHER):
-            m.emergency_stop(s)
-            m.alarm_reset(s)
-            m.servo_enable(s, True)
-            m.clear_position(s)
-            m.set_parameter(s, 3, 5)
-            m.set_parameter(s, 4, 5)
-    return url
 
 
 class Run:
@@ -53,7 +31,7 @@ class Run:
     def __call__(self, *argv, code=0):
         self.capsys.readouterr()
         # generous timeout: the bench runs in real time on a shared, busy machine
-        rc = cli.main(["--port", self.port, "--timeout", "500"] + [str(a) for a in argv])
+        rc = cli.main(["--port", self.port, "--timeout", str(TIMEOUT_MS)] + [str(a) for a in argv])
         out, err = self.capsys.readouterr()
         assert rc == code, (argv, rc, out, err)
         self.out, self.err = out, err
@@ -81,7 +59,7 @@ def test_ports(run):
 
 
 def test_scan(run):
-    rows = run.json("scan", "--first", 0, "--last", 4, "--timeout", 200)
+    rows = run.json("scan", "--first", 0, "--last", 4)  # one try per id: the present ones must answer
     assert [r["slave"] for r in rows] == [1, DRIVE, OTHER]
     assert rows[0]["jig"] and rows[1]["type"] == 20
     assert run.err == ""  # no progress line when stderr is not a terminal
@@ -199,16 +177,15 @@ def test_raw(run):
 
 def test_monitor_sees_the_replies_of_another_client(bench, port, tmp_path):
     log = tmp_path / "mon.log"
-    other = bench.tcp_url
-    mon = subprocess.Popen([JIGCTL, "--port", port, "monitor", "--duration", "1.5", "--log", str(log), "--json"],
+    mon = subprocess.Popen([JIGCTL, "--port", port, "monitor", "--duration", "3", "--log", str(log), "--json"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        import time
-
-        time.sleep(0.6)
-        with Master(other) as m:
-            for _ in range(3):
+        # Ask until the monitor has logged three replies: how long it takes to start
+        # depends on the machine's load, so no fixed head start is assumed.
+        with Master(bench.tcp_url, timeout=TIMEOUT) as m:
+            while mon.poll() is None and (not log.exists() or log.read_text().count("GetAxisStatus") < 3):
                 m.get_axis_status(DRIVE)
+                time.sleep(0.02)
         out, err = mon.communicate(timeout=10)
     finally:
         if mon.poll() is None:
@@ -216,8 +193,8 @@ def test_monitor_sees_the_replies_of_another_client(bench, port, tmp_path):
     assert mon.returncode == 0, err
     rows = [json.loads(ln) for ln in out.splitlines()]
     frames = [r for r in rows if "summary" not in r]
-    assert len(frames) >= 3 and all(f["name"] == "GetAxisStatus" and f["kind"] == "reply" for f in frames[:3])
-    assert rows[-1]["summary"]["frames"] == len(frames)
+    assert len(frames) >= 3 and all(f["name"] == "GetAxisStatus" and f["kind"] == "reply" for f in frames)
+    assert rows[-1]["summary"]["frames"] == len(frames) and rows[-1]["summary"]["errors"]["crc_errors"] == 0
     text = log.read_text()
     assert text.count("GetAxisStatus") >= 3 and "raw [02 40 00" in text
 
@@ -253,12 +230,32 @@ def test_refused_move_0x85(run):
     assert "0x85" in run.err and "refused" in run.err
 
 
-def test_crc_error_status(bench, run, monkeypatch):
-    monkeypatch.setattr(bench.sim.drivers[DRIVE], "handle",
-                        lambda ftype, data, broadcast=False: bytes([F.STATUS_CRC_ERROR]))
+def test_crc_error_status(bench, run):
+    bench.sim.drivers[DRIVE].force(F.STATUS_CRC_ERROR)  # until cleared (the fixture clears it)
     run("move", "inc", 100, code=5)
     assert "bad CRC" in run.err and "0xAA" in run.err
     run("status", "--retries", 0, code=5)
+    bench.sim.drivers[DRIVE].force(F.STATUS_CRC_ERROR, frames=1)
+    assert run.json("status")["command_pos"] == 0  # re-sent once, then answered
+
+
+def test_corrupted_reply(bench, run):
+    bench.sim.corrupt_to_pc(1)
+    run("status", "--retries", 0, code=4)
+    assert "the reply from slave 2 to GetAllStatus failed its CRC" in run.err
+    bench.sim.corrupt_to_pc(1)
+    assert run.json("status")["command_pos"] == 0  # retried
+
+
+def test_crashlog(bench, run, monkeypatch):
+    assert run.json("crashlog") == {"jig": 1, "crash_log": ""}
+    assert "crash log: no crash recorded" in run("crashlog")
+    monkeypatch.setattr(bench.sim.hal, "crash_summary", lambda: "crashes=1 consecutive=1 wdt_resets=0; last: boom",
+                        raising=False)
+    assert run.json("crashlog")["crash_log"] == "crashes=1 consecutive=1 wdt_resets=0; last: boom"
+    assert "last: boom" in run("crashlog", "--jig-id", 1)
+    assert run.json("raw", "01 F4")["reply"]["crash_log"].endswith("last: boom")  # decoded for raw/monitor
+    run("crashlog", "--jig-id", 2, code=5)  # a drive refuses the jig's frame type (0x80)
 
 
 def test_bad_input(run, bench):
@@ -291,9 +288,10 @@ def test_argparse_errors_and_help(capsys):
 
 def test_ver8_option(capsys):
     with Bench(driver_ids=(DRIVE,), baud=115200, ver8=True) as b:
-        assert cli.main(["--port", b.tcp_url, "--ver8", "--json", "--timeout", "500", "info"]) == 0
+        t = str(TIMEOUT_MS)
+        assert cli.main(["--port", b.tcp_url, "--ver8", "--json", "--timeout", t, "info"]) == 0
         assert json.loads(capsys.readouterr().out)["type"] == 20
-        assert cli.main(["--port", b.tcp_url, "--ver8", "-v", "--timeout", "500", "raw", "02", "51"]) == 0
+        assert cli.main(["--port", b.tcp_url, "--ver8", "-v", "--timeout", t, "raw", "02", "51"]) == 0
         out, err = capsys.readouterr()
         assert "sync" in out and "GetCommandPos" in out
 
@@ -310,16 +308,28 @@ def test_console_script_never_shows_a_traceback(bench):
         p = subprocess.run([JIGCTL] + argv, capture_output=True, text=True, timeout=30)
         assert p.returncode == code, (argv, p.stderr)
         assert text in p.stderr and "Traceback" not in p.stderr and len(p.stderr.splitlines()) == 1
-    p = subprocess.run([JIGCTL, "--port", bench.tcp_url, "--json", "info"], capture_output=True, text=True,
-                       timeout=30)
+    p = subprocess.run([JIGCTL, "--port", bench.tcp_url, "--timeout", str(TIMEOUT_MS), "--json", "info"],
+                       capture_output=True, text=True, timeout=30)
     assert p.returncode == 0 and json.loads(p.stdout)["type"] == 20
 
 
-def test_monitor_pairs_requests_with_replies_and_shows_line_errors(capsys, tmp_path):
+def test_monitor_pairs_requests_with_replies_and_shows_line_errors(capsys, tmp_path, monkeypatch):
     # A sniffer's view: both directions on one line, written into a pseudo-terminal.
     import threading
-    import time
     import tty
+
+    from motorjig import commands
+
+    # Write the stream once the monitor has opened the port (opening flushes the
+    # input): no head start is guessed, however busy the machine.
+    opened = threading.Event()
+
+    def open_and_tell(args, _real=commands.open_master):
+        m = _real(args)
+        opened.set()
+        return m
+
+    monkeypatch.setattr(commands, "open_master", open_and_tell)
 
     master_fd, slave_fd = os.openpty()
     tty.setraw(slave_fd)
@@ -333,8 +343,8 @@ def test_monitor_pairs_requests_with_replies_and_shows_line_errors(capsys, tmp_p
               + F.encode(3, F.GET_COMMAND_POS) + F.encode(3, F.GET_COMMAND_POS, b"\x00\x18\xfc\xff\xff"))
 
     def feed():
-        time.sleep(0.4)
-        os.write(master_fd, stream)
+        if opened.wait(10):
+            os.write(master_fd, stream)
 
     t = threading.Thread(target=feed)
     t.start()

@@ -150,3 +150,42 @@ def test_local_replies_are_fast(b):
         t_reply, reply = b.pc.frames[n0]
         reply_time = len(reply) * 10e6 / 115200
         assert t_reply - t_end - reply_time < 100.0  # µs on the virtual timeline
+
+
+def test_crash_log_empty_without_a_hal_crash_summary(b):
+    assert not hasattr(b.hal, "crash_summary")  # the bench's HAL has none
+    r = ask(b, diag.READ_CRASH_LOG)
+    assert r == b"\x00\x00" and diag.decode_crash_log(r) == ""
+    assert ask(b, diag.READ_CRASH_LOG, b"\x00") == bytes([F.STATUS_FRAME_ERROR])
+
+
+def test_crash_log_text_from_the_hal(b):
+    text = "crashes=2 consecutive=1 wdt_resets=0; last: MemoryError: memory allocation failed"
+    b.hal.crash_summary = lambda: text
+    r = ask(b, diag.READ_CRASH_LOG)
+    assert r == b"\x00" + text.encode() + b"\x00" and diag.decode_crash_log(r) == text
+    for nothing in ("", None):  # a HAL with a crash log API but no crash recorded
+        b.hal.crash_summary = lambda: nothing
+        assert ask(b, diag.READ_CRASH_LOG) == b"\x00\x00"
+
+
+def test_crash_log_is_cut_to_the_frame_and_printable(b):
+    b.hal.crash_summary = lambda: "x" * 300
+    r = ask(b, diag.READ_CRASH_LOG)
+    assert len(r) == F.MAX_DATA == 2 + diag.CRASH_TEXT_MAX and r[1:-1] == b"x" * diag.CRASH_TEXT_MAX
+    b.hal.crash_summary = lambda: "t\u00e9\tst\x00!"  # UTF-8 é, a tab and a NUL: each byte becomes '?'
+    assert diag.decode_crash_log(ask(b, diag.READ_CRASH_LOG)) == "t???st?!"
+
+    def broken():
+        raise OSError(5, "EIO")
+
+    b.hal.crash_summary = broken  # an unreadable log reads as none
+    assert ask(b, diag.READ_CRASH_LOG) == b"\x00\x00"
+
+
+def test_decode_crash_log_rejects_bad_replies():
+    for bad in (b"", b"\x00", b"\x81", b"\x00abc", b"\x01abc\x00", b"\x00a\x00b\x00", b"\x00\x07\x00",
+                b"\x00" + b"x" * (diag.CRASH_TEXT_MAX + 1) + b"\x00"):
+        with pytest.raises(ValueError):
+            diag.decode_crash_log(bad)
+    assert diag.decode_crash_log(b"\x00ok\x00") == "ok"

@@ -1,9 +1,10 @@
 """Every Master method against the virtual bench (real jig firmware + simulated drives),
 once over the bench's pseudo-terminal and once over its TCP port.
 
-Faults come from the simulated drive's own fault switches (``silent``) or, where it
-has none yet (a reply carrying status 0xAA), from replacing the drive's ``handle``
-for the duration of one test.
+Faults come from the bench's fault switches: the simulated drive's (``silent``,
+``bad_crc``, ``force`` a status such as 0xAA) and the PC link's (``corrupt_to_pc``:
+a bit flipped in the jig's next reply). Set-up shared with test_cli_bench.py is in
+bench_fixtures.py.
 """
 
 import os
@@ -12,38 +13,20 @@ import threading
 
 import pytest
 
+from bench_fixtures import DRIVE, OTHER, TIMEOUT, bench, eventually, port  # noqa: F401 (fixtures)
 from jig import frame as F
 from motorjig import errors as E
 from motorjig.master import AxisStatus, Master, MotionStatus
 from motorjig.sim import Bench
 
-DRIVE = 2
-OTHER = 3
 JIG = 1
 ABSENT = 9
 FAST = 200000  # pps
 
 
-@pytest.fixture(scope="module")
-def bench():
-    with Bench(driver_ids=(DRIVE, OTHER), baud=115200) as b:
-        yield b
-
-
-@pytest.fixture(params=["pty", "tcp"])
-def m(request, bench):
-    url = bench.pty_path if request.param == "pty" else bench.tcp_url
-    for d in bench.sim.drivers.values():
-        d.silent = False
-    # generous timeout: the bench runs in real time on a shared, busy machine
-    with Master(url, timeout=0.5) as master:
-        for s in (DRIVE, OTHER):
-            master.emergency_stop(s)
-            master.alarm_reset(s)
-            master.servo_enable(s, True)
-            master.clear_position(s)
-            master.set_parameter(s, 3, 5)  # short accel/decel: fast tests
-            master.set_parameter(s, 4, 5)
+@pytest.fixture
+def m(port):
+    with Master(port, timeout=TIMEOUT) as master:
         yield master
 
 
@@ -55,7 +38,7 @@ def test_connection_and_discovery(bench, m):
     assert m.is_open
     assert m.is_slave_exist(DRIVE) and m.is_slave_exist(JIG)
     assert not m.is_slave_exist(ABSENT, timeout=0.1)
-    found = m.scan(range(0, 5), timeout=0.2)
+    found = m.scan(range(0, 5), timeout=TIMEOUT)  # one try per id: the present ones must answer
     assert sorted(found) == [JIG, DRIVE, OTHER]
     assert found[DRIVE].type == 20 and found[JIG].type_name == "MotorJig bridge"
     assert m.open() is m  # already open: no-op
@@ -237,6 +220,15 @@ def test_jig_extensions(m):
     assert res.state == "done" and res.types == {DRIVE: 20, OTHER: 20}
 
 
+def test_crash_log(bench, monkeypatch, m):
+    assert m.read_crash_log(JIG) == ""  # the bench's HAL has no crash_summary()
+    text = "crashes=2 consecutive=1 wdt_resets=0; last: MemoryError: memory allocation failed"
+    monkeypatch.setattr(bench.sim.hal, "crash_summary", lambda: text, raising=False)
+    assert m.read_crash_log(JIG) == text
+    with pytest.raises(E.FrameTypeError):  # a drive does not know the jig's frame
+        m.read_crash_log(DRIVE)
+
+
 def test_low_level(m):
     fr = m.request(DRIVE, F.GET_AXIS_STATUS)
     assert (fr.slave, fr.ftype, fr.data[0]) == (DRIVE, F.GET_AXIS_STATUS, 0) and len(fr.data) == 5
@@ -244,7 +236,7 @@ def test_low_level(m):
     m.broadcast(F.ALL_MOVE_STOP)
     m.discard_input()
     m.write(F.encode(DRIVE, F.GET_COMMAND_POS))
-    fr = m.read_frame(0.5)
+    fr = m.read_frame(TIMEOUT)
     assert fr is not None and fr.ftype == F.GET_COMMAND_POS
     assert list(m.frames(0.05)) == []
     assert m.next_sync(DRIVE) >= 0
@@ -261,11 +253,11 @@ def test_no_reply_from_an_absent_or_silent_slave(bench, m):
         n0 = drive(bench, OTHER).requests
         with pytest.raises(E.NoReplyError):
             m.get_command_pos(OTHER)
-        assert drive(bench, OTHER).requests - n0 == 1 + m.retries  # reads are retried
+        assert eventually(lambda: drive(bench, OTHER).requests - n0, 1 + m.retries) == 1 + m.retries  # retried
         n0 = drive(bench, OTHER).requests
         with pytest.raises(E.NoReplyError):
             m.move_inc(OTHER, 100, 1000)
-        assert drive(bench, OTHER).requests - n0 == 1  # motion starts are not
+        assert eventually(lambda: drive(bench, OTHER).requests - n0, 1) == 1  # motion starts are not
     finally:
         drive(bench, OTHER).silent = False
 
@@ -280,7 +272,7 @@ def test_reply_with_bad_crc_on_the_driver_bus(bench, m):
         n0 = d.requests
         with pytest.raises(E.CommError):
             m.get_command_pos(DRIVE)
-        assert d.requests - n0 == 1 + m.retries
+        assert eventually(lambda: d.requests - n0, 1 + m.retries) == 1 + m.retries
     finally:
         d.bad_crc = False
 
@@ -297,28 +289,54 @@ def test_refused_move_0x85(m):
     m.move_stop(DRIVE)
 
 
-def test_crc_error_status_0xaa(bench, monkeypatch, m):
+def test_crc_error_status_0xaa(bench, m):
     d = drive(bench)
-    real = d.handle
-    answers = []
-
-    def corrupted_once(ftype, data, broadcast=False):
-        if not answers:
-            answers.append(ftype)
-            return bytes([F.STATUS_CRC_ERROR])
-        return real(ftype, data, broadcast)
-
-    monkeypatch.setattr(d, "handle", corrupted_once)
+    d.force(F.STATUS_CRC_ERROR, frames=1)
     n0 = d.requests
     assert m.get_command_pos(DRIVE) == 0  # read: re-sent after the 0xAA status
-    assert d.requests - n0 == 2
-    answers.clear()
+    assert d.requests - n0 == 2 and d.force_status is None  # the forced answer was used up
+    d.force(F.STATUS_CRC_ERROR, frames=1)
+    n0 = d.requests
     with pytest.raises(E.RequestCRCError) as exc:  # motion start: reported, not re-sent
         m.move_inc(DRIVE, 1000, FAST)
-    assert exc.value.status == 0xAA
-    monkeypatch.setattr(d, "handle", lambda ftype, data, broadcast=False: bytes([F.STATUS_CRC_ERROR]))
-    with pytest.raises(E.RequestCRCError):
-        m.get_command_pos(DRIVE)
+    assert exc.value.status == 0xAA and "slave 2" in str(exc.value)
+    assert eventually(lambda: d.requests - n0, 1) == 1
+    assert not m.get_axis_status(DRIVE).motioning  # a drive that saw garbage did not move
+    d.force(F.STATUS_CRC_ERROR)  # until cleared: every attempt gets 0xAA
+    try:
+        n0 = d.requests
+        with pytest.raises(E.RequestCRCError):
+            m.get_command_pos(DRIVE)
+        assert d.requests - n0 == 1 + m.retries
+    finally:
+        d.force(None)
+    assert m.get_command_pos(DRIVE) == 0
+
+
+def test_corrupted_reply_on_the_pc_link(bench, m):
+    """A bit flipped in the jig's reply on its way to the PC: ReplyCRCError, retried."""
+    d = drive(bench)
+    crc0 = m.parser.crc_errors
+    bench.sim.corrupt_to_pc(1)
+    n0 = d.requests
+    assert m.get_command_pos(DRIVE) == 0  # the first reply fails its CRC; the re-sent one is good
+    assert d.requests - n0 == 2 and m.parser.crc_errors - crc0 == 1
+    bench.sim.corrupt_to_pc(1 + m.retries)
+    n0 = d.requests
+    with pytest.raises(E.ReplyCRCError) as exc:
+        m.get_axis_status(DRIVE)
+    assert "failed its CRC" in str(exc.value) and d.requests - n0 == 1 + m.retries
+    # a motion start whose reply is lost is not re-sent: the drive did start moving
+    bench.sim.corrupt_to_pc(1)
+    n0 = d.requests
+    with pytest.raises(E.ReplyCRCError):
+        m.move_inc(DRIVE, 1000, FAST)
+    assert d.requests - n0 == 1
+    m.wait_motion_done(DRIVE, timeout=5)
+    assert m.get_command_pos(DRIVE) == 1000
+    # the jig's own replies travel the same link
+    bench.sim.corrupt_to_pc(1)
+    assert m.read_crash_log(JIG) == ""  # retried once, then the bench HAL's "no crash log"
 
 
 def test_port_errors(bench, tmp_path):
@@ -331,30 +349,36 @@ def test_port_errors(bench, tmp_path):
         assert "busy" in str(exc.value)
 
 
-def test_two_threads_do_not_share_a_master_but_two_masters_share_tcp(bench):
+def test_two_threads_do_not_share_a_master_but_two_masters_share_tcp(bench, monkeypatch):
     # two TCP clients see each other's replies; matching keeps them apart
+    monkeypatch.setattr(drive(bench, OTHER), "slave_type", 60)  # tell the two drives' replies apart
+    wrong = []
     errors = []
 
-    def worker(slave, n):
+    def worker(slave, want_type, n):
         try:
-            with Master(bench.tcp_url, timeout=0.5) as mm:
+            with Master(bench.tcp_url, timeout=TIMEOUT) as mm:
                 for _ in range(n):
-                    mm.get_slave_info(slave)
+                    got = mm.get_slave_info(slave).type
+                    if got != want_type:
+                        wrong.append((slave, got))
         except Exception as exc:  # reported below
             errors.append(exc)
 
-    ts = [threading.Thread(target=worker, args=(s, 5)) for s in (DRIVE, OTHER)]
+    ts = [threading.Thread(target=worker, args=(s, t, 5)) for s, t in ((DRIVE, 20), (OTHER, 60))]
     for t in ts:
         t.start()
     for t in ts:
-        t.join(10)
-    # Requests of two masters can collide on one bus (the jig aborts the older wait),
-    # so a timeout is possible; a reply decoded for the wrong request is not.
-    assert all(isinstance(e, E.NoReplyError) for e in errors), errors
+        t.join(30)
+    # Two masters on one half-duplex bus collide: the jig aborts the older wait (a
+    # timeout), or a request garbles a reply on the line (a CRC error) -- both are
+    # reported as such. A reply taken for the wrong request never is.
+    assert wrong == []
+    assert all(isinstance(e, (E.NoReplyError, E.ReplyCRCError)) for e in errors), errors
 
 
 def test_ver8_framing_through_the_jig():
-    with Bench(driver_ids=(DRIVE,), baud=115200, ver8=True) as b, Master(b.tcp_url, ver8=True, timeout=0.5) as mm:
+    with Bench(driver_ids=(DRIVE,), baud=115200, ver8=True) as b, Master(b.tcp_url, ver8=True, timeout=TIMEOUT) as mm:
         assert mm.get_slave_info(DRIVE).type == 20
         assert mm.get_slave_info(JIG).type_name == "MotorJig bridge"
         mm.servo_enable(DRIVE, True)

@@ -77,3 +77,24 @@ def test_velocity_mode_and_stop():
     d.handle(F.MOVE_STOP, b"")
     clock.advance(300000.0)
     assert not d.flags() & FF_MOTIONING and d._positions()[0] < 0
+
+
+def test_forced_status_for_n_frames_then_normal_replies():
+    from motorjig.sim import SimBench
+
+    b = SimBench(driver_ids=(2,), servo_on=True)
+    d = b.drivers[2]
+    d.force(F.STATUS_CRC_ERROR, frames=2)
+    assert b.request(2, F.GET_COMMAND_POS)[1] == bytes([F.STATUS_CRC_ERROR])
+    # a forced request is not executed: the drive did not start this move
+    assert b.request(2, F.MOVE_INC_POS, struct.pack("<iI", 1000, 5000))[1] == bytes([F.STATUS_CRC_ERROR])
+    assert not d.flags() & FF_MOTIONING and d.force_status is None
+    assert b.request(2, F.GET_COMMAND_POS)[1] == b"\x00" + bytes(4)
+    d.force(0x85)  # until cleared
+    for _ in range(3):
+        assert b.request(2, F.GET_AXIS_STATUS)[1] == b"\x85"
+    wire = b.encode(F.BROADCAST_ID, F.ALL_EMERGENCY_STOP)  # broadcasts are executed as usual
+    b.run_for(b.send(wire) - b.clock.now + 2000.0)
+    assert d.estop and d.force_status == 0x85
+    d.clear_faults()
+    assert b.request(2, F.GET_AXIS_STATUS)[1][0] == 0 and d.requests == 8  # the broadcast too

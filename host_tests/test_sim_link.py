@@ -77,3 +77,29 @@ def test_segments_of_one_node_queue_back_to_back():
     clock.run_until(e2)
     assert [d for _t, d in got["a"]] == [b"12", b"34"] and bus.collisions == 0
 
+
+
+def test_corrupt_flips_one_bit_so_the_crc_fails():
+    from jig import frame as F
+    from jig.parser import FrameParser
+    from motorjig.sim.link import flip_for_crc
+
+    clock, bus, a, b, got = make()
+    frame = F.encode(2, 0x51, b"\x00\xaa\x00\x00\x00")  # a stuffed AA AA inside
+    b.corrupt(1)
+    b.transmit(frame)
+    b.transmit(frame)
+    clock.run_until(clock.now + 10000.0)
+    (t1, bad), (t2, good) = got["a"]
+    assert good == frame and len(bad) == len(frame) and bus.corrupted == 1 and b.corrupt_next == 0
+    assert sum(x != y for x, y in zip(bad, frame)) == 1
+    p = FrameParser()
+    p.feed(bad)
+    assert not p.ready and p.crc_errors == 1 and p.stuff_errors == 0
+    # frames full of stuffed bytes, one with 0xAA in its CRC: still a CRC error, never a framing error
+    crc_aa = next(F.encode(3, 0x13, bytes([i])) for i in range(256)
+                  if 0xAA in F.encode(3, 0x13, bytes([i]))[-4:-2])
+    for data in (F.encode(1, 0x01, b"\xaa" * 5), F.encode(0xAA, 0xAA, b"\xab\xaa"), crc_aa):
+        q = FrameParser()
+        q.feed(flip_for_crc(data))
+        assert (q.crc_errors, q.stuff_errors, q.good) == (1, 0, 0)

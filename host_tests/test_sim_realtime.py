@@ -87,3 +87,48 @@ def test_cli_port_in_use_is_a_clean_error():
         r = subprocess.run([sys.executable, "-m", "motorjig.sim", "--tcp-port", str(port), "--no-demo", "--duration", "0.1"],
                            capture_output=True, text=True, env=ENV, timeout=30)
     assert r.returncode == 1 and "cannot start the bench" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_paced_clock_runs_stalled_events_at_their_own_times():
+    """A host stall must not let a later deadline overtake an earlier event's follow-up."""
+    import time
+
+    from motorjig.sim.bench import PacedClock
+
+    clock = PacedClock()
+    seen = []
+    t0 = clock.now
+
+    def slow_event():
+        time.sleep(0.06)  # the host stalls for 60 ms while this event runs
+        seen.append(("slow", clock.now))
+        clock.after(300.0, lambda: seen.append(("reply", clock.now)))
+
+    clock.at(t0 + 100.0, slow_event)
+    clock.at(t0 + 50000.0, lambda: seen.append(("deadline", clock.now)))
+    clock.run_until(t0 + 70000.0)
+    assert [name for name, _ in seen] == ["slow", "reply", "deadline"]
+    assert seen[0][1] == t0 + 100.0 and seen[1][1] == t0 + 400.0 and seen[2][1] == t0 + 50000.0
+    assert clock.now == t0 + 70000.0 and clock.wall() >= clock.now  # never ahead of the wall clock
+
+
+def test_a_host_stall_during_a_drive_turnaround_is_no_jig_timeout(bench, monkeypatch):
+    """The bench thread frozen for 80 ms (> the jig's 50 ms reply timeout) right when a
+    drive answers: on the bench's timeline nothing happened, the reply is relayed."""
+    import time
+
+    from motorjig.master import Master
+
+    d = bench.sim.drivers[2]
+    real = d._send_reply
+
+    def stalled(*args):
+        time.sleep(0.08)  # what a garbage collection or a busy machine does to the thread
+        return real(*args)
+
+    monkeypatch.setattr(d, "_send_reply", stalled)
+    with Master(bench.tcp_url, timeout=0.5, retries=0) as m:
+        m.reset_counters(1)
+        for _ in range(3):
+            assert m.get_command_pos(2) == d._positions()[0]
+        assert m.read_counters(1)["timeouts"] == 0

@@ -1,6 +1,6 @@
 """Wire layouts of the jig's own diagnostic frames and of its GetSlaveInfo reply.
 
-Frame types 0xF0-0xF3 are not used by the Plus-R protocol. Request and reply
+Frame types 0xF0-0xF4 are not used by the Plus-R protocol. Request and reply
 layouts (reply data always starts with the status byte)::
 
     0xF0 ReadCounters      req: -        reply: St, u8 n, n x u32 in WIRE_NAMES order
@@ -8,20 +8,24 @@ layouts (reply data always starts with the status byte)::
     0xF2 StartBusScan      req: -        reply: St  (scan of ids 0..15 runs in the background)
     0xF3 GetBusScanResult  req: -        reply: St, u8 state, u16 found bitmap (bit k = id k
                                                 answered), 16 x u8 slave type per id (0 = none)
+    0xF4 ReadCrashLog      req: -        reply: St, ASCII text (at most CRASH_TEXT_MAX bytes,
+                                                printable only), NUL; empty text when there is
+                                                no crash log or the HAL has no crash_summary()
 
-The PC library decodes with ``decode_counters`` / ``decode_scan`` below, so the
+The PC library decodes with ``decode_counters`` / ``decode_scan`` / ``decode_crash_log`` below, so the
 layout exists once. ``SLAVE_TYPE`` is what the jig reports in GetSlaveInfo: 200
 (0xC8), a code no FASTECH product uses (their list: 1, 3, 10, 11, 20, 30, 31, 35,
 40, 50, 60, 100, 102, 105, 108, 110, 120, 130, 150, 155, 160, 180, 254, 255).
 """
 
-from jig import counters, parser
+from jig import counters, frame, parser
 from jig.compat import const
 
 READ_COUNTERS = const(0xF0)
 RESET_COUNTERS = const(0xF1)
 START_BUS_SCAN = const(0xF2)
 GET_BUS_SCAN_RESULT = const(0xF3)
+READ_CRASH_LOG = const(0xF4)
 
 SLAVE_TYPE = const(200)
 NAME = b"MotorJig bridge"
@@ -40,6 +44,8 @@ SCAN_RUNNING = const(1)
 SCAN_DONE = const(2)
 SCAN_STATE_NAMES = ("idle", "running", "done")
 SCAN_REPLY_LEN = const(1 + 1 + 2 + 16)  # incl. status
+
+CRASH_TEXT_MAX = frame.MAX_DATA - 2  # reply data = status + text + NUL
 
 
 def decode_counters(data):
@@ -68,3 +74,13 @@ def decode_scan(data):
         if found & (1 << i):
             ids[i] = data[4 + i]
     return SCAN_STATE_NAMES[data[1]], ids
+
+
+def decode_crash_log(data):
+    """Reply data of ReadCrashLog (status first) -> the text, '' if none (host side)."""
+    if len(data) < 2 or data[0] != 0 or data[-1] != 0 or len(data) > 2 + CRASH_TEXT_MAX:
+        raise ValueError("bad ReadCrashLog reply")
+    text = bytes(data[1:-1])
+    if 0 in text or any(c < 0x20 or c > 0x7E for c in text):
+        raise ValueError("ReadCrashLog text is not printable ASCII")
+    return text.decode("ascii")

@@ -13,6 +13,10 @@ answers them with status 0 and the documented length, all fields zero: position
 The jig's I/O (SetIOOutput / GetIOOutput / GetIOInput) uses bits 0..15 only (LEDs,
 relays, buttons of the board); the upper 16 bits of the masks are ignored and read
 as 0, which keeps every value a small int (no heap use on MicroPython).
+
+ReadCrashLog (0xF4) is the one handler that allocates: the HAL builds the summary
+as a string. It runs only when a person asks for the crash log, never in the
+bridging steady state.
 """
 
 from jig import diag, frame
@@ -50,6 +54,7 @@ class Handlers:
             diag.RESET_COUNTERS: (self.reset_counters, 0),
             diag.START_BUS_SCAN: (self.start_scan, 0),
             diag.GET_BUS_SCAN_RESULT: (self.scan_result, 0),
+            diag.READ_CRASH_LOG: (self.crash_log, 0),
         }
         # Reply data lengths (status included) of the no-axis answers.
         self.no_axis_len = bytearray(256)
@@ -91,21 +96,18 @@ class Handlers:
 
     # --- parameters ------------------------------------------------------------
     def get_param(self, p, d, o, out):
-        num = d[o]
-        if num >= P.COUNT:
-            out[0] = frame.STATUS_DATA_ERROR
-            return 1
-        out[0] = frame.STATUS_OK
-        put_u32(out, 1, self.app.params.get(num))
-        return 5
+        return self._param_reply(d[o], False, out)
 
     def get_rom_param(self, p, d, o, out):
-        num = d[o]
+        return self._param_reply(d[o], True, out)
+
+    def _param_reply(self, num, rom, out):
         if num >= P.COUNT:
             out[0] = frame.STATUS_DATA_ERROR
             return 1
+        params = self.app.params
         out[0] = frame.STATUS_OK
-        put_u32(out, 1, self.app.params.get_rom(num))
+        put_u32(out, 1, params.get_rom(num) if rom else params.get(num))
         return 5
 
     def set_param(self, p, d, o, out):
@@ -168,3 +170,25 @@ class Handlers:
 
     def scan_result(self, p, d, o, out):
         return self.app.scanner.result_into(out)
+
+    def crash_log(self, p, d, o, out):
+        # Allocates (the HAL's string, its encoding): fine for a frame a person sends
+        # now and then; the bridging steady state never comes here.
+        text = b""
+        fn = getattr(self.app.hal, "crash_summary", None)
+        if fn is not None:
+            try:
+                text = fn() or b""
+                if isinstance(text, str):
+                    text = text.encode()
+            except Exception:  # an unreadable log reads as none
+                text = b""
+        n = len(text)
+        if n > diag.CRASH_TEXT_MAX:
+            n = diag.CRASH_TEXT_MAX
+        out[0] = frame.STATUS_OK
+        for i in range(n):
+            c = text[i]
+            out[1 + i] = c if 0x20 <= c <= 0x7E else 0x3F  # printable ASCII only, else '?'
+        out[1 + n] = 0
+        return n + 2

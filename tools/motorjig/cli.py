@@ -21,7 +21,8 @@ import serial
 from jig import frame as F
 
 from motorjig.commands import (EXIT_COMM, EXIT_FAIL, EXIT_INTERRUPT, EXIT_OK, EXIT_PORT, EXIT_STATUS,
-                               EXIT_USAGE, UsageError, fail, cmd_alarm_reset, cmd_estop, cmd_info, cmd_io,
+                               EXIT_USAGE, UsageError, fail, cmd_alarm_reset, cmd_crashlog, cmd_estop,
+                               cmd_info, cmd_io,
                                cmd_monitor, cmd_motion_test, cmd_move, cmd_param, cmd_ports, cmd_raw, cmd_scan,
                                cmd_servo, cmd_stats, cmd_status, cmd_stop)
 from motorjig.errors import CommError, JigError, PortError, StatusError
@@ -215,6 +216,7 @@ def build_parser():
     sp.add_argument("--stop-on-fail", action="store_true", help="stop at the first failed move")
     sp = add("stats", cmd_stats, "the jig's own counters (frames, errors, turnaround)")
     sp.add_argument("--reset", action="store_true", help="reset the counters after reading them")
+    add("crashlog", cmd_crashlog, "the jig's crash summary (crash counts and the last exception)")
     return p
 
 

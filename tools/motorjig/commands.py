@@ -631,6 +631,15 @@ def cmd_stats(args):
     return EXIT_OK
 
 
+def cmd_crashlog(args):
+    with open_master(args) as m:
+        text = m.read_crash_log(args.jig_id)
+    shown = text or "no crash recorded"
+    emit(args, {"jig": args.jig_id, "crash_log": text},
+         "jig (slave %d) crash log: %s" % (args.jig_id, shown))
+    return EXIT_OK
+
+
 def fail(code, message):
     message = message.rstrip(".")
     sys.stderr.write("jigctl: %s.\n" % message)

@@ -7,6 +7,7 @@ known status byte and has the reply length of its frame type; a request has the
 request length).
 """
 
+from jig import diag as D
 from jig import frame as F
 
 from motorjig import names as N
@@ -47,6 +48,11 @@ def _reply_fields(ftype, d):
     if ftype == F.GET_IO_AXIS_STATUS and n == 12:
         return {"inputs": "0x%08X" % F.get_u32(d, 0), "outputs": "0x%08X" % F.get_u32(d, 4),
                 "flags": AxisStatus(F.get_u32(d, 8)).flags}
+    if ftype == D.READ_CRASH_LOG:
+        try:
+            return {"crash_log": D.decode_crash_log(b"\x00" + bytes(d))}
+        except ValueError:
+            return {}
     return {}
 
 

@@ -65,7 +65,7 @@ IDEMPOTENT = frozenset((
     F.GET_POS_ERROR, F.GET_ACTUAL_VEL, F.CLEAR_POSITION, F.MOVE_PAUSE, F.POS_TABLE_READ_ITEM,
     F.POS_TABLE_WRITE_ITEM, F.POS_TABLE_READ_ROM, F.POS_TABLE_READ_ONE_ITEM,
     F.POS_TABLE_WRITE_ONE_ITEM, F.GET_PUSH_STATUS,
-    D.READ_COUNTERS, D.RESET_COUNTERS, D.START_BUS_SCAN, D.GET_BUS_SCAN_RESULT,
+    D.READ_COUNTERS, D.RESET_COUNTERS, D.START_BUS_SCAN, D.GET_BUS_SCAN_RESULT, D.READ_CRASH_LOG,
 ))
 
 VAR = -1  # variable-length reply (info strings)
@@ -87,7 +87,7 @@ REPLY_LEN = {
     F.MOVE_ABS_POS_EX: 0, F.MOVE_INC_POS_EX: 0, F.MOVE_VELOCITY_EX: 0,
     # the jig's diagnostic frames (jig.diag)
     D.READ_COUNTERS: VAR, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0,
-    D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1,
+    D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1, D.READ_CRASH_LOG: VAR,
 }
 #: data bytes of a request (Ver6); the monitor tells requests from replies with it
 REQUEST_LEN = {
@@ -108,6 +108,7 @@ REQUEST_LEN = {
     F.MOVE_PUSH: (26, 28), F.GET_PUSH_STATUS: 0, F.MOVE_ABS_POS_EX: 40, F.MOVE_INC_POS_EX: 40,
     F.MOVE_VELOCITY_EX: 37,
     D.READ_COUNTERS: 0, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0, D.GET_BUS_SCAN_RESULT: 0,
+    D.READ_CRASH_LOG: 0,
 }
 
 #: Ver8 libraries widen the inputs to 64 bits; drives that keep 32 are accepted too
@@ -721,13 +722,17 @@ class Master:
         return found
 
     # --- the jig's own frames (slave 1 by default; layouts in jig.diag) ---------------------
+    def _jig_reply(self, jig, ftype, decode, name):
+        """Request ftype from the jig and decode its reply data with jig.diag's decode."""
+        fr = self.request(jig, ftype)
+        try:
+            return decode(fr.data)
+        except ValueError as exc:
+            raise BadReplyError("slave %d sent a bad %s reply (%s)" % (jig, name, exc), jig, ftype) from None
+
     def read_counters(self, jig=1):
         """The jig's counters as {name: value} (0xF0), decoded by jig.diag.decode_counters."""
-        fr = self.request(jig, D.READ_COUNTERS)
-        try:
-            return D.decode_counters(fr.data)
-        except ValueError as exc:
-            raise BadReplyError("slave %d sent a bad ReadCounters reply (%s)" % (jig, exc), jig, fr.ftype) from None
+        return self._jig_reply(jig, D.READ_COUNTERS, D.decode_counters, "ReadCounters")
 
     def reset_counters(self, jig=1):
         self.call(jig, D.RESET_COUNTERS)
@@ -738,12 +743,11 @@ class Master:
 
     def get_bus_scan_result(self, jig=1):
         """(state, {id: slave type}) of the jig's bus scan (0xF3); state is idle/running/done."""
-        fr = self.request(jig, D.GET_BUS_SCAN_RESULT)
-        try:
-            return BusScan(*D.decode_scan(fr.data))
-        except ValueError as exc:
-            raise BadReplyError("slave %d sent a bad GetBusScanResult reply (%s)" % (jig, exc), jig,
-                                fr.ftype) from None
+        return BusScan(*self._jig_reply(jig, D.GET_BUS_SCAN_RESULT, D.decode_scan, "GetBusScanResult"))
+
+    def read_crash_log(self, jig=1):
+        """The jig's crash summary (0xF4) as text; '' from a jig whose HAL keeps no crash log."""
+        return self._jig_reply(jig, D.READ_CRASH_LOG, D.decode_crash_log, "ReadCrashLog")
 
     def jig_bus_scan(self, jig=1, timeout=5.0, poll=0.05):
         """Start the jig's bus scan and wait for its result."""

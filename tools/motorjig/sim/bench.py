@@ -11,13 +11,20 @@ the PC side as a pseudo-terminal and a TCP port, for any pyserial program::
 The jig is the real firmware (``jig.app.App``) on ``SimHAL``; its main loop is
 polled whenever bytes reach one of its ports and whenever ``App.wait_us`` says a
 deadline is due.
+
+In real time the bench runs on ``PacedClock``: simulated time follows the wall
+clock but never jumps over a pending event, so a stall of the host (a garbage
+collection, a busy machine) delays the whole simulated world alike instead of
+letting the jig's reply timeout expire before a simulated drive had its turn.
 """
 
+import heapq
 import os
 import queue
 import select
 import socket
 import threading
+import time
 
 from jig import frame as F
 from jig import params as P
@@ -34,6 +41,44 @@ from .link import Bus
 VIRTUAL_START_US = float((1 << 30) - 3000000)
 
 
+class PacedClock(RealClock):
+    """Event time paced by the wall clock, for the real-time bench.
+
+    ``now`` is simulated time (µs since creation). Events run in time order, each
+    at its own time, and never before the wall clock reaches it; when the host has
+    stalled, the clock catches up event by event without sleeping. ``RealClock``'s
+    wall-clock ``now`` instead moved every deadline forward during a stall (the
+    jig's 50 ms reply timeout fired while the simulated drive's 0.3 ms turnaround
+    was still pending: a spurious timeout). ``pump`` runs on every pass (the bench
+    pulls the pty/TCP bytes with it).
+    """
+
+    now = 0.0  # a plain attribute again (RealClock makes it a wall-clock property)
+
+    def wall(self):
+        return (time.monotonic() - self._t0) * 1e6
+
+    def run_until(self, t):
+        heap = self._heap
+        while True:
+            if self.pump is not None:
+                self.pump()
+            wall = self.wall()
+            limit = t if t < wall else wall
+            while heap and heap[0][0] <= limit:
+                et, _, fn, args = heapq.heappop(heap)
+                if et > self.now:
+                    self.now = et
+                fn(*args)
+            if limit > self.now:
+                self.now = limit  # idle time passes, never beyond the wall clock
+            if wall >= t:
+                return
+            nxt = heap[0][0] if heap else t
+            if nxt > wall:
+                time.sleep(min(min(nxt, t) - wall, 1000.0) / 1e6)
+
+
 class PcPort:
     """The PC's RS-485 adapter (automatic direction) on the upstream bus."""
 
@@ -46,8 +91,9 @@ class PcPort:
         self.listeners = []  # fn(data) called with raw bytes (pty/TCP)
         self.keep = True  # False: only pass bytes to the listeners (long interactive runs)
 
-    def send(self, data):
-        return self.node.transmit(data)
+    def send(self, data, t0=None):
+        """Transmit data at t0 (default: now); returns the end of its last stop bit."""
+        return self.node.bus.transmit(self.node, data, t0)
 
     def _rx(self, data, t):
         for fn in self.listeners:
@@ -122,7 +168,7 @@ class SimBench:
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
                  echo_down=False, record=True, servo_on=False, start_us=None):
         if realtime:
-            self.clock = RealClock()
+            self.clock = PacedClock()
         else:
             self.clock = VirtualClock(VIRTUAL_START_US if start_us is None else start_us)
         fresh = fs is None
@@ -168,6 +214,18 @@ class SimBench:
     def counters(self):
         vals = self.app.counter_values([0] * len(DIAG_NAMES))
         return dict(zip(DIAG_NAMES, vals))
+
+    # --- faults --------------------------------------------------------------------
+    def clear_faults(self):
+        """Switch off every injected fault: the drives' switches, corruption to the PC."""
+        for d in self.drivers.values():
+            d.clear_faults()
+        self.hal.up.node.corrupt(0)
+
+    def corrupt_to_pc(self, frames=1):
+        """Flip a bit in each of the next ``frames`` transmissions of the jig to the PC
+        (the PC sees a CRC error; see ``link.flip_for_crc``)."""
+        self.hal.up.node.corrupt(frames)
 
     # --- running -----------------------------------------------------------------
     def run_for(self, us):
@@ -342,10 +400,13 @@ class Bench:
 
     # --- simulation thread -------------------------------------------------------------
     def _pump(self):
+        # Bytes from outside reach the bus when they arrived (the wall clock), not at
+        # the simulated time the bench is catching up through after a stall: they
+        # cannot have been on the wire earlier.
         try:
             while True:
                 data = self._inbox.get_nowait()
-                self.sim.pc.send(data)
+                self.sim.pc.send(data, self.sim.clock.wall())
         except queue.Empty:
             pass
 

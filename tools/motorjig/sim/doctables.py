@@ -1,8 +1,9 @@
 """Markdown tables generated from the firmware's data (bridge states, parameters, counters).
 
-docs/bridge.md, docs/parameters.md and docs/diagnostics.md embed these between
-``<!-- BEGIN name -->`` / ``<!-- END name -->`` markers; a host test checks they
-match, and ``python -m motorjig.sim.doctables --write`` refreshes them.
+docs/bridge.md, docs/parameters.md, docs/diagnostics.md and README.md embed these
+between ``<!-- BEGIN name -->`` / ``<!-- END name -->`` markers; a host test checks
+they match, and ``python -m motorjig.sim.doctables --write`` refreshes them.
+Every table listed for a document must have its markers there.
 """
 
 import os
@@ -53,10 +54,12 @@ TABLES = {
     "docs/bridge.md": {"bridge-states": bridge_table, "timeouts": timeout_table},
     "docs/parameters.md": {"params": param_table},
     "docs/diagnostics.md": {"counters": counter_table},
+    "README.md": {"params": param_table, "counters": counter_table, "bridge-states": bridge_table},
 }
 
 
 def expected(path, text):
+    """text with every marked table regenerated (ValueError: required markers missing)."""
     for name, fn in TABLES[path].items():
         pat = re.compile(r"(<!-- BEGIN %s -->\n)(?:.*?\n)?(<!-- END %s -->)" % (name, name), re.S)
         if not pat.search(text):

@@ -7,7 +7,8 @@ max speed, accel/decel times from parameters 2-4) evaluated in 1 ms steps of the
 bus's clock, so positions and the axis status flags (moving, accelerating,
 constant speed, decelerating, direction, in-position, servo on, limits, alarm,
 e-stop, pause) evolve over time. Alarms, limit positions and communication
-faults (silence, garbage, late or wrong-id replies, bad CRC) can be injected.
+faults (silence, garbage, late or wrong-id replies, bad CRC, a forced status such
+as 0xAA "your request arrived corrupted") can be injected.
 RAM and ROM parameters 0-28 (SaveAllParameters copies RAM to ROM).
 """
 
@@ -201,6 +202,10 @@ class SimDriver:
         self.late_us = 0.0  # extra delay before answering
         self.wrong_id = None  # answer with this id instead
         self.bad_crc = False  # corrupt the reply's CRC
+        # answer addressed requests with only this status byte, without executing them
+        # (0xAA: "your request arrived corrupted"); None: off. See force().
+        self.force_status = None
+        self.force_frames = None  # requests left to answer so (None: until cleared)
         self.rng = random.Random(seed if seed is not None else slave_id)
         # statistics
         self.requests = 0
@@ -280,6 +285,38 @@ class SimDriver:
         self.servo_on = False
 
     # --- communication --------------------------------------------------------
+    def clear_faults(self):
+        """Every fault switch off, limit sensors removed (alarms and motion stay)."""
+        self.force(None)
+        self.silent = False
+        self.garbage = False
+        self.late_us = 0.0
+        self.wrong_id = None
+        self.bad_crc = False
+        self.limit_plus = None
+        self.limit_minus = None
+
+    def force(self, status, frames=None):
+        """Answer the next ``frames`` addressed requests (None: all, until ``force(None)``)
+        with just ``status``, without executing them. Broadcasts are not affected."""
+        self.force_status = None  # never half-set while the bench thread reads it
+        self.force_frames = frames
+        self.force_status = status
+
+    def _forced(self):
+        """The status to answer with instead of executing this request, or None."""
+        status = self.force_status
+        if status is None:
+            return None
+        left = self.force_frames
+        if left is not None:
+            if left <= 1:
+                self.force_status = None
+                self.force_frames = None
+            else:
+                self.force_frames = left - 1
+        return status
+
     def _rx(self, data, t):
         p = self.parser
         i = 0
@@ -296,8 +333,13 @@ class SimDriver:
         if self.record_requests:
             self.received.append((self.clock.now, p.ftype))
         data = bytes(p.body[p.data_start : p.data_end])
-        reply = self.handle(p.ftype, data, p.slave == F.BROADCAST_ID)
-        if p.slave == F.BROADCAST_ID or self.silent:
+        broadcast = p.slave == F.BROADCAST_ID
+        forced = None if broadcast or self.silent else self._forced()
+        if forced is not None:
+            reply = bytes([forced])
+        else:
+            reply = self.handle(p.ftype, data, broadcast)
+        if broadcast or self.silent:
             return
         self.clock.after(self.turnaround_us + self.late_us, self._send_reply, p.ftype, p.sync, reply)
 

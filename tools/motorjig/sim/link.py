@@ -11,7 +11,10 @@ receiver hears its own transmission: ``echo``), with these rules:
   time stamps in ``Node.de_log``);
 * bytes of two segments that overlap in time corrupt each other (collision);
 * nodes with ``auto_de`` (USB adapters with automatic direction control, the
-  simulated drivers) drive DE exactly around their own segments.
+  simulated drivers) drive DE exactly around their own segments;
+* fault injection: ``Node.corrupt(n)`` flips one bit in each of the node's next
+  ``n`` transmissions (a frame byte that is not part of a stuffing pair, so the
+  receiver sees a CRC error rather than a framing error).
 """
 
 from collections import deque
@@ -21,6 +24,21 @@ BITS_PER_BYTE = 10
 
 def _garbage(b):
     return (b ^ 0x5A ^ 0xFF) & 0xFF
+
+
+def flip_for_crc(data):
+    """Copy of a wire frame with one bit flipped before its tail, keeping the framing.
+
+    The byte chosen (scanning back from the last CRC byte) is neither 0xAA, 0xAB nor
+    the second byte of a stuffed ``AA AA`` pair, so the frame still parses and
+    fails only its CRC check. Data without such a byte is returned unchanged.
+    """
+    out = bytearray(data)
+    for i in range(len(out) - 3, 1, -1):
+        if out[i] not in (0xAA, 0xAB) and out[i - 1] != 0xAA:
+            out[i] ^= 0x01
+            break
+    return bytes(out)
 
 
 class Node:
@@ -39,6 +57,11 @@ class Node:
         self.hw_pre_us = 0.0  # hardware-DE mode of a UART: DE lead/lag around segments
         self.hw_post_us = 0.0
         self.hw_de = False
+        self.corrupt_next = 0  # fault: transmissions left whose bytes get one bit flipped
+
+    def corrupt(self, n=1):
+        """Flip a bit (see ``flip_for_crc``) in each of our next n transmissions."""
+        self.corrupt_next = n
 
     def set_de(self, on, t=None):
         on = bool(on)
@@ -103,6 +126,7 @@ class Bus:
         self.set_baud(baud)
         self.collisions = 0  # bytes corrupted by overlapping transmissions
         self.lost = 0  # bytes sent with DE low
+        self.corrupted = 0  # transmissions changed by Node.corrupt
         self.monitor = None  # optional fn(segment, delivered bytes) for tests
 
     def set_baud(self, baud):
@@ -185,6 +209,10 @@ class Bus:
             data = bytes(out)
         if i0 or i1 != n:
             data = data[i0:i1]
+        if node.corrupt_next > 0:
+            node.corrupt_next -= 1
+            data = flip_for_crc(data)
+            self.corrupted += 1
         self._hand_out(seg, data)
 
     def _hand_out(self, seg, data):
