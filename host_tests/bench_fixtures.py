@@ -8,7 +8,7 @@ injected fault cleared and both drives stopped, alarm-free, powered, at position
 
 The bench runs in real time on a shared, often busy machine, so requests that do
 not test timeouts use ``TIMEOUT`` (generous); the bench's own clock already keeps
-the simulated jig and drives in step through host stalls (``sim.bench.PacedClock``).
+the simulated jig and drives in step through host stalls (``sim.clock.PacedClock``).
 """
 
 import time

@@ -93,7 +93,7 @@ def test_paced_clock_runs_stalled_events_at_their_own_times():
     """A host stall must not let a later deadline overtake an earlier event's follow-up."""
     import time
 
-    from motorjig.sim.bench import PacedClock
+    from motorjig.sim.clock import PacedClock
 
     clock = PacedClock()
     seen = []

@@ -31,7 +31,7 @@ from jig import params as P
 from jig.app import App
 from jig.parser import FrameParser
 
-from .clock import RealClock, VirtualClock
+from .clock import PacedClock, VirtualClock
 from .driver import SimDriver
 from .hal import SimFS, SimHAL
 from .link import Bus
@@ -39,44 +39,6 @@ from .link import Bus
 # Start the virtual clock 3 s before the 2**30 µs tick wrap, so every test also
 # crosses the wrap that MicroPython's ticks_us has every ~18 minutes.
 VIRTUAL_START_US = float((1 << 30) - 3000000)
-
-
-class PacedClock(RealClock):
-    """Event time paced by the wall clock, for the real-time bench.
-
-    ``now`` is simulated time (µs since creation). Events run in time order, each
-    at its own time, and never before the wall clock reaches it; when the host has
-    stalled, the clock catches up event by event without sleeping. ``RealClock``'s
-    wall-clock ``now`` instead moved every deadline forward during a stall (the
-    jig's 50 ms reply timeout fired while the simulated drive's 0.3 ms turnaround
-    was still pending: a spurious timeout). ``pump`` runs on every pass (the bench
-    pulls the pty/TCP bytes with it).
-    """
-
-    now = 0.0  # a plain attribute again (RealClock makes it a wall-clock property)
-
-    def wall(self):
-        return (time.monotonic() - self._t0) * 1e6
-
-    def run_until(self, t):
-        heap = self._heap
-        while True:
-            if self.pump is not None:
-                self.pump()
-            wall = self.wall()
-            limit = t if t < wall else wall
-            while heap and heap[0][0] <= limit:
-                et, _, fn, args = heapq.heappop(heap)
-                if et > self.now:
-                    self.now = et
-                fn(*args)
-            if limit > self.now:
-                self.now = limit  # idle time passes, never beyond the wall clock
-            if wall >= t:
-                return
-            nxt = heap[0][0] if heap else t
-            if nxt > wall:
-                time.sleep(min(min(nxt, t) - wall, 1000.0) / 1e6)
 
 
 class PcPort:

@@ -1,7 +1,7 @@
 """Event scheduler for the virtual bench: a virtual clock for tests, real time for use.
 
 Times are float microseconds. ``VirtualClock`` jumps from event to event, so a
-simulated minute takes as long as the Python work in it. ``RealClock`` follows
+simulated minute takes as long as the Python work in it. ``PacedClock`` follows
 ``time.monotonic`` and sleeps between events; its ``pump`` hook runs on every
 turn (the interactive bench uses it to pull bytes from the pty/TCP threads).
 ``ticks_us`` gives firmware-style wrapping ticks (2**30 period, like MicroPython).
@@ -64,37 +64,40 @@ class VirtualClock:
         return True
 
 
-class RealClock(VirtualClock):
-    """Same interface, following the wall clock; ``now`` is µs since creation."""
+class PacedClock(VirtualClock):
+    """Event time paced by the wall clock, for the real-time bench.
+
+    ``now`` is simulated time (µs since creation). Events run in time order, each
+    at its own time, and never before the wall clock reaches it; when the host has
+    stalled (a GC pause, a loaded machine), the clock catches up event by event
+    without sleeping. Using the wall clock itself as ``now`` would move every
+    deadline forward during a stall: the jig's 50 ms reply timeout would fire while
+    the simulated drive's 0.3 ms turnaround was still pending. ``pump`` runs on
+    every pass (the bench pulls the pty/TCP bytes with it).
+    """
 
     def __init__(self, start_us=0.0):
         super().__init__(start_us)
         self._t0 = time.monotonic() - start_us / 1e6
         self.pump = None
 
-    @property
-    def now(self):
+    def wall(self):
         return (time.monotonic() - self._t0) * 1e6
 
-    @now.setter
-    def now(self, value):
-        pass  # real time cannot be set
-
     def run_until(self, t):
-        heap = self._heap
         while True:
             if self.pump is not None:
                 self.pump()
-            now = self.now
-            while heap and heap[0][0] <= now:
-                _, _, fn, args = heapq.heappop(heap)
-                fn(*args)
-            if now >= t:
+            wall = self.wall()
+            # Everything due up to t, but never ahead of the wall clock.
+            VirtualClock.run_until(self, t if t < wall else wall)
+            if wall >= t:
                 return
-            nxt = heap[0][0] if heap else t
-            wait = min(nxt, t) - now
-            if wait > 0:
-                time.sleep(min(wait, 1000.0) / 1e6)
+            nxt = self.next_time()
+            if nxt is None or nxt > t:
+                nxt = t
+            if nxt > wall:
+                time.sleep(min(nxt - wall, 1000.0) / 1e6)
 
     def run_while(self, pred, limit_us):
         end = self.now + limit_us
