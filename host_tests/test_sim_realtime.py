@@ -47,9 +47,30 @@ def test_bench_tcp_and_pty(bench):
             assert body is not None and body[:3] == b"\x03\x51\x00"
 
 
+@pytest.fixture(scope="module")
+def bench_process():
+    """`python -m motorjig.sim` as a user starts it, in its own process: the example's
+    100 ms reply wait then never sees a garbage-collection pause of the test process."""
+    proc = subprocess.Popen([sys.executable, "-m", "motorjig.sim", "--no-demo", "--duration", "120"],
+                            stdout=subprocess.PIPE, text=True, env=ENV)
+    urls = {}
+    try:
+        for line in proc.stdout:
+            key, _, value = line.strip().partition(": ")
+            if key in ("pty", "tcp"):
+                urls[key] = value
+            if len(urls) == 2:
+                break
+        assert len(urls) == 2, "the bench did not print its pty path and TCP URL"
+        yield urls
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
 @pytest.mark.parametrize("which", ["tcp", "pty"])
-def test_pyserial_example_scans_and_moves(bench, which):
-    url = bench.tcp_url if which == "tcp" else bench.pty_path
+def test_pyserial_example_scans_and_moves(bench_process, which):
+    url = bench_process[which]
     r = subprocess.run([sys.executable, EXAMPLE, url, "2"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert "found ids: [1, 2, 3]" in r.stdout
