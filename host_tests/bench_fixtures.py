@@ -11,6 +11,10 @@ not test timeouts use ``TIMEOUT`` (generous); the bench's own clock already keep
 the simulated jig and drives in step through host stalls (``sim.clock.PacedClock``).
 """
 
+import contextlib
+import os
+import subprocess
+import sys
 import time
 
 import pytest
@@ -62,3 +66,29 @@ def eventually(fn, want, timeout=5.0):
         if value == want or time.monotonic() >= end:
             return value
         time.sleep(0.005)
+
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SUBPROCESS_ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.join(ROOT, "firmware"), os.path.join(ROOT, "tools")]))
+
+
+@contextlib.contextmanager
+def bench_process(duration_s=120):
+    """`python -m motorjig.sim` in its own process, as a user starts it; yields
+    {"pty": path, "tcp": url} as it printed them. Its own process also keeps it clear
+    of the garbage-collection pauses of the test process."""
+    proc = subprocess.Popen([sys.executable, "-m", "motorjig.sim", "--no-demo", "--duration", str(duration_s)],
+                            stdout=subprocess.PIPE, text=True, env=SUBPROCESS_ENV)
+    urls = {}
+    try:
+        for line in proc.stdout:
+            key, _, value = line.strip().partition(": ")
+            if key in ("pty", "tcp"):
+                urls[key] = value
+            if len(urls) == 2:
+                break
+        assert len(urls) == 2, "the bench did not print its pty path and TCP URL"
+        yield urls
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

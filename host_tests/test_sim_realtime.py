@@ -10,6 +10,7 @@ import serial
 from jig import frame as F
 from jig.parser import FrameParser
 from motorjig.sim import Bench
+from bench_fixtures import bench_process
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EXAMPLE = os.path.join(ROOT, "tools", "examples", "pyserial_scan_move.py")
@@ -48,29 +49,14 @@ def test_bench_tcp_and_pty(bench):
 
 
 @pytest.fixture(scope="module")
-def bench_process():
-    """`python -m motorjig.sim` as a user starts it, in its own process: the example's
-    100 ms reply wait then never sees a garbage-collection pause of the test process."""
-    proc = subprocess.Popen([sys.executable, "-m", "motorjig.sim", "--no-demo", "--duration", "120"],
-                            stdout=subprocess.PIPE, text=True, env=ENV)
-    urls = {}
-    try:
-        for line in proc.stdout:
-            key, _, value = line.strip().partition(": ")
-            if key in ("pty", "tcp"):
-                urls[key] = value
-            if len(urls) == 2:
-                break
-        assert len(urls) == 2, "the bench did not print its pty path and TCP URL"
+def bench_urls():
+    with bench_process() as urls:
         yield urls
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
 
 
 @pytest.mark.parametrize("which", ["tcp", "pty"])
-def test_pyserial_example_scans_and_moves(bench_process, which):
-    url = bench_process[which]
+def test_pyserial_example_scans_and_moves(bench_urls, which):
+    url = bench_urls[which]
     r = subprocess.run([sys.executable, EXAMPLE, url, "2"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert "found ids: [1, 2, 3]" in r.stdout
