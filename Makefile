@@ -4,6 +4,7 @@
 #   make test       set up and run every host-side check (what CI runs)
 
 PY          := .venv/bin/python
+SIM_ARGS    ?=
 MICROPY_DIR ?=
 BUILD       ?= $(CURDIR)/build/STM32H7_JIG
 BOARD_DIR   := $(CURDIR)/boards/STM32H7_JIG
@@ -30,8 +31,8 @@ bench: setup ## print parser and bridge performance figures
 	@$(PY) tools/bench_parser.py
 	@$(PY) tools/bench_bridge.py
 
-sim: setup ## start the virtual bench (pty + TCP) and run the demo session
-	@$(PY) -m motorjig.sim
+sim: setup ## start the virtual bench (pty + TCP) and run the demo: make sim SIM_ARGS="--tcp-port 5000"
+	@$(PY) -m motorjig.sim $(SIM_ARGS)
 
 firmware: ## build the STM32H7_JIG image: make firmware MICROPY_DIR=/path/to/micropython
 	@tools/build_firmware.sh "$(MICROPY_DIR)" "$(BUILD)" "$(BOARD_DIR)"
