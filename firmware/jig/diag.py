@@ -57,10 +57,8 @@ def decode_counters(data):
         raise ValueError("bad ReadCounters reply length")
     out = {}
     for i in range(n):
-        o = 2 + 4 * i
-        v = data[o] | (data[o + 1] << 8) | (data[o + 2] << 16) | (data[o + 3] << 24)
         name = WIRE_NAMES[i] if i < N_WIRE else "counter_%d" % i
-        out[name] = v
+        out[name] = frame.get_u32(data, 2 + 4 * i)
     return out
 
 

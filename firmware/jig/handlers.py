@@ -19,7 +19,7 @@ as a string. It runs only when a person asks for the crash log, never in the
 bridging steady state.
 """
 
-from jig import diag, frame
+from jig import diag, frame, mem
 from jig import params as P
 from jig.frame import get_u16, put_u16, put_u32
 
@@ -82,10 +82,8 @@ class Handlers:
             self.app.apply_params()
 
     def slave_info(self, p, d, o, out):
-        info = self.info
-        n = len(info)
-        for i in range(n):
-            out[i] = info[i]
+        n = len(self.info)
+        mem.copy(out, 0, self.info, 0, n)
         return n
 
     def no_axis(self, p, d, o, out):

@@ -28,9 +28,6 @@ class Rs485:
     def __init__(self, hal, port, pre_us=10, post_us=0, hw_de=False):
         self.hal = hal
         self.port = port
-        self.pre_us = pre_us
-        self.post_us = post_us
-        self.hw = False
         self.echo_bytes = 0  # bytes discarded as echo
         self.tx_frames = 0
         self.tx_bytes = 0
