@@ -33,6 +33,11 @@ P_PROTOCOL = const(8)
 P_SAFETY_TIMEOUT_MS = const(9)
 P_SAFETY_ACTION = const(10)
 P_SCAN_TIMEOUT_MS = const(11)
+P_FORWARD_MODE = const(12)
+
+# forward_mode values
+CUT_THROUGH = const(0)  # bytes go on as they arrive (a wire, less the routing)
+STORE_AND_FORWARD = const(1)  # only whole, CRC-checked frames go on
 
 IMMEDIATE = "immediate"
 RESTART = "restart"
@@ -51,8 +56,9 @@ TABLE = (
     (9, "safety_timeout_ms", "ms, 0=off", 0, 60000, 0, IMMEDIATE),
     (10, "safety_action", "0=MoveStop 1=EmergencyStop", 0, 1, 0, IMMEDIATE),
     (11, "scan_timeout_ms", "ms", 1, 100, 20, IMMEDIATE),
+    (12, "forward_mode", "0=cut-through 1=store-and-forward", 0, 1, 0, IMMEDIATE),
 )
-COUNT = const(12)
+COUNT = const(13)
 
 # Baud parameters must also be one of these.
 BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
