@@ -181,13 +181,25 @@ def hexstr(buf, start=0, end=-1):
     return " ".join(["%02X" % buf[i] for i in range(start, end)])
 
 
-def make_parser(cap, bulk=True):
+def make_parser(cap, engine="bulk"):
     if cap.timeout_us >= 0:
-        return FrameParser(cap.ver8, cap.timeout_us, bulk)
-    return FrameParser(cap.ver8, bulk=bulk)
+        return FrameParser(cap.ver8, cap.timeout_us, engine=engine)
+    return FrameParser(cap.ver8, engine=engine)
 
 
-def replay(cap, step=0, split=-1, bulk=True):
+def engines():
+    """The parser engines this runtime has: bulk and table everywhere, viper where
+    jig.native loads (machine code on the board, plain Python under CPython)."""
+    out = ["bulk", "table"]
+    try:
+        FrameParser(engine="viper")
+        out.append("viper")
+    except Exception:  # the WebAssembly VM cannot compile viper
+        pass
+    return out
+
+
+def replay(cap, step=0, split=-1, engine="bulk"):
     """Feed a capture and return (frames, counters).
 
     Each burst is fed at its own arrival time. ``step`` > 0 cuts every burst into
@@ -195,7 +207,7 @@ def replay(cap, step=0, split=-1, bulk=True):
     byte offset. Each frame is reported as a tuple (body hex incl. CRC, slave, sync,
     ftype, data_start, data_end, stream offset just after its tail).
     """
-    p = make_parser(cap, bulk)
+    p = make_parser(cap, engine)
     frames = []
     base = 0
     for t, data in cap.bursts:
@@ -229,14 +241,14 @@ def strategies(cap, every_split=True):
     """(label, kwargs) of every way a capture is fed; all must give the same result."""
     n = len(cap.stream())
     out = []
-    for bulk in (True, False):
-        suffix = "" if bulk else ",table"
-        out.append(("whole" + suffix, {"bulk": bulk}))
-        out.append(("bytewise" + suffix, {"step": 1, "bulk": bulk}))
-        out.append(("step7" + suffix, {"step": 7, "bulk": bulk}))
+    for engine in engines():
+        suffix = "" if engine == "bulk" else "," + engine
+        out.append(("whole" + suffix, {"engine": engine}))
+        out.append(("bytewise" + suffix, {"step": 1, "engine": engine}))
+        out.append(("step7" + suffix, {"step": 7, "engine": engine}))
         if every_split:
             for k in range(1, n):
-                out.append(("split%d%s" % (k, suffix), {"split": k, "bulk": bulk}))
+                out.append(("split%d%s" % (k, suffix), {"split": k, "engine": engine}))
     return out
 
 

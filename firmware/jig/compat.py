@@ -53,7 +53,7 @@ else:
 
 
 def load_native():
-    """Return the viper helper module, or None where it cannot run.
+    """Return the viper helper module, or None where it cannot run as machine code.
 
     CPython has no viper; the WebAssembly MicroPython build rejects the decorator at
     compile time. Both fall back to the portable code paths.
@@ -69,3 +69,36 @@ def load_native():
 
 
 NATIVE = load_native()
+
+
+# --- the viper source as plain Python -------------------------------------------------
+# jig.native is written for the viper emitter. Under CPython the same source runs as
+# ordinary Python with these stand-ins (slow, for the host tests' parity checks):
+# the decorator does nothing and ptrN gives indexable views of the buffer. On
+# MicroPython the names are never called: the viper compiler turns ptr8(...) etc.
+# into casts whatever a global of that name holds.
+class micropython_shim:
+    @staticmethod
+    def viper(fn):
+        return fn
+
+    native = viper
+
+
+def ptr8(buf):
+    return buf
+
+
+def ptr16(buf):
+    return memoryview(buf).cast("B").cast("H")
+
+
+def ptr32(buf):
+    return memoryview(buf).cast("B").cast("i")
+
+
+def native_source():
+    """jig.native as machine code (MicroPython) or as plain Python (CPython)."""
+    from jig import native
+
+    return native

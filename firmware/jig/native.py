@@ -1,12 +1,153 @@
-"""Viper (native machine code) versions of the two per-byte loops: CRC and byte copy.
+"""Viper (native machine code) versions of the per-byte loops: the frame scanner, CRC, copy.
 
-Imported only on MicroPython, through ``compat.load_native``, and only where the
-port has a native emitter (the stm32 port does; the WebAssembly build does not).
-``crc`` and ``mem`` fall back to portable code when this module cannot load, and
-the host tests check that both paths give the same results.
+On the board these run as machine code (``compat.load_native``; the stm32 port has a
+native emitter, the WebAssembly build does not). Under CPython the very same source
+runs as plain Python through the stand-ins in ``jig.compat`` (the decorator does
+nothing, ``ptr8``/``ptr16``/``ptr32`` give indexable views), so the host tests check
+it against the portable engines; the emulated Cortex-M7 checks the machine code.
+
+Viper has no bounds checks: the callers guarantee the ranges (``st`` has
+``parser.S_SIZE`` entries, ``body`` ``frame.MAX_BODY`` bytes, ``tables`` is
+``parser.TABLES``). The constants below mirror ``jig.parser`` (viper can only fold
+constants of its own module); a host test checks they agree.
 """
 
-import micropython
+try:
+    import micropython
+except ImportError:  # CPython: run the source as plain Python
+    from jig.compat import micropython_shim as micropython
+from jig.compat import const, ptr8, ptr16, ptr32  # noqa: F401 (casts under viper)
+
+_HUNT = const(0)
+_HEADER = const(1)
+_A_NOISE = const(1)
+_A_NOISE2 = const(2)
+_A_START = const(3)
+_A_STORE = const(4)
+_A_LITERAL = const(5)
+_A_RESYNC = const(6)
+_A_END = const(7)
+_A_STUFF_ERROR = const(8)
+_EV_FRAME = const(1)
+_EV_HEAD = const(2)
+_EV_DROP = const(3)
+_S_STATE = const(0)
+_S_N = const(1)
+_S_EVENT = const(2)
+_S_T_LAST = const(3)
+_S_TIMEOUT = const(4)
+_S_BYTE_US = const(5)
+_S_LIMIT = const(6)
+_S_MIN_LEN = const(7)
+_S_HEAD_AT = const(8)
+_S_STOP_DROP = const(9)
+_S_GOOD = const(12)
+_S_NOISE = const(13)
+_S_STUFF_ERRORS = const(14)
+_S_CRC_ERRORS = const(15)
+_S_SHORT = const(16)
+_S_OVERLONG = const(17)
+_S_TIMEOUTS = const(18)
+_S_RESYNCS = const(19)
+_CRC_AT = const(512)  # the CRC table's first u16 in tables
+_MASK = const(0x3FFFFFFF)
+_HALF = const(0x20000000)
+
+
+@micropython.viper
+def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
+    """jig.parser's table, one byte at a time: the contract of parser.scan_py."""
+    s = ptr32(st)
+    d = ptr8(data)
+    b = ptr8(body)
+    step = ptr8(tables)
+    crct = ptr16(tables)
+    ev = 0
+    state = s[_S_STATE]
+    n = s[_S_N]
+    if now >= 0:
+        if state != _HUNT:
+            t = now
+            count = end - start
+            if s[_S_BYTE_US] != 0 and count > 1:
+                t = (now - (count - 1) * s[_S_BYTE_US]) & _MASK
+            if ((t - s[_S_T_LAST] + _HALF) & _MASK) - _HALF > s[_S_TIMEOUT]:
+                if state == _HEADER:
+                    s[_S_NOISE] += 1
+                else:
+                    s[_S_TIMEOUTS] += 1
+                    if s[_S_STOP_DROP] != 0:
+                        ev = _EV_DROP
+                state = _HUNT
+                s[_S_STATE] = _HUNT
+                if ev != 0:
+                    s[_S_EVENT] = ev
+                    return start
+        if end > start:
+            s[_S_T_LAST] = now
+    limit = s[_S_LIMIT]
+    head_at = s[_S_HEAD_AT]
+    stop_drop = s[_S_STOP_DROP]
+    i = start
+    while i < end:
+        c = d[i]
+        i += 1
+        code = step[(state << 8) | c]
+        state = code & 3
+        a = code >> 2
+        if a == _A_STORE or a == _A_LITERAL:
+            if n >= limit:
+                s[_S_OVERLONG] += 1
+                n = 0
+                state = _HUNT
+                if stop_drop != 0:
+                    ev = _EV_DROP
+                    break
+            else:
+                b[n] = c
+                n += 1
+                if n == head_at:
+                    ev = _EV_HEAD
+                    break
+        elif a == _A_START:
+            n = 0
+        elif a == _A_END:
+            if n < s[_S_MIN_LEN]:
+                s[_S_SHORT] += 1
+            else:
+                crc = 0xFFFF
+                k = 0
+                while k < n:
+                    crc = (crc >> 8) ^ crct[_CRC_AT + ((crc ^ b[k]) & 0xFF)]
+                    k += 1
+                if crc != 0:
+                    s[_S_CRC_ERRORS] += 1
+                else:
+                    s[_S_GOOD] += 1
+                    ev = _EV_FRAME
+                    break
+            if stop_drop != 0:
+                ev = _EV_DROP
+                break
+        elif a == _A_NOISE:
+            s[_S_NOISE] += 1
+        elif a == _A_NOISE2:
+            s[_S_NOISE] += 2
+        elif a == _A_RESYNC:
+            s[_S_RESYNCS] += 1
+            n = 0
+            if stop_drop != 0:
+                ev = _EV_DROP
+                break
+        elif a == _A_STUFF_ERROR:
+            s[_S_STUFF_ERRORS] += 1
+            if stop_drop != 0:
+                ev = _EV_DROP
+                break
+    s[_S_STATE] = state
+    s[_S_N] = n
+    s[_S_EVENT] = ev
+    return i
 
 
 @micropython.viper
