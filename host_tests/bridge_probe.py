@@ -37,8 +37,8 @@ class Port:
     def readinto(self, buf, n):
         return self.rx.read_into(buf, n)
 
-    def write(self, buf, n):
-        mem.copy(self.out, 0, buf, 0, n)
+    def write(self, buf, off, n):
+        mem.copy(self.out, 0, buf, off, n)
         self.out_n = n
         self.writes += 1
 

@@ -105,11 +105,11 @@ class FakePort:
     def readinto(self, buf, n):
         return self.rx.read_into(buf, n)
 
-    def write(self, buf, n):
+    def write(self, buf, off, n):
         self.log.append(("write", n))
-        self.sent += bytes(buf[:n])
+        self.sent += bytes(buf[off : off + n])
         if self.echo:
-            self.rx.write(bytes(buf[:n]), n)
+            self.rx.write(bytes(buf[off : off + n]), n)
 
     def de(self, v):
         self.log.append(("de", v))

@@ -2,10 +2,14 @@
 
 ``App(hal)`` builds the two RS-485 ports, their parsers, the bridge, the local
 handlers, the bus scanner and the safety stop from the parameter table, and
-``poll()`` does one pass of the main loop: drain the driver bus and the PC bus into
-their parsers, hand complete frames to the bridge, time out the pending wait, give
-the scan and the safety stop a turn, feed the watchdog, blink the heartbeat.
-``run()`` loops forever (the board's main.py calls it).
+``poll()`` does one pass of the main loop: bytes waiting on the driver bus, then on
+the PC bus, go through their parser into the bridge (which acts on every event:
+a routing decision, a complete frame, a dropped one). Everything with a time in
+it -- the inter-byte and reply timeouts, the scan, the safety stop, the watchdog,
+the heartbeat -- runs in the *slow pass*, only when the tick reaches ``due[0]``:
+the earliest time any of them needs attention (at least every ``SLOW_US``). An
+idle pass is two ``any()`` calls, a tick and a compare. ``run()`` loops forever
+(the board's main.py calls it).
 
 The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
 
@@ -15,9 +19,8 @@ The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
         .baud                       int, 8N1
         .any() -> int               received bytes waiting
         .readinto(buf, n) -> int    move up to n bytes into buf[0:], non-blocking
-        .t_last                     tick of the last received byte (IRQ time stamp)
-        .overflows                  RX bytes dropped, buffer full
-        .write(buf, n)              send buf[0:n]; returns after the last stop bit
+        .overflows                  RX overruns detected (bytes lost, buffer full)
+        .write(buf, off, n)         send buf[off:off+n]; returns after the last stop bit
         .tx_blocks                  True if write returns after transmit-complete
         .de(v)                      DE pin (1 = drive the bus); /RE tied to it or .re(v)
         .hw_de(on, pre16, post16)   USART hardware DE on/off -> True if supported
@@ -37,7 +40,7 @@ from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
-from jig.compat import const, ticks_diff
+from jig.compat import const, ticks_add, ticks_diff
 from jig.handlers import Handlers
 from jig.rs485 import Rs485
 from jig.safety import SafetyStop
@@ -45,6 +48,9 @@ from jig.scan import Scanner
 
 RX_CHUNK = const(256)
 HEARTBEAT_US = const(500000)
+SLOW_US = const(10000)  # the slow pass runs at least this often
+TICKS_MASK = const(0x3FFFFFFF)
+TICKS_HALF = const(0x20000000)
 PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
 
 
@@ -58,26 +64,40 @@ class App:
         pr = self.params.ram
         hal.open(pr[P.P_UP_BAUD], pr[P.P_DOWN_BAUD])
         ver8 = pr[P.P_PROTOCOL] == 1
-        hw = pr[P.P_DE_MODE] == 1
+        cut = pr[P.P_FORWARD_MODE] == P.CUT_THROUGH
+        # Hardware DE drops whenever the USART's transmitter runs empty, which cut
+        # through happens between the pieces of a frame: there it is software DE.
+        hw = pr[P.P_DE_MODE] == 1 and not cut
         self.up = Rs485(hal, hal.up, pr[P.P_DE_PRE_US], pr[P.P_DE_POST_US], hw)
         self.down = Rs485(hal, hal.down, pr[P.P_DE_PRE_US], pr[P.P_DE_POST_US], hw)
         # byte_us (one character time) lets the parser judge a gap from when a
-        # late-drained burst began, not from its last byte.
-        self.up_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_UP_BAUD])
-        self.down_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_DOWN_BAUD])
+        # late-drained burst began, not from its last byte. Cut through, the parsers
+        # stop at each routing decision (EV_HEAD) and at each dropped frame.
+        head = 3 if ver8 else 2
+        self.up_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_UP_BAUD],
+                                             head_at=1 if cut else 0, stop_drop=cut)
+        self.down_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_DOWN_BAUD],
+                                               head_at=head if cut else 0, stop_drop=cut)
         self.handlers = Handlers(self)
-        self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8)
+        self.t_beat = hal.ticks_us()
+        self.due = [self.t_beat]  # the tick at which the slow pass must next run
+        self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due)
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
         self.up_rx = bytearray(RX_CHUNK)
         self.down_rx = bytearray(RX_CHUNK)
         self._pc_scratch = [0] * PARSER_COUNTERS  # one parser's counters, for counter_values
-        self._on_pc = self.bridge.on_pc_frame
-        self._on_down = self.bridge.on_down_frame
+        # Bound once: the main loop calls these on every pass.
+        self._up_any = hal.up.any
+        self._down_any = hal.down.any
+        self._ticks = hal.ticks_us
+        self._up_read = self.up.read_into
+        self._down_read = self.down.read_into
+        self._up_bytes = self.bridge.up_bytes
+        self._down_bytes = self.bridge.down_bytes
         self.base_echo = 0
         self.base_up_ovf = hal.up.overflows
         self.base_down_ovf = hal.down.overflows
-        self.t_beat = hal.ticks_us()
         self.beat = False
 
     # --- parameters --------------------------------------------------------------
@@ -128,67 +148,82 @@ class App:
         self.base_down_ovf = self.hal.down.overflows
 
     # --- main loop -----------------------------------------------------------------
-    def _drain(self, rs, port, p, buf, on_frame):
-        n = rs.read_into(buf, RX_CHUNK)
-        if n == 0:
-            return False
-        t = port.t_last
-        i = 0
-        while i < n:
-            i = p.feed(buf, i, n, t)
-            if p.ready:
-                on_frame(p, t)
-        return True
-
     def poll(self):
         """One pass of the main loop."""
-        hal = self.hal
-        now = hal.ticks_us()
         # Driver bus first: a reply already in must be relayed before a new PC
         # request aborts its wait.
-        if not self._drain(self.down, hal.down, self.down_parser, self.down_rx, self._on_down):
-            self.down_parser.check_timeout(now)
-        if not self._drain(self.up, hal.up, self.up_parser, self.up_rx, self._on_pc):
-            self.up_parser.check_timeout(now)
-        now = hal.ticks_us()
-        self.bridge.poll(now)
+        if self._down_any():
+            n = self._down_read(self.down_rx, RX_CHUNK)
+            if n:
+                self._got(self.down_parser, self.down_rx, n, self._down_bytes)
+        if self._up_any():
+            n = self._up_read(self.up_rx, RX_CHUNK)
+            if n:
+                self._got(self.up_parser, self.up_rx, n, self._up_bytes)
+        now = self._ticks()
+        if (now - self.due[0]) & TICKS_MASK < TICKS_HALF:
+            self._slow(now)
+
+    def _got(self, p, buf, n, handle):
+        now = self._ticks()
+        handle(p, buf, n, now)
+        st = p.st
+        if st[_parser.S_STATE] != _parser.HUNT:
+            # Mid-frame: the slow pass must look again when the gap would be too long.
+            t = ticks_add(now, st[_parser.S_TIMEOUT] + 1)
+            due = self.due
+            if ticks_diff(t, due[0]) < 0:
+                due[0] = t
+
+    def _slow(self, now):
+        """Everything with a time in it; sets the next due tick."""
+        bridge = self.bridge
+        due = ticks_add(now, SLOW_US)
+        due = self._gap(self.down_parser, False, now, due)
+        due = self._gap(self.up_parser, True, now, due)
+        bridge.poll(now)
         self.scanner.poll(now)
         self.safety.poll(now)
-        hal.wdt_feed()
+        self.hal.wdt_feed()
         if ticks_diff(now, self.t_beat) >= HEARTBEAT_US:
             self.t_beat = now
             self.beat = not self.beat
-            hal.heartbeat(self.beat)
+            self.hal.heartbeat(self.beat)
+        due = _earlier(due, now, ticks_diff(self.t_beat, now) + HEARTBEAT_US)
+        due = _earlier(due, now, bridge.wait_us(now))
+        due = _earlier(due, now, self.safety.wait_us(now))
+        if ticks_diff(due, now) <= 0:
+            due = ticks_add(now, 1)
+        self.due[0] = due
+
+    def _gap(self, p, from_pc, now, due):
+        """Drop a partial frame after a silence longer than the inter-byte timeout."""
+        st = p.st
+        if st[_parser.S_STATE] == _parser.HUNT:
+            return due
+        if self.bridge.gap(p, from_pc, now):
+            return due
+        return _earlier(due, now, st[_parser.S_TIMEOUT] + 1 - ticks_diff(now, st[_parser.S_T_LAST]))
 
     def wait_us(self):
-        """µs until the app next needs a poll without new input (-1: only on input).
+        """µs until the app next needs a poll without new input (0: now).
 
         Lets a simulation (or a board that sleeps) skip idle loop passes.
         """
         hal = self.hal
-        if hal.up.any() or hal.down.any() or self.scanner.pending():
+        if hal.up.any() or hal.down.any():
             return 0
-        now = hal.ticks_us()
-        best = ticks_diff(self.t_beat, now) + HEARTBEAT_US
-        w = self.bridge.wait_us(now)
-        if 0 <= w < best:
-            best = w
-        w = self.safety.wait_us(now)
-        if 0 <= w < best:
-            best = w
-        w = self._gap_wait(self.up_parser, now)
-        if w < best:
-            best = w
-        w = self._gap_wait(self.down_parser, now)
-        if w < best:
-            best = w
-        return best if best > 0 else 0
-
-    def _gap_wait(self, p, now):
-        if p.state == _parser.HUNT:
-            return HEARTBEAT_US
-        return p.interbyte_timeout_us - ticks_diff(now, p.t_last) + 1
+        d = ticks_diff(self.due[0], hal.ticks_us())
+        return d if d > 0 else 0
 
     def run(self):
+        poll = self.poll
         while True:
-            self.poll()
+            poll()
+
+
+def _earlier(due, now, wait):
+    """The earlier of the tick due and now + wait (a wait < 0 means none)."""
+    if wait >= 0 and wait < ticks_diff(due, now):
+        return ticks_add(now, wait)
+    return due

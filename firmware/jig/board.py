@@ -226,8 +226,8 @@ class Port:
     def readinto(self, buf, n):
         return self._ring_read(buf, n)
 
-    def write(self, buf, n):
-        self._uart_write(buf, n)
+    def write(self, buf, off, n):
+        self._uart_write(buf, off, n)
 
     def de(self, v):
         if not self.hw:

@@ -2,12 +2,11 @@
 
 The machine is ``TRANSITIONS`` below (docs/bridge.md renders it): states IDLE,
 AWAIT_PC (a forwarded PC request waits for its reply) and AWAIT_INT (a request of
-the jig's own -- bus scan, safety stop -- is out); events are the classified
+the jig's own -- bus scan, safety stop -- is out); events are routing decisions on
 frames from either side and the timeout.
 
 * Frames for the jig's own id are answered by ``handlers`` on the PC port.
-* Every other id is forwarded byte-for-byte (re-stuffing the parsed body gives the
-  received wire bytes: stuffing is canonical) and one matching reply -- same id,
+* Every other id is forwarded byte for byte, and one matching reply -- same id,
   frame type, and sync number in Ver8 -- is relayed unchanged. Id 99 is forwarded
   and nothing is awaited.
 * Anything else from the driver bus is dropped and counted: late replies (after
@@ -18,12 +17,24 @@ frames from either side and the timeout.
 * The jig itself (bus scan, safety stop) sends through ``request``; their replies
   go to that client, never to the PC.
 
-Forwarding and relaying are blocking sends (``rs485.send`` returns when the line
-is released), so the transient FORWARDING/RELAYING states never see an event.
+Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
+
+* **cut-through** (default): the parsers raise EV_HEAD as soon as a frame's
+  routing bytes are in -- the slave id of a PC frame, id/[sync]/type of a driver
+  frame -- and the routing decision is taken there. A forwarded frame starts on
+  the driver bus at once (header and id, re-stuffed) and every further byte
+  follows as it arrives (``up_bytes``: the raw bytes the parser consumed); a
+  matching reply goes to the PC the same way. DE stays up until the frame's tail
+  has gone. A frame that turns out bad has been passed on, as a wire would: it
+  is counted (``cut_corrupt``, ``relay_corrupt``), and a PC that goes silent
+  mid-frame gets the transmission ended cleanly (``cut_truncated``).
+* **store-and-forward**: only whole, CRC-checked frames are sent on, re-stuffed
+  from the parsed body (stuffing is canonical, so the bytes are the received ones).
 """
 
 from jig import counters as K
 from jig import frame
+from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
 from jig.compat import const, ticks_add, ticks_diff
 from jig.params import P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
@@ -39,7 +50,8 @@ E_INTERNAL = const(3)
 E_REPLY = const(4)
 E_DOWN_OTHER = const(5)
 E_TIMEOUT = const(6)
-EVENT_NAMES = ("pc_local", "pc_forward", "pc_broadcast", "internal", "reply", "down_other", "timeout")
+E_CUT_SHORT = const(7)
+EVENT_NAMES = ("pc_local", "pc_forward", "pc_broadcast", "internal", "reply", "down_other", "timeout", "cut_short")
 
 # Action flags (several may be combined in one transition)
 F_ABORT = const(1)
@@ -52,7 +64,9 @@ F_DELIVER = const(64)
 F_STALE = const(128)
 F_TIMEOUT = const(256)
 F_REFUSED = const(512)
-FLAG_NAMES = ("abort", "local", "forward", "broadcast", "send", "relay", "deliver", "stale", "timeout", "refused")
+F_UNAWAITED = const(1024)
+FLAG_NAMES = ("abort", "local", "forward", "broadcast", "send", "relay", "deliver", "stale", "timeout", "refused",
+              "unawaited")
 
 # Driver ids 0..SEEN_IDS-1 are tracked in the ``seen`` bitmap (a small int on MicroPython).
 SEEN_IDS = const(30)
@@ -68,6 +82,7 @@ TRANSITIONS = (
         (F_STALE, IDLE),
         (F_STALE, IDLE),
         (0, IDLE),
+        (0, IDLE),
     ),
     # AWAIT_PC: the PC moved on if it sends anything new
     (
@@ -78,6 +93,7 @@ TRANSITIONS = (
         (F_RELAY, IDLE),
         (F_STALE, AWAIT_PC),
         (F_TIMEOUT, IDLE),
+        (F_UNAWAITED, IDLE),
     ),
     # AWAIT_INT: local frames do not need the driver bus; PC traffic has priority
     (
@@ -88,6 +104,7 @@ TRANSITIONS = (
         (F_DELIVER, IDLE),
         (F_STALE, AWAIT_INT),
         (F_TIMEOUT, IDLE),
+        (0, AWAIT_INT),
     ),
 )
 
@@ -107,16 +124,24 @@ def _multipliers():
 
 TIMEOUT_MULTIPLIER = _multipliers()
 
+# What an EV_DROP on the PC side means for a frame being cut through
+_WHY_TIMEOUT = const(0)
+
 
 class Bridge:
-    def __init__(self, hal, up, down, handlers, params, counters, ver8=False):
+    def __init__(self, hal, up, down, handlers, params, counters, ver8=False, cut_through=True, due=None):
         self.hal = hal
         self.up = up  # rs485.Rs485 on the PC bus
         self.down = down  # rs485.Rs485 on the driver bus
         self.handlers = handlers
         self.params = params
         self.c = counters
+        self.v = counters.v
         self.ver8 = ver8
+        self.cut_through = cut_through
+        self.head = 3 if ver8 else 2  # id, [sync], type
+        # due[0]: tick by which the app's slow pass must run (the reply deadline).
+        self.due = due if due is not None else [0]
         self.state = IDLE
         self.txbuf = bytearray(frame.MAX_WIRE)
         self.body = bytearray(frame.MAX_BODY)
@@ -130,6 +155,9 @@ class Bridge:
         self.t_pc = 0  # tick of the last frame from the PC
         self.pc_frames = 0  # PC frames since boot (the safety stop arms on the first)
         self.sync_next = 0  # Ver8 sync numbers of jig-originated requests
+        # Cut-through: the Rs485 a frame is being streamed to (None: none), per side.
+        self.fwd = None  # PC frame -> driver bus
+        self.rel = None  # driver frame -> PC bus
 
     def _event(self, ev):
         flags, self.state = TRANSITIONS[self.state][ev]
@@ -137,21 +165,106 @@ class Bridge:
 
     def _abort(self):
         if self.client is None:
-            self.c.v[K.C_ABORTS] += 1
+            self.v[K.C_ABORTS] += 1
         else:
-            self.c.v[K.C_INT_ABORTS] += 1
+            self.v[K.C_INT_ABORTS] += 1
             client = self.client
             self.client = None
             client.on_abort()
 
-    # --- frames from the PC ----------------------------------------------------
+    # --- bytes from the PC -------------------------------------------------------
+    def up_bytes(self, p, buf, n, now):
+        """Parse buf[0:n] from the PC (arrived by tick now) and act on every event."""
+        st = p.st
+        scan = p.scan
+        body = p.body
+        tables = TABLES
+        i = 0
+        while i < n:
+            j = scan(st, buf, i, n, body, tables, now)
+            fwd = self.fwd
+            if fwd is not None and j > i:
+                fwd.part(buf, i, j - i)  # the raw bytes of the frame being cut through
+            ev = st[S_EVENT]
+            if ev == EV_FRAME:
+                self.on_pc_frame(p, now)
+            elif ev == EV_HEAD:
+                self._pc_head(body[0], now)
+            elif ev == EV_DROP:
+                self._pc_drop(st, body)
+            i = j
+
+    def _pc_head(self, slave, now):
+        """Cut-through: the id of a PC frame is known; route it now."""
+        if self.rel is not None:  # the PC talks over a reply in progress: stop relaying
+            self._end_relay(True)
+        fwd = self.fwd
+        if slave == self.params.ram[P_SLAVE_ID]:
+            if fwd is not None:  # a frame cut through was overrun by a new header
+                self.fwd = None
+                fwd.finish()
+            return  # answered when complete
+        if fwd is None:
+            fwd = self.down
+            fwd.begin()
+            self.c.turnaround(ticks_diff(fwd.t_tx_start, now))
+            self.fwd = fwd
+        # Header and id, re-stuffed: the bytes that carried them may have come in an
+        # earlier read. Everything after them is passed on raw.
+        self.body[0] = slave
+        k = frame.stuff_into(self.txbuf, self.body, 1) - 2  # without the tail
+        fwd.part(self.txbuf, 0, k)
+        v = self.v
+        flags = self._event(E_PC_BROADCAST if slave == frame.BROADCAST_ID else E_PC_FORWARD)
+        if flags & F_ABORT:
+            self._abort()
+        if flags & F_FORWARD:
+            v[K.C_FORWARDS] += 1
+            self.p_slave = slave
+            self.p_ftype = -1  # nothing matches until the frame type is known
+        else:
+            v[K.C_BROADCASTS] += 1
+        v[K.C_DOWN_OUT] += 1
+
+    def _pc_drop(self, st, body):
+        """Cut-through: a PC frame being passed on ended without being good."""
+        fwd = self.fwd
+        if fwd is None:
+            return
+        self.fwd = None
+        fwd.finish()
+        v = self.v
+        if st[S_WHY] == _WHY_TIMEOUT:
+            v[K.C_CUT_TRUNCATED] += 1
+        else:
+            v[K.C_CUT_CORRUPT] += 1
+        if self.state == AWAIT_PC and self.p_ftype < 0:
+            n = st[S_N]
+            if n >= self.head and st[S_WHY] != _WHY_TIMEOUT:
+                # The drive got a whole frame with a bad CRC (or length): it may answer
+                # it (status 0xAA), as it would on a direct line. Await that.
+                self._pend(None, body[0], body[self.head - 1], body[1] if self.head == 3 else -1)
+            else:
+                self._event(E_CUT_SHORT)
+                v[K.C_UNAWAITED] += 1
+
     def on_pc_frame(self, p, t_in):
         """A good frame from the PC, whose last byte arrived at tick t_in."""
-        v = self.c.v
+        v = self.v
         v[K.C_UP_IN] += 1
         self.t_pc = t_in
         self.pc_frames += 1
-        slave = p.slave
+        body = p.body
+        slave = body[0]
+        head = self.head
+        fwd = self.fwd
+        if fwd is not None:
+            # Cut through: the tail has gone out with the raw bytes; now await.
+            self.fwd = None
+            fwd.finish()
+            if self.state == AWAIT_PC:
+                self._pend(None, slave, body[head - 1], body[1] if head == 3 else -1)
+            return
         if slave == self.params.ram[P_SLAVE_ID]:
             ev = E_PC_LOCAL
         elif slave == frame.BROADCAST_ID:
@@ -164,11 +277,11 @@ class Bridge:
         if flags & F_LOCAL:
             self._local(p, t_in)
         elif flags & (F_FORWARD | F_BROADCAST):
-            self._send(self.down, p.body, p.body_len, t_in)
+            self._send(self.down, body, p.st[S_N], t_in)
             v[K.C_DOWN_OUT] += 1
             if flags & F_FORWARD:
                 v[K.C_FORWARDS] += 1
-                self._pend(None, slave, p.ftype, p.sync, self.params.ram[P_REPLY_TIMEOUT_MS] * TIMEOUT_MULTIPLIER[p.ftype])
+                self._pend(None, slave, body[head - 1], body[1] if head == 3 else -1)
             else:
                 v[K.C_BROADCASTS] += 1
 
@@ -180,22 +293,30 @@ class Bridge:
         rs.send(self.txbuf, n)
         self.c.turnaround(ticks_diff(rs.t_tx_start, t_in))
 
-    def _pend(self, client, slave, ftype, sync, timeout_ms):
+    def _pend(self, client, slave, ftype, sync, timeout_ms=-1):
         self.client = client
         self.p_slave = slave
         self.p_ftype = ftype
         self.p_sync = sync
+        if timeout_ms < 0:
+            timeout_ms = self.params.ram[P_REPLY_TIMEOUT_MS] * TIMEOUT_MULTIPLIER[ftype]
         # The wait starts when our request has left the wire.
-        self.deadline = ticks_add(self.hal.ticks_us(), timeout_ms * 1000)
+        d = ticks_add(self.hal.ticks_us(), timeout_ms * 1000)
+        self.deadline = d
+        due = self.due
+        if ticks_diff(d, due[0]) < 0:
+            due[0] = d
 
     def _local(self, p, t_in):
-        v = self.c.v
+        v = self.v
         v[K.C_LOCAL] += 1
+        body = p.body
         n = self.handlers.handle(p, self.reply)
         status = self.reply[0]
         if status == frame.STATUS_FRAME_TYPE_ERROR or status == frame.STATUS_DATA_ERROR or status == frame.STATUS_FRAME_ERROR:
             v[K.C_LOCAL_ERRORS] += 1
-        blen = frame.build_body(self.body, p.slave, p.ftype, self.reply, 0, n, p.sync)
+        head = self.head
+        blen = frame.build_body(self.body, body[0], body[head - 1], self.reply, 0, n, body[1] if head == 3 else -1)
         self._send(self.up, self.body, blen, t_in)
         v[K.C_UP_OUT] += 1
         self.handlers.after_reply(p)
@@ -213,7 +334,7 @@ class Bridge:
         blen = frame.build_body(self.body, slave, ftype, data, 0, n, sync)
         m = frame.stuff_into(self.txbuf, self.body, blen)
         self.down.send(self.txbuf, m)
-        v = self.c.v
+        v = self.v
         v[K.C_INT_REQUESTS] += 1
         v[K.C_DOWN_OUT] += 1
         self._pend(client, slave, ftype, sync, timeout_ms)
@@ -222,47 +343,117 @@ class Bridge:
     def busy(self):
         return self.state != IDLE
 
-    # --- frames from the drivers ----------------------------------------------
+    # --- bytes from the drivers ------------------------------------------------
+    def down_bytes(self, p, buf, n, now):
+        """Parse buf[0:n] from the driver bus (arrived by tick now) and act on every event."""
+        st = p.st
+        scan = p.scan
+        body = p.body
+        tables = TABLES
+        i = 0
+        while i < n:
+            j = scan(st, buf, i, n, body, tables, now)
+            rel = self.rel
+            if rel is not None and j > i:
+                rel.part(buf, i, j - i)
+            ev = st[S_EVENT]
+            if ev == EV_FRAME:
+                self.on_down_frame(p, now)
+            elif ev == EV_HEAD:
+                self._down_head(body, now)
+            elif ev == EV_DROP:
+                self._down_drop()
+            i = j
+
+    def _down_drop(self):
+        """Cut-through: a driver frame ended without being good."""
+        if self.rel is not None:
+            self._end_relay(False)
+            self.v[K.C_RELAY_CORRUPT] += 1
+            self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
+
+    def gap(self, p, from_pc, now):
+        """Slow pass: let parser p judge the silence up to now. True if it dropped a
+        partial frame (a frame being passed on is then ended cleanly)."""
+        st = p.st
+        p.scan(st, p.body, 0, 0, p.body, TABLES, now)
+        if st[S_EVENT] == EV_DROP:
+            if from_pc:
+                self._pc_drop(st, p.body)
+            else:
+                self._down_drop()
+        return st[S_STATE] == HUNT
+
+    def _matches(self, body):
+        return (body[0] == self.p_slave and body[self.head - 1] == self.p_ftype
+                and (self.head == 2 or body[1] == self.p_sync))
+
+    def _down_head(self, body, now):
+        """Cut-through: id, [sync] and type of a driver frame are known."""
+        if self.state == AWAIT_PC and self._matches(body):
+            rel = self.up
+            rel.begin()
+            self.c.turnaround(ticks_diff(rel.t_tx_start, now))
+            k = frame.stuff_into(self.txbuf, body, self.head) - 2  # header + head, no tail
+            rel.part(self.txbuf, 0, k)
+            self.rel = rel
+
+    def _end_relay(self, count_abort):
+        rel = self.rel
+        self.rel = None
+        rel.finish()
+        if count_abort:
+            self.v[K.C_ABORTS] += 1
+            self._event(E_CUT_SHORT)
+
     def on_down_frame(self, p, t_in):
-        v = self.c.v
+        v = self.v
         v[K.C_DOWN_IN] += 1
-        match = (
-            self.state != IDLE
-            and p.slave == self.p_slave
-            and p.ftype == self.p_ftype
-            and p.sync == self.p_sync
-            and p.data_end > p.data_start
-        )
+        body = p.body
+        if self.rel is not None:
+            # Relayed as it came: the tail has gone with the raw bytes.
+            self._end_relay(False)
+            self._event(E_REPLY)
+            if body[0] < SEEN_IDS:
+                self.seen |= 1 << body[0]
+            v[K.C_REPLIES] += 1
+            v[K.C_UP_OUT] += 1
+            return
+        match = self.state != IDLE and p.st[S_N] > self.head + 2 and self._matches(body)
+        if match and self.cut_through and self.client is None:
+            match = False  # cut through, a reply to the PC is relayed from its head or not at all
         flags = self._event(E_REPLY if match else E_DOWN_OTHER)
-        if flags & (F_RELAY | F_DELIVER) and p.slave < SEEN_IDS:
-            self.seen |= 1 << p.slave
+        if flags & (F_RELAY | F_DELIVER) and body[0] < SEEN_IDS:
+            self.seen |= 1 << body[0]
         if flags & F_RELAY:
-            self._send(self.up, p.body, p.body_len, t_in)
+            self._send(self.up, body, p.st[S_N], t_in)
             v[K.C_REPLIES] += 1
             v[K.C_UP_OUT] += 1
         elif flags & F_DELIVER:
             client = self.client
             self.client = None
             v[K.C_INT_REPLIES] += 1
+            self.due[0] = t_in  # let the client send its next request at once
             client.on_reply(p)
         elif flags & F_STALE:
             v[K.C_STALE] += 1
 
     def poll(self, now):
         """Time out the pending wait."""
-        if self.state != IDLE and ticks_diff(now, self.deadline) >= 0:
+        if self.state != IDLE and self.rel is None and ticks_diff(now, self.deadline) >= 0:
             self._event(E_TIMEOUT)
             client = self.client
             if client is None:
-                self.c.v[K.C_TIMEOUTS] += 1
+                self.v[K.C_TIMEOUTS] += 1
             else:
                 self.client = None
-                self.c.v[K.C_INT_TIMEOUTS] += 1
+                self.v[K.C_INT_TIMEOUTS] += 1
                 client.on_timeout()
 
     def wait_us(self, now):
-        """µs until the pending wait times out (-1: nothing pending)."""
-        if self.state == IDLE:
+        """µs until the pending wait times out (-1: nothing pending, or a reply is
+        being relayed, which no timeout cuts short)."""
+        if self.state == IDLE or self.rel is not None:
             return -1
         d = ticks_diff(self.deadline, now)
         return d if d > 0 else 0

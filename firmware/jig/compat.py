@@ -68,9 +68,6 @@ def load_native():
         return None
 
 
-NATIVE = load_native()
-
-
 # --- the viper source as plain Python -------------------------------------------------
 # jig.native is written for the viper emitter. Under CPython the same source runs as
 # ordinary Python with these stand-ins (slow, for the host tests' parity checks):
@@ -102,3 +99,7 @@ def native_source():
     from jig import native
 
     return native
+
+
+# Last: jig.native imports the names above.
+NATIVE = load_native()

@@ -6,9 +6,11 @@ the two parsers' counters), so there is exactly one copy of the layout.
 
 Conservation laws the tests check (``pending`` is 1 while a reply is awaited):
 
-* forwards = replies + timeouts + aborts + pending   (PC requests sent downstream)
+* forwards = replies + relay_corrupt + timeouts + aborts + unawaited + pending
+  (PC requests sent downstream)
 * int_requests = int_replies + int_timeouts + int_aborts + pending  (scan/safety)
-* up_frames_in = local_requests + forwards + broadcasts
+* up_frames_in + cut_corrupt + cut_truncated = local_requests + forwards + broadcasts
+  (cut through, the routing decision comes before the frame is known to be good)
 """
 
 from jig.compat import const
@@ -40,6 +42,10 @@ NAMES = (
     "turnaround_min_us",  # jig handling time: last byte in -> DE up for the answer
     "turnaround_avg_us",
     "turnaround_max_us",
+    "cut_corrupt",  # cut-through: PC frames passed on that turned out bad (CRC, stuffing, length)
+    "cut_truncated",  # cut-through: PC went silent mid-frame; the transmission was ended
+    "relay_corrupt",  # cut-through: replies relayed to the PC that turned out bad
+    "unawaited",  # forwards that ended before their frame type was known: no reply awaited
 )
 
 C_UP_IN = const(0)
@@ -68,7 +74,11 @@ C_TA_COUNT = const(22)
 C_TA_MIN = const(23)
 C_TA_AVG = const(24)
 C_TA_MAX = const(25)
-COUNT = const(26)
+C_CUT_CORRUPT = const(26)
+C_CUT_TRUNCATED = const(27)
+C_RELAY_CORRUPT = const(28)
+C_UNAWAITED = const(29)
+COUNT = const(30)
 
 
 class Counters:

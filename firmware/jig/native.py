@@ -49,6 +49,7 @@ _S_SHORT = const(16)
 _S_OVERLONG = const(17)
 _S_TIMEOUTS = const(18)
 _S_RESYNCS = const(19)
+_S_WHY = const(20)
 _CRC_AT = const(512)  # the CRC table's first u16 in tables
 _MASK = const(0x3FFFFFFF)
 _HALF = const(0x20000000)
@@ -78,6 +79,7 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
                     s[_S_TIMEOUTS] += 1
                     if s[_S_STOP_DROP] != 0:
                         ev = _EV_DROP
+                        s[_S_WHY] = 0
                 state = _HUNT
                 s[_S_STATE] = _HUNT
                 if ev != 0:
@@ -102,6 +104,7 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
                 state = _HUNT
                 if stop_drop != 0:
                     ev = _EV_DROP
+                    s[_S_WHY] = _A_STORE
                     break
             else:
                 b[n] = c
@@ -128,6 +131,7 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
                     break
             if stop_drop != 0:
                 ev = _EV_DROP
+                s[_S_WHY] = _A_END
                 break
         elif a == _A_NOISE:
             s[_S_NOISE] += 1
@@ -138,11 +142,13 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
             n = 0
             if stop_drop != 0:
                 ev = _EV_DROP
+                s[_S_WHY] = _A_RESYNC
                 break
         elif a == _A_STUFF_ERROR:
             s[_S_STUFF_ERRORS] += 1
             if stop_drop != 0:
                 ev = _EV_DROP
+                s[_S_WHY] = _A_STUFF_ERROR
                 break
     s[_S_STATE] = state
     s[_S_N] = n

@@ -123,7 +123,8 @@ S_SHORT = const(16)
 S_OVERLONG = const(17)
 S_TIMEOUTS = const(18)
 S_RESYNCS = const(19)
-S_SIZE = const(20)
+S_WHY = const(20)  # after EV_DROP: the action that dropped the frame (0: inter-byte timeout)
+S_SIZE = const(21)
 
 # Counter names, in the order ``counters()`` reports them.
 COUNTER_NAMES = ("good", "noise", "stuff_errors", "crc_errors", "short", "overlong", "timeouts", "resyncs")
@@ -187,6 +188,7 @@ def scan_py(st, data, start, end, body, tables, now):
                     st[S_TIMEOUTS] += 1
                     if st[S_STOP_DROP]:
                         ev = EV_DROP
+                        st[S_WHY] = 0
                 state = HUNT
                 st[S_STATE] = HUNT
                 if ev:
@@ -220,6 +222,7 @@ def scan_py(st, data, start, end, body, tables, now):
                         state = HUNT
                         if stop_drop:
                             ev = EV_DROP
+                            st[S_WHY] = A_STORE
                             break
                         continue
                     if SLICES:
@@ -263,6 +266,7 @@ def scan_py(st, data, start, end, body, tables, now):
                 state = HUNT
                 if stop_drop:
                     ev = EV_DROP
+                    st[S_WHY] = A_STORE
                     break
             else:
                 body[n] = b
@@ -283,6 +287,7 @@ def scan_py(st, data, start, end, body, tables, now):
                 break
             if stop_drop:
                 ev = EV_DROP
+                st[S_WHY] = A_END
                 break
         elif action == A_NOISE:
             st[S_NOISE] += 1
@@ -293,11 +298,13 @@ def scan_py(st, data, start, end, body, tables, now):
             n = 0
             if stop_drop:
                 ev = EV_DROP
+                st[S_WHY] = A_RESYNC
                 break
         elif action == A_STUFF_ERROR:
             st[S_STUFF_ERRORS] += 1
             if stop_drop:
                 ev = EV_DROP
+                st[S_WHY] = A_STUFF_ERROR
                 break
     st[S_STATE] = state
     st[S_N] = n

@@ -2,9 +2,13 @@
 
 ``send`` raises DE, waits the pre-delay, writes, makes sure the last stop bit has
 left the shift register (the HAL's ``write`` returns after transmit-complete, or
-we wait the computed wire time), waits the post-delay and releases DE. In
-hardware-DE mode the USART drives DE itself (set up through ``port.hw_de``) and
-``send`` only writes.
+we wait the computed wire time), waits the post-delay and releases DE. A frame
+that is passed on as it arrives (cut-through) is sent as ``begin``, any number of
+``part`` calls and ``finish``: DE stays up from the first byte to the last stop
+bit of the last part. In hardware-DE mode the USART drives DE itself (set up
+through ``port.hw_de``) and only writes happen here; the USART drops DE whenever
+its transmitter runs empty, so the app uses hardware DE only in store-and-forward
+mode, where every frame is one write.
 
 A separate /RE pin (``port.re``, if the board has one) is driven with DE: the
 receiver is switched off while we drive the bus and back on after DE drops.
@@ -34,6 +38,7 @@ class Rs485:
         self.t_tx_start = 0  # tick when DE last went up (or the write started)
         self._keep = 0  # bytes still to deliver before the echo to skip
         self._skip = 0  # echo bytes still to skip
+        self._keep_at_begin = 0  # bytes waiting when the transmission began
         self.re = getattr(port, "re", None)  # separate /RE pin, if any
         port.de(0)
         if self.re is not None:
@@ -56,37 +61,51 @@ class Rs485:
         self.hw = bool(want and ok)
         return self.hw
 
-    def send(self, buf, n):
-        """Transmit buf[0:n] with DE framing; returns when the line is released."""
+    def begin(self):
+        """Take the bus: /RE off, DE up, wait the pre-delay (software DE)."""
         hal = self.hal
-        port = self.port
-        keep = port.any()
+        self._keep_at_begin = self.port.any()
         if not self.hw:
             if self.re is not None:
                 self.re(1)
-            port.de(1)
+            self.port.de(1)
             self.t_tx_start = hal.ticks_us()
             if self.pre_us:
                 hal.sleep_us(self.pre_us)
         else:
             self.t_tx_start = hal.ticks_us()
-        port.write(buf, n)
+
+    def part(self, buf, off, n):
+        """Transmit buf[off:off + n] while the bus is ours; returns after its last stop bit."""
+        port = self.port
+        port.write(buf, off, n)
         if not port.tx_blocks:
-            hal.sleep_us(wire_time_us(n, port.baud))
+            self.hal.sleep_us(wire_time_us(n, port.baud))
+        self.tx_bytes += n
+
+    def finish(self):
+        """Release the bus after the last part: post-delay, DE down, /RE on; count echo."""
+        port = self.port
         if not self.hw:
             if self.post_us:
-                hal.sleep_us(self.post_us)
+                self.hal.sleep_us(self.post_us)
             port.de(0)
             if self.re is not None:
                 self.re(0)
         self.tx_frames += 1
-        self.tx_bytes += n
+        keep = self._keep_at_begin
         echo = port.any() - keep
         if echo > 0:
             if self._skip == 0:
                 self._keep = keep
             self._skip += echo
             self.echo_bytes += echo
+
+    def send(self, buf, n):
+        """Transmit buf[0:n] with DE framing; returns when the line is released."""
+        self.begin()
+        self.part(buf, 0, n)
+        self.finish()
 
     def any(self):
         return self.port.any()

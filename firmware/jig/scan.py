@@ -29,6 +29,7 @@ class Scanner:
         self.found = 0
         for i in range(diag.SCAN_IDS):
             self.types[i] = 0
+        self.bridge.due[0] = self.bridge.hal.ticks_us()  # the first probe at the next pass
 
     def pending(self):
         """True if the scan wants the bus (the app should poll soon)."""

@@ -58,7 +58,7 @@ class _UART(MemRx):
     def irq(self, handler, trigger, hard=False):
         self.handler = handler
 
-    def write(self, buf, n):
+    def write(self, buf, off, n):
         return n
 
 

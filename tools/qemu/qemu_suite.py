@@ -248,7 +248,7 @@ class MemPort(MemRx):
         self.writes = 0
         self.tx_bytes = 0
 
-    def write(self, buf, n):
+    def write(self, buf, off, n):
         self.writes += 1
         self.tx_bytes += n
         if self.answer is not None:

@@ -80,9 +80,9 @@ class SimPort:
     def readinto(self, buf, n):
         return self.ring.read_into(buf, n)
 
-    def write(self, buf, n):
+    def write(self, buf, off, n):
         clock = self.hal.clock
-        data = bytes(buf[0:n])
+        data = bytes(buf[off : off + n])
         t0 = clock.now
         end = self.bus.transmit(self.node, data)
         if self.hal.record:
