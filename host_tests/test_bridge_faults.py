@@ -3,6 +3,7 @@
 import struct
 
 from jig import frame as F
+from jig import params as P
 from motorjig.sim import SimBench
 
 GCP = F.GET_COMMAND_POS
@@ -33,11 +34,69 @@ def test_garbage_answer_is_not_relayed():
     assert b.pc.raw == b""
 
 
-def test_bad_crc_reply_dropped():
-    b = make()
+def test_bad_crc_reply_dropped_store_and_forward():
+    b = make(jig_params={P.P_FORWARD_MODE: P.STORE_AND_FORWARD})
     b.drivers[2].bad_crc = True
     assert b.request(2, GCP) == (None, None)
     assert b.counters["down_crc_errors"] == 1 and b.pc.raw == b""
+
+
+def test_bad_crc_reply_passed_on_cut_through_like_a_wire():
+    """The reply matched from its first bytes and was already on its way: the PC gets
+    it as a direct line would give it, and its own CRC check rejects it."""
+    b = make()
+    b.drivers[2].bad_crc = True
+    assert b.request(2, GCP) == (None, None)
+    c = b.counters
+    assert c["down_crc_errors"] == 1 and c["relay_corrupt"] == 1 and c["replies"] == 0
+    assert b.pc.parser.crc_errors == 1 and b.pc.frames == []
+    assert not b.hal.up.node.de  # the relay ended cleanly
+    b.drivers[2].bad_crc = False
+    _w, r = b.request(2, GCP)  # and the next one is fine
+    assert r == b"\x00" + bytes(4)
+    c = b.counters
+    assert c["forwards"] == 2 == c["replies"] + c["relay_corrupt"]
+
+
+def test_pc_sends_with_gaps_mid_frame_cut_through():
+    """Pieces with short gaps are passed on with DE held; a gap longer than the
+    inter-byte timeout ends the transmission cleanly and is counted."""
+    b = make()
+    wire = F.encode(2, F.MOVE_INC_POS, struct.pack("<iI", 1000, 500))
+    t = b.send(wire[:5])
+    b.clock.run_until(t + 2000.0)  # under the 5 ms inter-byte timeout
+    t = b.send(wire[5:11])
+    b.clock.run_until(t + 1000.0)
+    t = b.send(wire[11:])
+    b.run_for(20000.0)
+    assert len(b.pc.frames) == 1 and b.drivers[2].requests == 1
+    node = b.hal.down.node
+    assert [v for _t, v in node.de_log[-2:]] == [1, 0]  # one DE pulse for the whole frame
+    c = b.counters
+    assert c["replies"] == 1 and c["cut_truncated"] == 0
+    # now a PC that stops mid-frame for good
+    t = b.send(wire[:7])
+    b.run_for(30000.0)
+    c = b.counters
+    assert c["cut_truncated"] == 1 and c["unawaited"] == 1 and not node.de
+    assert b.drivers[2].requests == 1 and len(b.pc.frames) == 1
+    assert c["forwards"] == c["replies"] + c["timeouts"] + c["aborts"] + c["unawaited"] + c["relay_corrupt"]
+
+
+def test_driver_garbage_mid_relay_reaches_the_pc_as_a_broken_frame():
+    b = make()
+    d = b.drivers[2]
+    reply = F.encode(2, GCP, b"\x00\x01\x02\x03\x04")
+    d.silent = True
+    t = b.send(F.encode(2, GCP))
+    b.clock.run_until(t + 300.0)
+    b.down_bus.inject(reply[:6] + b"\x13\x37" + reply[8:])  # garbage in the middle of the answer
+    b.run_for(60000.0)
+    c = b.counters
+    assert c["relay_corrupt"] == 1 and c["replies"] == 0 and b.pc.frames == []
+    assert b.pc.parser.crc_errors == 1
+    d.silent = False
+    assert b.request(2, GCP)[1] == b"\x00" + bytes(4)
 
 
 def test_wrong_id_reply_dropped():
@@ -121,7 +180,7 @@ def test_noise_bursts_on_both_buses():
     assert c["replies"] == 20 and c["timeouts"] == 0
     assert c["up_noise"] > 0 and c["down_noise"] > 0
     # everything the jig sent to the PC is exactly the 20 replies
-    assert [w for _t0, _t1, w in b.hal.up.writes] == [w for _t, w in b.pc.frames]
+    assert b"".join(w for _t0, _t1, w in b.hal.up.writes) == b"".join(w for _t, w in b.pc.frames)
 
 
 def test_pc_retry_while_waiting_gets_one_answer():

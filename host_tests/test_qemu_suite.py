@@ -29,7 +29,8 @@ def test_generated_captures_and_quick_suite(tmp_path, monkeypatch, capsys):
     assert suite.main(quick=True) == 0
     out = capsys.readouterr().out
     assert "FAIL" not in out
-    assert "captures give CPython's report" in out and "bridge forward" in out
+    assert "captures give CPython's report" in out
+    assert "bridge cut-through: forwarded transaction" in out and "bridge store-and-forward: forwarded" in out
 
 
 def test_suite_reports_a_broken_capture(tmp_path, monkeypatch, capsys):

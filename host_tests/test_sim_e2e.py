@@ -11,6 +11,7 @@ import pytest
 
 from jig import diag
 from jig import frame as F
+from jig.params import P_FORWARD_MODE
 from motorjig.sim import SimBench
 
 # Reply data lengths from the protocol notes (§5), status byte included.
@@ -54,15 +55,25 @@ class Tap:
         bus.monitor = lambda seg, data: self.segs.append((seg.node.name, bytes(data)))
 
     def by(self, name):
-        return [d for n, d in self.segs if n == name]
+        """What the node sent, one item per frame (a jig cutting a frame through
+        sends it in pieces: those are joined)."""
+        out = []
+        for n, d in self.segs:
+            if n != name:
+                continue
+            if out and not out[-1].endswith(b"\xaa\xee"):
+                out[-1] += d
+            else:
+                out.append(d)
+        return out
 
     def clear(self):
         self.segs.clear()
 
 
-@pytest.fixture
-def bench():
-    b = SimBench(driver_ids=(2, 3), servo_on=True)
+@pytest.fixture(params=[0, 1], ids=["cut-through", "store-and-forward"])
+def bench(request):
+    b = SimBench(driver_ids=(2, 3), servo_on=True, jig_params={P_FORWARD_MODE: request.param})
     b.down_tap = Tap(b.down_bus)
     b.up_tap = Tap(b.up_bus)
     return b

@@ -8,6 +8,7 @@ import random
 import struct
 
 from jig import frame as F
+from jig import params as P
 from motorjig.sim import SimBench
 
 N_TRANSACTIONS = 100000
@@ -29,9 +30,9 @@ REQUESTS = (
 )
 
 
-def run_soak(n, seed, ver8=False):
+def run_soak(n, seed, ver8=False, mode=P.CUT_THROUGH):
     rng = random.Random(seed)
-    bench = SimBench(driver_ids=DRIVERS, record=False, ver8=ver8)
+    bench = SimBench(driver_ids=DRIVERS, record=False, ver8=ver8, jig_params={P.P_FORWARD_MODE: mode})
     drivers = bench.drivers
     # What the drivers put on the wire in the current transaction (as delivered).
     driver_wire = []
@@ -139,21 +140,35 @@ def run_soak(n, seed, ver8=False):
     return bench, stats
 
 
+def check_conservation(c, pc_frames):
+    """Every forwarded request ended exactly one way; every PC frame was routed once."""
+    assert c["forwards"] == c["replies"] + c["relay_corrupt"] + c["timeouts"] + c["aborts"] + c["unawaited"]
+    assert (c["up_frames_in"] + c["cut_corrupt"] + c["cut_truncated"]
+            == c["local_requests"] + c["forwards"] + c["broadcasts"])
+    assert c["up_frames_out"] == c["replies"] + c["local_requests"] == pc_frames
+
+
 def test_soak_100k_transactions_with_faults():
     bench, s = run_soak(N_TRANSACTIONS, seed=20261122)
     c = bench.counters
     assert s["wrong"] == 0 and s["dup"] == 0 and s["lost"] == 0, s
     assert s["faults"] > 3000  # the faults really happened
-    # conservation: every forwarded request ended exactly one way
-    assert c["forwards"] == c["replies"] + c["timeouts"] + c["aborts"]
-    assert c["up_frames_in"] == c["local_requests"] + c["forwards"] + c["broadcasts"]
-    assert c["up_frames_out"] == c["replies"] + c["local_requests"] == len(bench.pc.frames)
+    check_conservation(c, len(bench.pc.frames))
     assert c["broadcasts"] == s["broadcast"]
     assert c["local_requests"] == s["local"]
     # faults were seen by the jig where they should be
     assert c["timeouts"] >= s["absent"]
     assert c["stale_drops"] > 0 and c["aborts"] > 0 and c["down_crc_errors"] > 0
-    assert c["up_timeouts"] + c["up_resyncs"] > 0
+    assert c["cut_truncated"] > 0 and c["relay_corrupt"] > 0  # cut through: passed on, then counted
+
+
+def test_soak_store_and_forward():
+    bench, s = run_soak(20000, seed=11, mode=P.STORE_AND_FORWARD)
+    c = bench.counters
+    assert s["wrong"] == 0 and s["dup"] == 0 and s["lost"] == 0, s
+    check_conservation(c, len(bench.pc.frames))
+    assert c["cut_corrupt"] == c["cut_truncated"] == c["relay_corrupt"] == c["unawaited"] == 0
+    assert c["up_timeouts"] + c["up_resyncs"] > 0 and c["down_crc_errors"] > 0
 
 
 def test_soak_ver8_sync_numbers():
@@ -161,5 +176,4 @@ def test_soak_ver8_sync_numbers():
     bench, s = run_soak(10000, seed=8, ver8=True)
     c = bench.counters
     assert s["wrong"] == 0 and s["dup"] == 0 and s["lost"] == 0, s
-    assert c["forwards"] == c["replies"] + c["timeouts"] + c["aborts"]
-    assert c["up_frames_out"] == c["replies"] + c["local_requests"] == len(bench.pc.frames)
+    check_conservation(c, len(bench.pc.frames))

@@ -19,9 +19,9 @@ class MemRx:
         self.t_last = 0  # tick of the last load (the HAL port's t_last)
         self.pending = None  # bytes that arrive at the next read (a reply after a request)
 
-    def load(self, data, n):
-        """Make data[0:n] the bytes waiting to be read (anything unread is dropped)."""
-        mem.copy(self.rx, 0, data, 0, n)
+    def load(self, data, n, off=0):
+        """Make data[off:off + n] the bytes waiting to be read (anything unread is dropped)."""
+        mem.copy(self.rx, 0, data, off, n)
         self.rx_n = n
         self.rx_pos = 0
         self.t_last = ticks_us()

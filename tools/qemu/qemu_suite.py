@@ -203,10 +203,15 @@ def traffic(repeat):
 
 
 def bench_parser(repeat=40, chunk=256):
+    """The parser as the bridge drives it: scan() straight on the state array."""
     stream, frames = traffic(repeat)
     n = len(stream)
     buf = bytearray(chunk)
     p = parser.FrameParser()
+    st = p.st
+    scan = p.scan
+    body = p.body
+    tables = parser.TABLES
 
     def run():
         pos = 0
@@ -218,8 +223,8 @@ def bench_parser(repeat=40, chunk=256):
             i = 0
             now = ticks_us()
             while i < k:
-                i = p.feed(buf, i, k, now)
-                if p.ready:
+                i = scan(st, buf, i, k, body, tables, now)
+                if st[parser.S_EVENT] == parser.EV_FRAME:
                     got += 1
         return got
 
@@ -231,28 +236,26 @@ def bench_parser(repeat=40, chunk=256):
     a1 = alloc_bytes()
     if got != frames:
         fail("parser benchmark: %d frames of %d" % (got, frames))
-    result("parser: %d bytes, %d frames: %d instructions/byte, %d instructions/frame, heap +%d bytes"
-           % (n, frames, instr(dt) // n, instr(dt) // frames, a1 - a0))
+    result("parser (%s engine): %d bytes, %d frames: %d instructions/byte, %d instructions/frame, heap +%d bytes"
+           % (p.engine, n, frames, instr(dt) // n, instr(dt) // frames, a1 - a0))
 
 
 class MemPort(MemRx):
-    """A HAL port over memory: ``load`` queues received bytes, ``write`` records or
-    answers (the answer arrives at the next read)."""
+    """A HAL port over memory: ``load`` puts received bytes on the line, ``write``
+    counts the frames sent (a frame cut through is written in pieces)."""
 
-    def __init__(self, baud, answer=None):
+    def __init__(self, baud):
         MemRx.__init__(self)
         self.baud = baud
         self.tx_blocks = True
         self.overflows = 0
-        self.answer = answer  # reply bytes of a simulated driver behind this port
         self.writes = 0
         self.tx_bytes = 0
 
     def write(self, buf, off, n):
-        self.writes += 1
         self.tx_bytes += n
-        if self.answer is not None:
-            self.pending = self.answer
+        if buf[off + n - 1] == 0xEE:
+            self.writes += 1
 
     def de(self, v):
         pass
@@ -262,79 +265,153 @@ class MemPort(MemRx):
 
 
 class MemHal(bridge_probe.Hal):
-    """bridge_probe's in-memory HAL on the real clock, with MemPorts whose down
-    port answers every request with ``driver_reply``."""
+    """bridge_probe's in-memory HAL on the real clock, with MemPorts."""
 
-    def __init__(self, driver_reply):
+    def __init__(self):
         bridge_probe.Hal.__init__(self)
         self.ticks_us = ticks_us
-        self.driver_reply = driver_reply
 
     def sleep_us(self, us):
         pass  # DE delays are waiting, not work: left out of the instruction count
 
     def open(self, up_baud, down_baud):
         self.up = MemPort(up_baud)
-        self.down = MemPort(down_baud, self.driver_reply)
+        self.down = MemPort(down_baud)
+
+
+def mem_total():
+    try:
+        import micropython
+
+        return micropython.mem_total()
+    except (ImportError, AttributeError):
+        return 0
+
+
+def heap_lock(on):
+    try:
+        import micropython
+    except ImportError:
+        return
+    if on:
+        micropython.heap_lock()
+    else:
+        micropython.heap_unlock()
+
+
+class BridgeRig:
+    """jig.app.App on MemHal in one forwarding mode, with the probes of the issue's table."""
+
+    def __init__(self, mode):
+        from jig import params
+        from jig.app import App
+
+        self.request = frame.encode(2, frame.GET_AXIS_STATUS)
+        self.reply = frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08")
+        self.local = frame.encode(1, frame.GET_SLAVE_INFO)
+        hal = MemHal()
+        fs = bridge_probe.MemFS()
+        hal.fs = fs
+        pr = params.Params(fs, hal.param_path)
+        pr.load()
+        pr.set(params.P_FORWARD_MODE, mode)
+        pr.save()
+        self.app = App(hal)
+        self.hal = hal
+        self.stuck = False
+        self.poll = self.app.poll  # bound once: making a bound method allocates
+
+    def _until(self, port, target):
+        poll = self.poll
+        k = 0
+        while port.writes < target:
+            poll()
+            k += 1
+            if k > 1000:
+                self.stuck = True
+                return
+
+    def forward(self, count):
+        """Request as one burst, forwarded; reply as one burst, relayed."""
+        up = self.hal.up
+        down = self.hal.down
+        req = self.request
+        rep = self.reply
+        for _ in range(count):
+            up.load(req, len(req))
+            self._until(down, down.writes + 1)
+            down.load(rep, len(rep))
+            self._until(up, up.writes + 1)
+
+    def forward_bytewise(self, count):
+        """The same transaction with every byte arriving on its own: one byte, one pass."""
+        up = self.hal.up
+        down = self.hal.down
+        poll = self.poll
+        req = self.request
+        rep = self.reply
+        for _ in range(count):
+            for i in range(len(req)):
+                up.load(req, 1, i)
+                poll()
+            for i in range(len(rep)):
+                down.load(rep, 1, i)
+                poll()
+        if up.writes < count:
+            self.stuck = True
+
+    def answer_local(self, count):
+        up = self.hal.up
+        wire = self.local
+        for _ in range(count):
+            up.load(wire, len(wire))
+            self._until(up, up.writes + 1)
+
+    def idle(self, count):
+        poll = self.poll
+        for _ in range(count):
+            poll()
+
+
+def measure(fn, count):
+    """(instructions per call of fn(1), heap bytes allocated per call), with the heap
+    locked: any allocation raises MemoryError, which is reported as a failure."""
+    fn(5)  # warm up: first-use allocations happen here
+    gc.collect()
+    m0 = mem_total()
+    heap_lock(True)
+    try:
+        t0 = ticks_us()
+        fn(count)
+        dt = ticks_diff(ticks_us(), t0)
+    except MemoryError:
+        heap_lock(False)
+        return -1, -1
+    heap_lock(False)
+    return instr(dt) // count, (mem_total() - m0) // count
 
 
 def bench_bridge(transactions=200):
-    from jig.app import App
+    from jig import params
 
-    request = frame.encode(2, frame.GET_AXIS_STATUS)
-    reply = frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08")
-    local = frame.encode(1, frame.GET_SLAVE_INFO)
-    hal = MemHal(reply)
-    app = App(hal)
-    up = hal.up
-
-    def forward(count):
-        polls = 0
-        for k in range(count):
-            up.load(request, len(request))
-            target = up.writes + 1
-            while up.writes < target:
-                app.poll()
-                polls += 1
-                if polls > 20 * count:
-                    return -1
-        return polls
-
-    def answer_local(count):
-        for k in range(count):
-            up.load(local, len(local))
-            target = up.writes + 1
-            while up.writes < target:
-                app.poll()
-
-    def idle(count):
-        for k in range(count):
-            app.poll()
-
-    forward(10)  # warm up: first-use allocations (dict growth, caches) happen here
-    answer_local(10)
-    gc.collect()
-    gc.disable()
-    a0 = alloc_bytes()
-    t0 = ticks_us()
-    polls = forward(transactions)
-    dt = ticks_diff(ticks_us(), t0)
-    a1 = alloc_bytes()
-    gc.enable()
-    if polls < 0:
-        fail("bridge benchmark: a forwarded request never got its reply relayed")
-        return
-    rx_bytes = len(request) + len(reply)
-    per_t = instr(dt) // transactions
-    result("bridge forward (GetAxisStatus to id 2, %d+%d bytes): %d instructions/transaction, "
-           "%d instructions/received byte, %d polls/transaction, heap +%d bytes over %d transactions"
-           % (len(request), len(reply), per_t, per_t // rx_bytes, polls // transactions, a1 - a0, transactions))
-    if a1 - a0 > 0 and compat.IS_MICROPYTHON:
-        fail("bridge: %d heap bytes allocated in steady state (expected 0)" % (a1 - a0))
-    t_local = timed(answer_local, transactions)
-    result("bridge local (GetSlaveInfo to id 1): %d instructions/transaction" % (instr(t_local) // transactions))
-    t_idle = timed(idle, 1000)
-    result("main loop idle pass: %d instructions" % (instr(t_idle) // 1000))
+    for mode, name in ((params.CUT_THROUGH, "cut-through"), (params.STORE_AND_FORWARD, "store-and-forward")):
+        rig = BridgeRig(mode)
+        rx = len(rig.request) + len(rig.reply)
+        per_t, heap_t = measure(rig.forward, transactions)
+        per_b, heap_b = measure(rig.forward_bytewise, transactions // 4)
+        local, heap_l = measure(rig.answer_local, transactions)
+        idle, heap_i = measure(rig.idle, 1000)
+        if rig.stuck:
+            fail("bridge %s: a transaction did not complete" % name)
+        for what, heap in (("forward", heap_t), ("bytewise forward", heap_b), ("local", heap_l), ("idle", heap_i)):
+            if heap < 0:
+                fail("bridge %s: %s allocated with the heap locked" % (name, what))
+            elif heap > 0 and compat.IS_MICROPYTHON:
+                fail("bridge %s: %s allocated %d heap bytes per call" % (name, what, heap))
+        result("bridge %s: forwarded transaction (%d+%d bytes, two bursts) %d instructions; every byte on its own "
+               "%d instructions/byte; local GetSlaveInfo %d; idle pass %d; heap allocated per transaction %d / "
+               "per idle pass %d bytes (heap locked)"
+               % (name, len(rig.request), len(rig.reply), per_t, per_b // rx, local, idle, heap_t, heap_i))
 
 
 def probe_cross_check(n=200):

@@ -47,7 +47,7 @@ class PcPort:
     def __init__(self, bench, bus, ver8=False):
         self.bench = bench
         self.node = bus.add_node("pc", self._rx, auto_de=True, record=False)
-        self.parser = FrameParser(ver8)
+        self.parser = FrameParser(ver8, byte_us=max(1, int(bus.bt)))  # see SimDriver
         self.raw = bytearray()  # every byte received, in order
         self.frames = []  # (time µs, wire bytes of a good frame)
         self.listeners = []  # fn(data) called with raw bytes (pty/TCP)

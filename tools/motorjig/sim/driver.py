@@ -177,7 +177,9 @@ class SimDriver:
         self.slave_type = slave_type
         self.name = name
         self.node = bus.add_node("driver-%d" % slave_id, self._rx, auto_de=True, record=False)
-        self.parser = FrameParser(ver8)
+        # byte_us: bytes handed over in one piece arrived one character time apart
+        # (a jig cutting a frame through sends it in several pieces).
+        self.parser = FrameParser(ver8, byte_us=max(1, int(bus.bt)))
         self.ram = list(PARAM_DEFAULT)
         self.rom = list(PARAM_DEFAULT)
         self.motion = Motion()

@@ -13,7 +13,7 @@ receiver hears its own transmission: ``echo``), with these rules:
 * nodes with ``auto_de`` (USB adapters with automatic direction control, the
   simulated drivers) drive DE exactly around their own segments;
 * fault injection: ``Node.corrupt(n)`` flips one bit in each of the node's next
-  ``n`` transmissions (a frame byte that is not part of a stuffing pair, so the
+  ``n`` frames (transmissions ending in a tail) (a frame byte that is not part of a stuffing pair, so the
   receiver sees a CRC error rather than a framing error).
 """
 
@@ -209,7 +209,8 @@ class Bus:
             data = bytes(out)
         if i0 or i1 != n:
             data = data[i0:i1]
-        if node.corrupt_next > 0:
+        if node.corrupt_next > 0 and data.endswith(b"\xaa\xee"):
+            # (the last piece of a frame: a jig cutting a frame through sends pieces)
             node.corrupt_next -= 1
             data = flip_for_crc(data)
             self.corrupted += 1
