@@ -67,7 +67,10 @@ empty_micropython_lib "$OUT/no-micropython-lib"
 # otherwise survive a change of flags or of the generated captures.
 rm -rf "$OUT/build/frozen_mpy"
 # make does not notice changed compiler flags: start over when they differ.
-vm_flags="-DMICROPY_OPT_COMPUTED_GOTO=1 CSUPEROPT=-Os"
+# The stm32 port's VM settings: computed goto, -Os for the VM loop, and (as the
+# STM32H7_JIG board sets it) call frames on a Python stack instead of the heap.
+vm_cflags="-DMICROPY_OPT_COMPUTED_GOTO=1 -include $ROOT/tools/qemu/cmodules/pystack/pystack.h"
+vm_flags="$vm_cflags CSUPEROPT=-Os"
 if [ "$(cat "$OUT/build/.vm-flags" 2>/dev/null)" != "$vm_flags" ]; then
     rm -rf "$OUT/build"
     mkdir -p "$OUT/build"
@@ -77,8 +80,8 @@ fi
 say "building the qemu port (BOARD=MPS2_AN500) with firmware/ frozen in, into $OUT/build"
 if ! make -C "$MICROPY_DIR/ports/qemu" -j"$JOBS" BOARD=MPS2_AN500 BUILD="$OUT/build" \
         FROZEN_MANIFEST="$gen/manifest.py" MPY_LIB_DIR="$OUT/no-micropython-lib" \
-        MPY_CROSS_FLAGS=-march=armv7emdp \
-        CFLAGS_EXTRA=-DMICROPY_OPT_COMPUTED_GOTO=1 CSUPEROPT=-Os >"$OUT/build.log" 2>&1; then
+        MPY_CROSS_FLAGS=-march=armv7emdp USER_C_MODULES="$ROOT/tools/qemu/cmodules" \
+        CFLAGS_EXTRA="$vm_cflags" CSUPEROPT=-Os >"$OUT/build.log" 2>&1; then
     tail -n 20 "$OUT/build.log" >&2
     die "the qemu port did not build (full log: $OUT/build.log)."
 fi

@@ -14,6 +14,11 @@
 #define MICROPY_HW_ENABLE_USB       (1)
 #define MICROPY_HW_ENABLE_SDCARD    (0)
 #define MICROPY_HW_HAS_FLASH        (1)
+
+// Python call frames on a fixed stack (stm32's main.c gives it 384 words) instead of
+// the heap: otherwise every call whose frame exceeds 11 words allocates and frees heap
+// memory, and the bridge's main loop would feed the garbage collector.
+#define MICROPY_ENABLE_PYSTACK      (1)
 // The SAFE button belongs to the firmware (main.py decides safe boot), so the
 // port's own reset-time boot-mode menu on the user switch is not used.
 #define MICROPY_HW_HAS_SWITCH       (0)
