@@ -27,6 +27,7 @@ class Port:
         self.t_last = 0
         self.overflows = 0
         self.tx_blocks = True
+        self.echo_free = True  # like the jig's transceivers: /RE tied to DE
         self.out = bytearray(frame.MAX_WIRE)
         self.out_n = 0
         self.writes = 0

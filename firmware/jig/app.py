@@ -7,8 +7,10 @@ the PC bus, go through their parser into the bridge (which acts on every event:
 a routing decision, a complete frame, a dropped one). Everything with a time in
 it -- the inter-byte and reply timeouts, the scan, the safety stop, the watchdog,
 the heartbeat -- runs in the *slow pass*, only when the tick reaches ``due[0]``:
-the earliest time any of them needs attention (at least every ``SLOW_US``). An
-idle pass is two ``any()`` calls, a tick and a compare. ``run()`` loops forever
+the earliest time any of them needs attention (at least every ``SLOW_US``; the
+bridge moves it earlier for a reply deadline and for the inter-byte timeout of a
+frame it is cutting through). An idle pass is two ``any()`` calls, a tick and a
+compare. ``run()`` loops forever
 (the board's main.py calls it).
 
 The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
@@ -82,6 +84,7 @@ class App:
         self.t_beat = hal.ticks_us()
         self.due = [self.t_beat]  # the tick at which the slow pass must next run
         self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due)
+        self.bridge.up_timeout_us = self.bridge.down_timeout_us = pr[P.P_INTERBYTE_US]
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
         self.up_rx = bytearray(RX_CHUNK)
@@ -108,6 +111,7 @@ class App:
         self.up.post_us = self.down.post_us = pr[P.P_DE_POST_US]
         self.up_parser.interbyte_timeout_us = pr[P.P_INTERBYTE_US]
         self.down_parser.interbyte_timeout_us = pr[P.P_INTERBYTE_US]
+        self.bridge.up_timeout_us = self.bridge.down_timeout_us = pr[P.P_INTERBYTE_US]
 
     def save_params(self):
         ok = self.params.save()
@@ -117,6 +121,7 @@ class App:
 
     # --- counters ------------------------------------------------------------------
     def _sync_counters(self):
+        self.counters.update_average()
         v = self.counters.v
         v[K.C_ECHO] = self.up.echo_bytes + self.down.echo_bytes - self.base_echo
         v[K.C_UP_OVERFLOWS] = self.hal.up.overflows - self.base_up_ovf
@@ -155,25 +160,14 @@ class App:
         if self._down_any():
             n = self._down_read(self.down_rx, RX_CHUNK)
             if n:
-                self._got(self.down_parser, self.down_rx, n, self._down_bytes)
+                self._down_bytes(self.down_parser, self.down_rx, n, self._ticks())
         if self._up_any():
             n = self._up_read(self.up_rx, RX_CHUNK)
             if n:
-                self._got(self.up_parser, self.up_rx, n, self._up_bytes)
+                self._up_bytes(self.up_parser, self.up_rx, n, self._ticks())
         now = self._ticks()
         if (now - self.due[0]) & TICKS_MASK < TICKS_HALF:
             self._slow(now)
-
-    def _got(self, p, buf, n, handle):
-        now = self._ticks()
-        handle(p, buf, n, now)
-        st = p.st
-        if st[_parser.S_STATE] != _parser.HUNT:
-            # Mid-frame: the slow pass must look again when the gap would be too long.
-            t = ticks_add(now, st[_parser.S_TIMEOUT] + 1)
-            due = self.due
-            if ticks_diff(t, due[0]) < 0:
-                due[0] = t
 
     def _slow(self, now):
         """Everything with a time in it; sets the next due tick."""

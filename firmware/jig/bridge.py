@@ -34,6 +34,8 @@ Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
 
 from jig import counters as K
 from jig import frame
+from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED, C_DOWN_IN, C_DOWN_OUT,
+                          C_FORWARDS, C_RELAY_CORRUPT, C_REPLIES, C_UNAWAITED, C_UP_IN, C_UP_OUT)
 from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
 from jig.compat import const, ticks_add, ticks_diff
 from jig.params import P_REPLY_TIMEOUT_MS, P_SLAVE_ID
@@ -124,8 +126,15 @@ def _multipliers():
 
 TIMEOUT_MULTIPLIER = _multipliers()
 
+# TRANSITIONS flattened for the hot path: index state * N_EVENTS + event.
+N_EVENTS = len(EVENT_NAMES)
+_NEXT = bytes([nxt for row in TRANSITIONS for _f, nxt in row])
+_FLAGS = tuple([f for row in TRANSITIONS for f, _n in row])
+
 # What an EV_DROP on the PC side means for a frame being cut through
 _WHY_TIMEOUT = const(0)
+_TICKS_MASK = const(0x3FFFFFFF)
+_TICKS_HALF = const(0x20000000)
 
 
 class Bridge:
@@ -158,10 +167,22 @@ class Bridge:
         # Cut-through: the Rs485 a frame is being streamed to (None: none), per side.
         self.fwd = None  # PC frame -> driver bus
         self.rel = None  # driver frame -> PC bus
+        self.hdr = bytearray(2 + 2 * 3)  # AA CC + the (stuffed) head of a frame cut through
+        self.hdr[0] = frame.STUFF
+        self.hdr[1] = frame.HEADER2
+        self._ticks = hal.ticks_us
+        self._turnaround = counters.turnaround
+        # Cut through, the raw bytes go straight to the port's write (Rs485.part adds
+        # nothing to it for a port whose write returns after the last stop bit).
+        self.fwd_part = down.part if not down.tx_blocks else down.port.write
+        self.rel_part = up.part if not up.tx_blocks else up.port.write
+        self.up_timeout_us = 5000  # inter-byte timeouts (the app keeps them current)
+        self.down_timeout_us = 5000
 
     def _event(self, ev):
-        flags, self.state = TRANSITIONS[self.state][ev]
-        return flags
+        k = self.state * N_EVENTS + ev
+        self.state = _NEXT[k]
+        return _FLAGS[k]
 
     def _abort(self):
         if self.client is None:
@@ -178,18 +199,16 @@ class Bridge:
         st = p.st
         scan = p.scan
         body = p.body
-        tables = TABLES
         i = 0
         while i < n:
-            j = scan(st, buf, i, n, body, tables, now)
-            fwd = self.fwd
-            if fwd is not None and j > i:
-                fwd.part(buf, i, j - i)  # the raw bytes of the frame being cut through
+            j = scan(st, buf, i, n, body, TABLES, now)
+            if self.fwd is not None and j > i:
+                self.fwd_part(buf, i, j - i)  # the raw bytes of the frame being cut through
             ev = st[S_EVENT]
-            if ev == EV_FRAME:
-                self.on_pc_frame(p, now)
-            elif ev == EV_HEAD:
+            if ev == EV_HEAD:
                 self._pc_head(body[0], now)
+            elif ev == EV_FRAME:
+                self.on_pc_frame(p, now)
             elif ev == EV_DROP:
                 self._pc_drop(st, body)
             i = j
@@ -204,27 +223,33 @@ class Bridge:
                 self.fwd = None
                 fwd.finish()
             return  # answered when complete
+        # Header and id (the bytes that carried them may have come in an earlier
+        # read); everything after them is passed on raw.
+        hdr = self.hdr
+        hdr[2] = slave
+        k = 3
+        if slave == frame.STUFF:
+            hdr[3] = slave
+            k = 4
         if fwd is None:
             fwd = self.down
-            fwd.begin()
-            self.c.turnaround(ticks_diff(fwd.t_tx_start, now))
+            fwd.begin(hdr, 0, k)
+            self._turnaround(ticks_diff(fwd.t_tx_start, now))
             self.fwd = fwd
-        # Header and id, re-stuffed: the bytes that carried them may have come in an
-        # earlier read. Everything after them is passed on raw.
-        self.body[0] = slave
-        k = frame.stuff_into(self.txbuf, self.body, 1) - 2  # without the tail
-        fwd.part(self.txbuf, 0, k)
+            self._watch_gap(self.up_timeout_us)
+        else:
+            fwd.part(hdr, 0, k)
         v = self.v
-        flags = self._event(E_PC_BROADCAST if slave == frame.BROADCAST_ID else E_PC_FORWARD)
+        v[C_DOWN_OUT] += 1
+        if slave == frame.BROADCAST_ID:
+            flags = self._event(E_PC_BROADCAST)
+            v[C_BROADCASTS] += 1
+        else:
+            flags = self._event(E_PC_FORWARD)
+            v[C_FORWARDS] += 1
+            self.p_ftype = -1  # nothing matches until the frame type is known
         if flags & F_ABORT:
             self._abort()
-        if flags & F_FORWARD:
-            v[K.C_FORWARDS] += 1
-            self.p_slave = slave
-            self.p_ftype = -1  # nothing matches until the frame type is known
-        else:
-            v[K.C_BROADCASTS] += 1
-        v[K.C_DOWN_OUT] += 1
 
     def _pc_drop(self, st, body):
         """Cut-through: a PC frame being passed on ended without being good."""
@@ -234,28 +259,28 @@ class Bridge:
         self.fwd = None
         fwd.finish()
         v = self.v
-        if st[S_WHY] == _WHY_TIMEOUT:
-            v[K.C_CUT_TRUNCATED] += 1
+        why = st[S_WHY]
+        if why == _WHY_TIMEOUT:
+            v[C_CUT_TRUNCATED] += 1
         else:
-            v[K.C_CUT_CORRUPT] += 1
+            v[C_CUT_CORRUPT] += 1
         if self.state == AWAIT_PC and self.p_ftype < 0:
-            n = st[S_N]
-            if n >= self.head and st[S_WHY] != _WHY_TIMEOUT:
+            head = self.head
+            if st[S_N] >= head and why != _WHY_TIMEOUT:
                 # The drive got a whole frame with a bad CRC (or length): it may answer
                 # it (status 0xAA), as it would on a direct line. Await that.
-                self._pend(None, body[0], body[self.head - 1], body[1] if self.head == 3 else -1)
+                self._pend(None, body[0], body[head - 1], body[1] if head == 3 else -1)
             else:
                 self._event(E_CUT_SHORT)
-                v[K.C_UNAWAITED] += 1
+                v[C_UNAWAITED] += 1
 
     def on_pc_frame(self, p, t_in):
         """A good frame from the PC, whose last byte arrived at tick t_in."""
         v = self.v
-        v[K.C_UP_IN] += 1
+        v[C_UP_IN] += 1
         self.t_pc = t_in
         self.pc_frames += 1
         body = p.body
-        slave = body[0]
         head = self.head
         fwd = self.fwd
         if fwd is not None:
@@ -263,8 +288,9 @@ class Bridge:
             self.fwd = None
             fwd.finish()
             if self.state == AWAIT_PC:
-                self._pend(None, slave, body[head - 1], body[1] if head == 3 else -1)
+                self._pend(None, body[0], body[head - 1], body[1] if head == 3 else -1)
             return
+        slave = body[0]
         if slave == self.params.ram[P_SLAVE_ID]:
             ev = E_PC_LOCAL
         elif slave == frame.BROADCAST_ID:
@@ -278,12 +304,12 @@ class Bridge:
             self._local(p, t_in)
         elif flags & (F_FORWARD | F_BROADCAST):
             self._send(self.down, body, p.st[S_N], t_in)
-            v[K.C_DOWN_OUT] += 1
+            v[C_DOWN_OUT] += 1
             if flags & F_FORWARD:
-                v[K.C_FORWARDS] += 1
+                v[C_FORWARDS] += 1
                 self._pend(None, slave, body[head - 1], body[1] if head == 3 else -1)
             else:
-                v[K.C_BROADCASTS] += 1
+                v[C_BROADCASTS] += 1
 
     def _send(self, rs, body, blen, t_in):
         """Stuff body[0:blen] onto rs (re-stuffing a parsed body gives its received
@@ -291,7 +317,7 @@ class Bridge:
         or forwards ended."""
         n = frame.stuff_into(self.txbuf, body, blen)
         rs.send(self.txbuf, n)
-        self.c.turnaround(ticks_diff(rs.t_tx_start, t_in))
+        self._turnaround(ticks_diff(rs.t_tx_start, t_in))
 
     def _pend(self, client, slave, ftype, sync, timeout_ms=-1):
         self.client = client
@@ -301,7 +327,7 @@ class Bridge:
         if timeout_ms < 0:
             timeout_ms = self.params.ram[P_REPLY_TIMEOUT_MS] * TIMEOUT_MULTIPLIER[ftype]
         # The wait starts when our request has left the wire.
-        d = ticks_add(self.hal.ticks_us(), timeout_ms * 1000)
+        d = ticks_add(self._ticks(), timeout_ms * 1000)
         self.deadline = d
         due = self.due
         if ticks_diff(d, due[0]) < 0:
@@ -349,18 +375,17 @@ class Bridge:
         st = p.st
         scan = p.scan
         body = p.body
-        tables = TABLES
         i = 0
         while i < n:
-            j = scan(st, buf, i, n, body, tables, now)
-            rel = self.rel
-            if rel is not None and j > i:
-                rel.part(buf, i, j - i)
+            j = scan(st, buf, i, n, body, TABLES, now)
+            if self.rel is not None and j > i:
+                self.rel_part(buf, i, j - i)
             ev = st[S_EVENT]
-            if ev == EV_FRAME:
+            if ev == EV_HEAD:
+                if self.state == AWAIT_PC:
+                    self._down_head(body, now)
+            elif ev == EV_FRAME:
                 self.on_down_frame(p, now)
-            elif ev == EV_HEAD:
-                self._down_head(body, now)
             elif ev == EV_DROP:
                 self._down_drop()
             i = j
@@ -369,7 +394,7 @@ class Bridge:
         """Cut-through: a driver frame ended without being good."""
         if self.rel is not None:
             self._end_relay(False)
-            self.v[K.C_RELAY_CORRUPT] += 1
+            self.v[C_RELAY_CORRUPT] += 1
             self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
 
     def gap(self, p, from_pc, now):
@@ -389,26 +414,50 @@ class Bridge:
                 and (self.head == 2 or body[1] == self.p_sync))
 
     def _down_head(self, body, now):
-        """Cut-through: id, [sync] and type of a driver frame are known."""
-        if self.state == AWAIT_PC and self._matches(body):
-            rel = self.up
-            rel.begin()
-            self.c.turnaround(ticks_diff(rel.t_tx_start, now))
-            k = frame.stuff_into(self.txbuf, body, self.head) - 2  # header + head, no tail
-            rel.part(self.txbuf, 0, k)
-            self.rel = rel
+        """Cut-through, a PC request awaited: id, [sync] and type of a driver frame are in."""
+        head = self.head
+        if body[0] != self.p_slave or body[head - 1] != self.p_ftype:
+            return
+        if head == 3 and body[1] != self.p_sync:
+            return
+        # AA CC and the head bytes, re-stuffed (ids and types are never 0xAA; a sync may be)
+        hdr = self.hdr
+        hdr[2] = body[0]
+        k = 3
+        if head == 3:
+            b = body[1]
+            hdr[3] = b
+            k = 4
+            if b == frame.STUFF:
+                hdr[4] = b
+                k = 5
+        hdr[k] = body[head - 1]
+        rel = self.up
+        rel.begin(hdr, 0, k + 1)
+        self._turnaround(ticks_diff(rel.t_tx_start, now))
+        self.rel = rel
+        self._watch_gap(self.down_timeout_us)
+
+    def _watch_gap(self, timeout_us):
+        """A frame is being cut through: the slow pass must look at the line within the
+        inter-byte timeout (it keeps watching while the frame lasts), to end the
+        transmission cleanly if the sender falls silent."""
+        t = (self._ticks() + timeout_us + 1) & _TICKS_MASK
+        due = self.due
+        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t is earlier than due[0]
+            due[0] = t
 
     def _end_relay(self, count_abort):
         rel = self.rel
         self.rel = None
         rel.finish()
         if count_abort:
-            self.v[K.C_ABORTS] += 1
+            self.v[C_ABORTS] += 1
             self._event(E_CUT_SHORT)
 
     def on_down_frame(self, p, t_in):
         v = self.v
-        v[K.C_DOWN_IN] += 1
+        v[C_DOWN_IN] += 1
         body = p.body
         if self.rel is not None:
             # Relayed as it came: the tail has gone with the raw bytes.
@@ -416,8 +465,8 @@ class Bridge:
             self._event(E_REPLY)
             if body[0] < SEEN_IDS:
                 self.seen |= 1 << body[0]
-            v[K.C_REPLIES] += 1
-            v[K.C_UP_OUT] += 1
+            v[C_REPLIES] += 1
+            v[C_UP_OUT] += 1
             return
         match = self.state != IDLE and p.st[S_N] > self.head + 2 and self._matches(body)
         if match and self.cut_through and self.client is None:
@@ -427,8 +476,8 @@ class Bridge:
             self.seen |= 1 << body[0]
         if flags & F_RELAY:
             self._send(self.up, body, p.st[S_N], t_in)
-            v[K.C_REPLIES] += 1
-            v[K.C_UP_OUT] += 1
+            v[C_REPLIES] += 1
+            v[C_UP_OUT] += 1
         elif flags & F_DELIVER:
             client = self.client
             self.client = None

@@ -98,24 +98,33 @@ class Counters:
         self.ta_n = 0
 
     def turnaround(self, us):
-        """Record one jig handling time in µs."""
+        """Record one jig handling time in µs (the average is worked out in
+        ``update_average``, when the counters are read)."""
         v = self.v
         if us < 0:
             us = 0
-        if v[C_TA_COUNT] == 0 or us < v[C_TA_MIN]:
+        n = v[C_TA_COUNT]
+        if n == 0 or us < v[C_TA_MIN]:
             v[C_TA_MIN] = us
         if us > v[C_TA_MAX]:
             v[C_TA_MAX] = us
-        v[C_TA_COUNT] += 1
-        self.ta_sum += us
-        self.ta_n += 1
-        if self.ta_sum > 0x3FFFFFFF:  # keep the sum a small int: restart the average window
+        v[C_TA_COUNT] = n + 1
+        s = self.ta_sum + us
+        if s > 0x3FFFFFFF:  # keep the sum a small int: restart the average window
             self.ta_sum = us
             self.ta_n = 1
-        v[C_TA_AVG] = self.ta_sum // self.ta_n
+        else:
+            self.ta_sum = s
+            self.ta_n += 1
+
+    def update_average(self):
+        if self.ta_n:
+            self.v[C_TA_AVG] = self.ta_sum // self.ta_n
 
     def get(self, name):
+        self.update_average()
         return self.v[NAMES.index(name)]
 
     def as_dict(self):
+        self.update_average()
         return dict(zip(NAMES, self.v))

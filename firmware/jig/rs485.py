@@ -14,7 +14,8 @@ A separate /RE pin (``port.re``, if the board has one) is driven with DE: the
 receiver is switched off while we drive the bus and back on after DE drops.
 Bytes heard on our own port while we transmit anyway (a transceiver whose
 receiver stays enabled) are echo: they are discarded from the receive stream and
-counted.
+counted. A port that declares ``echo_free`` (receiver off whenever DE is up, as
+/RE tied to DE on the jig) skips that bookkeeping.
 """
 
 from jig import mem
@@ -34,12 +35,22 @@ class Rs485:
         self.port = port
         self.echo_bytes = 0  # bytes discarded as echo
         self.tx_frames = 0
-        self.tx_bytes = 0
         self.t_tx_start = 0  # tick when DE last went up (or the write started)
         self._keep = 0  # bytes still to deliver before the echo to skip
         self._skip = 0  # echo bytes still to skip
         self._keep_at_begin = 0  # bytes waiting when the transmission began
         self.re = getattr(port, "re", None)  # separate /RE pin, if any
+        # A port whose receiver is off while it drives the bus (/RE tied to DE, as on
+        # the jig) hears no echo: nothing to count or skip, reads go straight through.
+        self.track_echo = not getattr(port, "echo_free", False)
+        self.tx_blocks = port.tx_blocks
+        # Bound once: these run for every frame.
+        self._de = port.de
+        self._write = port.write
+        self._any = port.any
+        self._ticks = hal.ticks_us
+        self._sleep = hal.sleep_us
+        self.read_into = self._read_skipping_echo if self.track_echo else port.readinto
         port.de(0)
         if self.re is not None:
             self.re(0)
@@ -61,56 +72,55 @@ class Rs485:
         self.hw = bool(want and ok)
         return self.hw
 
-    def begin(self):
-        """Take the bus: /RE off, DE up, wait the pre-delay (software DE)."""
-        hal = self.hal
-        self._keep_at_begin = self.port.any()
+    def begin(self, buf, off, n):
+        """Take the bus (/RE off, DE up, pre-delay: software DE) and transmit the
+        first part, buf[off:off + n]."""
+        if self.track_echo:
+            self._keep_at_begin = self._any()
         if not self.hw:
             if self.re is not None:
                 self.re(1)
-            self.port.de(1)
-            self.t_tx_start = hal.ticks_us()
-            if self.pre_us:
-                hal.sleep_us(self.pre_us)
-        else:
-            self.t_tx_start = hal.ticks_us()
+            self._de(1)
+        self.t_tx_start = self._ticks()
+        if self.pre_us and not self.hw:
+            self._sleep(self.pre_us)
+        self._write(buf, off, n)
+        if not self.tx_blocks:
+            self._sleep(wire_time_us(n, self.port.baud))
 
     def part(self, buf, off, n):
         """Transmit buf[off:off + n] while the bus is ours; returns after its last stop bit."""
-        port = self.port
-        port.write(buf, off, n)
-        if not port.tx_blocks:
-            self.hal.sleep_us(wire_time_us(n, port.baud))
-        self.tx_bytes += n
+        self._write(buf, off, n)
+        if not self.tx_blocks:
+            self._sleep(wire_time_us(n, self.port.baud))
 
     def finish(self):
         """Release the bus after the last part: post-delay, DE down, /RE on; count echo."""
-        port = self.port
         if not self.hw:
             if self.post_us:
-                self.hal.sleep_us(self.post_us)
-            port.de(0)
+                self._sleep(self.post_us)
+            self._de(0)
             if self.re is not None:
                 self.re(0)
         self.tx_frames += 1
-        keep = self._keep_at_begin
-        echo = port.any() - keep
-        if echo > 0:
-            if self._skip == 0:
-                self._keep = keep
-            self._skip += echo
-            self.echo_bytes += echo
+        if self.track_echo:
+            keep = self._keep_at_begin
+            echo = self._any() - keep
+            if echo > 0:
+                if self._skip == 0:
+                    self._keep = keep
+                self._skip += echo
+                self.echo_bytes += echo
 
     def send(self, buf, n):
         """Transmit buf[0:n] with DE framing; returns when the line is released."""
-        self.begin()
-        self.part(buf, 0, n)
+        self.begin(buf, 0, n)
         self.finish()
 
     def any(self):
-        return self.port.any()
+        return self._any()
 
-    def read_into(self, buf, n):
+    def _read_skipping_echo(self, buf, n):
         """Received bytes (echo removed) into buf[0:]; returns the count."""
         got = self.port.readinto(buf, n)
         if self._skip == 0 or got == 0:

@@ -248,6 +248,7 @@ class MemPort(MemRx):
         MemRx.__init__(self)
         self.baud = baud
         self.tx_blocks = True
+        self.echo_free = True  # like the jig's transceivers: /RE tied to DE
         self.overflows = 0
         self.writes = 0
         self.tx_bytes = 0

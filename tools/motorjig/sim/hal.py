@@ -67,6 +67,7 @@ class SimPort:
         self.ring = RingBuffer(rxsize)
         self.baud = bus.baud
         self.tx_blocks = True
+        self.echo_free = not echo  # a receiver that hears our own transmission: echo
         self.t_last = 0
         self.writes = []  # (t_start, t_end, bytes) of every write, if hal.record
 
