@@ -12,8 +12,13 @@ below only runs it, and ``docs/parser-states.md`` is generated from it)::
 
 * ``AA CC`` anywhere restarts a frame; ``AA AA`` inside a frame is one 0xAA, so
   ``AA AA CC`` inside a frame is data, never a header.
-* A completed frame is checked: shorter than id+type+CRC, or a CRC that does not
-  come out to 0, is dropped and counted. A body longer than the protocol allows
+* A completed frame is checked: shorter than MIN_BODY (id, one more byte, CRC),
+  or a CRC that does not come out to 0, is dropped and counted.
+* Ver8 accepts a 4-byte body too, as a Ver8 drive does: it CRC-checks the whole
+  body and reads id / sync / type from its first three bytes, so the Ver6-format
+  GetCommandPos probe ``id 51 crcL crcH`` parses as sync 0x51, type crcL and a
+  data length of -1 (``data_end == data_start - 1``), which marks it for a
+  frame-type error reply. A body longer than the protocol allows
   (id, [sync], type, MAX_DATA data bytes, CRC: 253 bytes in Ver6, 254 in Ver8) is
   dropped as soon as it overflows, and the parser hunts for the next header.
 * A gap longer than the inter-byte timeout inside a frame drops the partial frame,
@@ -105,6 +110,9 @@ SLICES = not IS_MICROPYTHON
 
 DEFAULT_INTERBYTE_TIMEOUT_US = const(5000)
 
+# Shortest body in either layout: id, one byte (Ver6 type / Ver8 sync), CRC.
+MIN_BODY = const(4)
+
 # Counter names, in the order ``counters()`` reports them.
 COUNTER_NAMES = ("good", "noise", "stuff_errors", "crc_errors", "short", "overlong", "timeouts", "resyncs")
 
@@ -119,7 +127,9 @@ class FrameParser:
     * ``body`` / ``body_len``: the unstuffed frame, id to CRC (``body_len`` includes
       the two CRC bytes);
     * ``slave``, ``sync`` (-1 in Ver6), ``ftype``;
-    * ``data_start`` / ``data_end``: the data field within ``body``.
+    * ``data_start`` / ``data_end``: the data field within ``body``; in Ver8 a
+      4-byte body (a Ver6 frame without data) gives ``data_end == data_start - 1``
+      and ``ftype`` is then its first CRC byte.
 
     The frame stays valid until the next ``feed`` call.
     """
@@ -295,7 +305,7 @@ class FrameParser:
             elif action == A_END:
                 # Check and publish the frame (inline: this runs once per frame).
                 head = self.head
-                if n < head + 2:
+                if n < MIN_BODY:
                     self.short += 1
                 elif crc16(body, 0, n):
                     self.crc_errors += 1
