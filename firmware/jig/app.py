@@ -38,6 +38,7 @@ from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
 from jig.compat import const, ticks_diff
+from jig.frame import MAX_BODY
 from jig.handlers import Handlers
 from jig.rs485 import Rs485
 from jig.safety import SafetyStop
@@ -65,6 +66,9 @@ class App:
         # late-drained burst began, not from its last byte.
         self.up_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_UP_BAUD])
         self.down_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_DOWN_BAUD])
+        # The bridge reads driver frames layout-free (mixed Ver6/Ver8 bus): allow the
+        # longer Ver8 body whatever the jig's own protocol.
+        self.down_parser.max_body = MAX_BODY
         self.handlers = Handlers(self)
         self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8)
         self.scanner = Scanner(self.bridge, self.params)

@@ -7,11 +7,17 @@ frames from either side and the timeout.
 
 * Frames for the jig's own id are answered by ``handlers`` on the PC port.
 * Every other id is forwarded byte-for-byte (re-stuffing the parsed body gives the
-  received wire bytes: stuffing is canonical) and one matching reply -- same id,
-  frame type, and sync number in Ver8 -- is relayed unchanged. Id 99 is forwarded
-  and nothing is awaited.
+  received wire bytes: stuffing is canonical) and one matching reply is relayed
+  unchanged. Id 99 is forwarded and nothing is awaited.
+* Matching needs no layout and no per-driver setting, so one bus may carry Ver6
+  and Ver8 drives whatever the jig's own protocol: a reply matches when its first
+  two body bytes equal the request's and it has a status byte (body of 5 bytes or
+  more). Those two bytes are id + frame type for a Ver6 frame and id + sync number
+  for a Ver8 one (a Ver8 drive echoes the sync; a Ver6-format probe sent to a Ver8
+  drive comes back as ``id 51 crcL 80``, again the request's first two bytes).
 * Anything else from the driver bus is dropped and counted: late replies (after
-  the timeout), replies to an aborted wait, wrong id/type, unsolicited frames.
+  the timeout), replies to an aborted wait, wrong id/type or sync, unsolicited
+  frames.
 * A new PC frame while a PC reply is awaited aborts the wait (counted). While
   the jig's own request is out, local frames are answered and the wait goes on;
   a PC frame for the driver bus aborts it (PC traffic has priority).
@@ -121,9 +127,9 @@ class Bridge:
         self.txbuf = bytearray(frame.MAX_WIRE)
         self.body = bytearray(frame.MAX_BODY)
         self.reply = bytearray(frame.MAX_DATA)
-        self.p_slave = -1
-        self.p_ftype = -1
-        self.p_sync = -1
+        # First two body bytes of the pending request: id and (Ver6) type / (Ver8) sync.
+        self.p_b0 = -1
+        self.p_b1 = -1
         self.deadline = 0
         self.client = None  # None: the PC; else an object with on_reply/on_timeout/on_abort
         self.seen = 0  # bitmap of driver ids that answered
@@ -168,7 +174,13 @@ class Bridge:
             v[K.C_DOWN_OUT] += 1
             if flags & F_FORWARD:
                 v[K.C_FORWARDS] += 1
-                self._pend(None, slave, p.ftype, p.sync, self.params.ram[P_REPLY_TIMEOUT_MS] * TIMEOUT_MULTIPLIER[p.ftype])
+                # The frame type is body[1] (Ver6) or body[2] (Ver8): wait as long
+                # as the slower of the two readings asks (no layout assumed).
+                body = p.body
+                m = TIMEOUT_MULTIPLIER[body[1]]
+                if TIMEOUT_MULTIPLIER[body[2]] > m:
+                    m = TIMEOUT_MULTIPLIER[body[2]]
+                self._pend(None, slave, body[1], self.params.ram[P_REPLY_TIMEOUT_MS] * m)
             else:
                 v[K.C_BROADCASTS] += 1
 
@@ -180,11 +192,10 @@ class Bridge:
         rs.send(self.txbuf, n)
         self.c.turnaround(ticks_diff(rs.t_tx_start, t_in))
 
-    def _pend(self, client, slave, ftype, sync, timeout_ms):
+    def _pend(self, client, b0, b1, timeout_ms):
         self.client = client
-        self.p_slave = slave
-        self.p_ftype = ftype
-        self.p_sync = sync
+        self.p_b0 = b0
+        self.p_b1 = b1
         # The wait starts when our request has left the wire.
         self.deadline = ticks_add(self.hal.ticks_us(), timeout_ms * 1000)
 
@@ -216,7 +227,7 @@ class Bridge:
         v = self.c.v
         v[K.C_INT_REQUESTS] += 1
         v[K.C_DOWN_OUT] += 1
-        self._pend(client, slave, ftype, sync, timeout_ms)
+        self._pend(client, slave, self.body[1], timeout_ms)
         return True
 
     def busy(self):
@@ -226,12 +237,16 @@ class Bridge:
     def on_down_frame(self, p, t_in):
         v = self.c.v
         v[K.C_DOWN_IN] += 1
+        # Stale-reply protection keeps its strength: for a Ver6 drive the second
+        # byte is the frame type, as before; for a Ver8 drive it is the sync
+        # number, which changes with every request, so a late reply to an older
+        # request never matches (the type check adds nothing once the sync differs).
+        body = p.body
         match = (
             self.state != IDLE
-            and p.slave == self.p_slave
-            and p.ftype == self.p_ftype
-            and p.sync == self.p_sync
-            and p.data_end > p.data_start
+            and p.body_len >= 5
+            and body[0] == self.p_b0
+            and body[1] == self.p_b1
         )
         flags = self._event(E_REPLY if match else E_DOWN_OTHER)
         if flags & (F_RELAY | F_DELIVER) and p.slave < SEEN_IDS:
