@@ -189,3 +189,31 @@ def test_decode_crash_log_rejects_bad_replies():
         with pytest.raises(ValueError):
             diag.decode_crash_log(bad)
     assert diag.decode_crash_log(b"\x00ok\x00") == "ok"
+
+
+@pytest.mark.parametrize("jig_id", [1, 2])
+def test_ver8_jig_answers_the_ver6_probe_as_a_ver8_drive_does(jig_id):
+    """The vendor library's Ver6-format GetCommandPos probe to a Ver8 jig: frame-type
+    error in the Ver8 layout, id / sync=0x51 / type=crcL / 0x80."""
+    b = SimBench(driver_ids=(3,), ver8=True, jig_params={P.P_SLAVE_ID: jig_id})
+    probe = F.encode(jig_id, F.GET_COMMAND_POS)  # AA CC id 51 crcL crcH AA EE
+    reply = b.transact(probe)
+    assert reply == F.encode(jig_id, probe[4], b"\x80", sync=0x51)
+    assert b.counters["local_errors"] == 1 and b.counters["forwards"] == 0
+    # then the Ver8 probe, sync 0xF1 echoed
+    reply = b.transact(F.encode(jig_id, F.GET_COMMAND_POS, sync=0xF1))
+    assert reply == F.encode(jig_id, F.GET_COMMAND_POS, bytes(5), sync=0xF1)
+
+
+def test_ver6_jig_answers_the_ver6_probe_normally():
+    b = SimBench(driver_ids=(3,))
+    assert b.transact(F.encode(1, F.GET_COMMAND_POS)) == F.encode(1, F.GET_COMMAND_POS, bytes(5))
+
+
+def test_ver8_jig_reads_a_ver6_frame_whose_crc_byte_is_a_known_type_as_a_frame_type_error():
+    """Ver6 'AA CC 01 04 01 E3 AA EE' read as Ver8 is sync 0x04, type 0x01 (GetSlaveInfo)
+    with a data length of -1: still 0x80, never a GetSlaveInfo answer."""
+    b = SimBench(driver_ids=(3,), ver8=True)
+    wire = F.encode(1, 0x04)
+    assert wire == bytes.fromhex("AA CC 01 04 01 E3 AA EE")
+    assert b.transact(wire) == F.encode(1, 0x01, b"\x80", sync=0x04)

@@ -5,6 +5,12 @@ first -- into a preallocated buffer, returning its length. Requests whose data
 length is not the documented one get 0x82, unknown frame types 0x80, values out
 of range or unknown parameter numbers 0x81.
 
+In Ver8 a 4-byte body (a Ver6 frame without data, e.g. the vendor library's
+GetCommandPos probe ``id 51 crcL crcH``) parses with a data length of -1 and is
+answered as a Ver8 drive answers it: frame-type error 0x80, whatever its third
+byte reads as, so the reply is ``id, sync=0x51, type=crcL, 0x80`` -- which is how
+the vendor library recognises a Ver8 slave.
+
 "No axis here": vendor masters probe every id with GetCommandPos (0x51) and poll
 GetAxisStatus (0x40) / GetAllStatus (0x43), checking reply lengths exactly. The jig
 answers them with status 0 and the documented length, all fields zero: position
@@ -64,12 +70,12 @@ class Handlers:
 
     def handle(self, p, out):
         """Reply data (status first) for request p into out; returns its length."""
+        n = p.data_end - p.data_start
         entry = self.table.get(p.ftype)
-        if entry is None:
+        if entry is None or n < 0:  # n < 0: a Ver6 frame read as Ver8 (type = a CRC byte)
             out[0] = frame.STATUS_FRAME_TYPE_ERROR
             return 1
         fn, need = entry
-        n = p.data_end - p.data_start
         if need != LEN_ANY and n != need:
             out[0] = frame.STATUS_FRAME_ERROR
             return 1
