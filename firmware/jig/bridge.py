@@ -203,13 +203,20 @@ class Bridge:
         v = self.c.v
         v[K.C_LOCAL] += 1
         n = self.handlers.handle(p, self.reply)
-        status = self.reply[0]
-        if status == frame.STATUS_FRAME_TYPE_ERROR or status == frame.STATUS_DATA_ERROR or status == frame.STATUS_FRAME_ERROR:
-            v[K.C_LOCAL_ERRORS] += 1
-        blen = frame.build_body(self.body, p.slave, p.ftype, self.reply, 0, n, p.sync)
-        self._send(self.up, self.body, blen, t_in)
-        v[K.C_UP_OUT] += 1
+        if n < 0:
+            return  # deferred: the handler answers later through local_reply
+        self.local_reply(p.slave, p.ftype, p.sync, self.reply, n, t_in)
         self.handlers.after_reply(p)
+
+    def local_reply(self, slave, ftype, sync, data, n, t_in):
+        """Send the jig's reply (data[0:n], status first) to the PC; t_in is when the
+        request ended (for the turnaround figures)."""
+        status = data[0]
+        if status == frame.STATUS_FRAME_TYPE_ERROR or status == frame.STATUS_DATA_ERROR or status == frame.STATUS_FRAME_ERROR:
+            self.c.v[K.C_LOCAL_ERRORS] += 1
+        blen = frame.build_body(self.body, slave, ftype, data, 0, n, sync)
+        self._send(self.up, self.body, blen, t_in)
+        self.c.v[K.C_UP_OUT] += 1
 
     # --- jig-originated requests ---------------------------------------------
     def request(self, client, slave, ftype, data, n, timeout_ms):
