@@ -181,3 +181,18 @@ def test_late_reply_with_an_old_sync_never_answers_a_newer_request():
     got = [body_of(w) for _t, w in bench.pc.frames[n0:]]
     assert [b[1] for b in got] == [m.sync[3]]  # only the reply carrying the new sync
     assert bench.counters["stale_drops"] == 1 and bench.counters["aborts"] == 1
+
+
+@pytest.mark.parametrize("jig_ver8", [False, True], ids=["jig-ver6", "jig-ver8"])
+def test_jig_bus_scan_finds_drivers_of_both_variants(jig_ver8):
+    """The jig's own scan speaks its protocol; a driver of the other variant answers
+    with a frame-type error: found, its type unknown (0)."""
+    bench = SimBench(driver_ids=(2, 3), jig_ver8=jig_ver8, ver8_drivers=(3,))
+    m = VendorStyleMaster(bench)
+    m.connect()
+    assert m.request(1, 0xF2) == b"\x00"  # StartBusScan
+    bench.run_for(1000000.0)
+    r = m.request(1, 0xF3)  # GetBusScanResult: St, state, u16 bitmap, 16 types
+    assert r[1] == 2 and struct.unpack_from("<H", r, 2)[0] == (1 << 2) | (1 << 3)
+    types = r[4:20]
+    assert (types[2], types[3]) == ((0, 20) if jig_ver8 else (20, 0))
