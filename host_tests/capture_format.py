@@ -151,8 +151,8 @@ def _expected_frame(cap, args, where):
             raise CaptureError("%s: bad crc %r" % (where, args[-1]))
         args = args[:-2]
     body = _hex_bytes(args, where)
-    if len(body) < (3 if cap.ver8 else 2):
-        raise CaptureError("%s: an expected frame needs at least id and type" % where)
+    if len(body) < 2:
+        raise CaptureError("%s: an expected frame needs at least id and type (Ver8: id and sync)" % where)
     return (bytes(body), crc)
 
 

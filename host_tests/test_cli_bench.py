@@ -240,11 +240,14 @@ def test_crc_error_status(bench, run):
 
 
 def test_corrupted_reply(bench, run):
+    # --ver6: no variant detection first, so the corruption hits the status reply
     bench.sim.corrupt_to_pc(1)
-    run("status", "--retries", 0, code=4)
+    run("status", "--retries", 0, "--ver6", code=4)
     assert "the reply from slave 2 to GetAllStatus failed its CRC" in run.err
     bench.sim.corrupt_to_pc(1)
-    assert run.json("status")["command_pos"] == 0  # retried
+    assert run.json("status", "--ver6")["command_pos"] == 0  # retried
+    bench.sim.corrupt_to_pc(1)  # a corrupted detection probe: sent again, then detected
+    assert run.json("status")["command_pos"] == 0
 
 
 def test_crashlog(bench, run, monkeypatch):
@@ -369,3 +372,33 @@ def test_monitor_pairs_requests_with_replies_and_shows_line_errors(capsys, tmp_p
     assert rows[-1]["summary"]["frames"] == 6 and rows[-1]["summary"]["errors"]["crc_errors"] == 1
     text = log.read_text()
     assert "line error: 1 x crc_errors" in text and "motion command refused" in text
+
+
+def test_mixed_bus_scan_variants_and_jig_id_that_would_shadow_a_driver(capsys):
+    """Ver8 jig, Ver6 driver 2, Ver8 driver 3: scan shows each variant; moving the jig
+    onto a driver's id is refused with a clear message; a free id is taken, read back
+    there, and said so."""
+    with Bench(driver_ids=(DRIVE, OTHER), baud=115200, jig_ver8=True, ver8_drivers=(OTHER,)) as b:
+        def run(*argv):
+            capsys.readouterr()
+            rc = cli.main(["--port", b.tcp_url, "--timeout", str(TIMEOUT_MS)] + [str(a) for a in argv])
+            out, err = capsys.readouterr()
+            return rc, out, err
+
+        rc, out, _ = run("scan", "--first", 0, "--last", 5, "--json")
+        assert rc == 0
+        assert [(r["slave"], r["variant"]) for r in json.loads(out)] == [(1, 8), (DRIVE, 6), (OTHER, 8)]
+        rc, out, _ = run("scan", "--first", 1, "--last", 3)
+        assert "id  1  Ver8" in out and "id  2  Ver6" in out and "id  3  Ver8" in out
+        assert run("info", "--slave", OTHER)[0] == 0  # a Ver8 drive, found by detection
+        for target in (DRIVE, OTHER):
+            rc, _, err = run("--slave", 1, "param", "set", "jig_slave_id", target)
+            assert rc == 5 and "refused jig_slave_id = %d" % target in err and "driver answers" in err
+        assert b.sim.jig_id == 1
+        rc, out, err = run("--slave", 1, "param", "set", "jig_slave_id", 7)
+        assert rc == 0, err
+        assert "the jig now answers as slave 7" in out and "jig_slave_id = 7" in out
+        assert b.sim.jig_id == 7
+        rc, out, _ = run("scan", "--first", 0, "--last", 8, "--json")
+        assert [(r["slave"], r["variant"], r["jig"]) for r in json.loads(out)] == [
+            (DRIVE, 6, False), (OTHER, 8, False), (7, 8, True)]

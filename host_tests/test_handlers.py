@@ -189,3 +189,89 @@ def test_decode_crash_log_rejects_bad_replies():
         with pytest.raises(ValueError):
             diag.decode_crash_log(bad)
     assert diag.decode_crash_log(b"\x00ok\x00") == "ok"
+
+
+@pytest.mark.parametrize("jig_id", [1, 2])
+def test_ver8_jig_answers_the_ver6_probe_as_a_ver8_drive_does(jig_id):
+    """The vendor library's Ver6-format GetCommandPos probe to a Ver8 jig: frame-type
+    error in the Ver8 layout, id / sync=0x51 / type=crcL / 0x80."""
+    b = SimBench(driver_ids=(3,), ver8=True, jig_params={P.P_SLAVE_ID: jig_id})
+    probe = F.encode(jig_id, F.GET_COMMAND_POS)  # AA CC id 51 crcL crcH AA EE
+    reply = b.transact(probe)
+    assert reply == F.encode(jig_id, probe[4], b"\x80", sync=0x51)
+    assert b.counters["local_errors"] == 1 and b.counters["forwards"] == 0
+    # then the Ver8 probe, sync 0xF1 echoed
+    reply = b.transact(F.encode(jig_id, F.GET_COMMAND_POS, sync=0xF1))
+    assert reply == F.encode(jig_id, F.GET_COMMAND_POS, bytes(5), sync=0xF1)
+
+
+def test_ver6_jig_answers_the_ver6_probe_normally():
+    b = SimBench(driver_ids=(3,))
+    assert b.transact(F.encode(1, F.GET_COMMAND_POS)) == F.encode(1, F.GET_COMMAND_POS, bytes(5))
+
+
+def test_ver8_jig_reads_a_ver6_frame_whose_crc_byte_is_a_known_type_as_a_frame_type_error():
+    """Ver6 'AA CC 01 04 01 E3 AA EE' read as Ver8 is sync 0x04, type 0x01 (GetSlaveInfo)
+    with a data length of -1: still 0x80, never a GetSlaveInfo answer."""
+    b = SimBench(driver_ids=(3,), ver8=True)
+    wire = F.encode(1, 0x04)
+    assert wire == bytes.fromhex("AA CC 01 04 01 E3 AA EE")
+    assert b.transact(wire) == F.encode(1, 0x01, b"\x80", sync=0x04)
+
+
+# --- no shadowing: jig_slave_id never takes an id a driver answers at ------------------
+def set_id(b, new_id, slave=None):
+    return ask(b, F.SET_PARAMETER, bytes([P.P_SLAVE_ID]) + struct.pack("<i", new_id), slave)
+
+
+def test_jig_id_of_a_driver_not_seen_yet_is_probed_and_refused(b):
+    n0 = b.drivers[2].requests
+    assert set_id(b, 2) == b"\x81"
+    assert b.drivers[2].requests == n0 + 1  # the jig asked id 2 before answering
+    assert b.jig_id == 1
+    wire, r = b.request(2, F.GET_SLAVE_INFO)
+    assert r[1] == 20  # still the driver's answer, not the jig's
+    assert b.counters["int_replies"] == 1
+
+
+def test_jig_id_of_a_driver_already_relayed_is_refused_without_a_probe(b):
+    assert ask(b, F.GET_COMMAND_POS, slave=3)[0] == 0  # relayed: the jig has seen id 3
+    n0 = b.drivers[3].requests
+    assert set_id(b, 3) == b"\x81"
+    assert b.drivers[3].requests == n0 and b.jig_id == 1
+
+
+def test_jig_id_found_by_the_bus_scan_is_refused_without_a_probe(b):
+    assert ask(b, diag.START_BUS_SCAN) == b"\x00"
+    b.run_for(500000)
+    assert ask(b, diag.GET_BUS_SCAN_RESULT)[1] == diag.SCAN_DONE
+    n0 = b.drivers[2].requests
+    assert set_id(b, 2) == b"\x81"
+    assert b.drivers[2].requests == n0
+
+
+def test_free_jig_id_is_taken_after_the_probe_times_out(b):
+    t0 = b.clock.now
+    wire, r = b.request(1, F.SET_PARAMETER, bytes([P.P_SLAVE_ID]) + struct.pack("<i", 5))
+    assert r == b"\x00" and wire[2] == 1  # answered from the old id
+    assert b.clock.now - t0 >= 20000  # after the probe's scan_timeout_ms
+    assert b.jig_id == 5
+    assert ask(b, F.GET_SLAVE_INFO, slave=5)[1] == diag.SLAVE_TYPE
+    assert b.request(1, F.GET_SLAVE_INFO, timeout_us=30000.0) == (None, None)
+    assert set_id(b, 5, slave=5) == b"\x00"  # its own id: nothing to check
+
+
+def test_pc_frame_for_the_drivers_aborts_the_id_check(b):
+    b.send(b.encode(1, F.SET_PARAMETER, bytes([P.P_SLAVE_ID]) + struct.pack("<i", 6)))
+    b.run_for(3000)  # the probe is out
+    assert ask(b, F.GET_COMMAND_POS, slave=2)[0] == 0
+    b.run_for(50000)
+    assert b.jig_id == 1 and b.counters["int_aborts"] == 1
+
+
+@pytest.mark.parametrize("jig_ver8", [False, True])
+def test_jig_id_refused_for_a_driver_of_the_other_variant(jig_ver8):
+    """The probe goes out in the jig's layout; a driver of the other variant answers
+    it with a frame-type error, which still shows that the id is taken."""
+    b = SimBench(driver_ids=(2,), jig_ver8=jig_ver8, ver8_drivers=() if jig_ver8 else (2,))
+    assert set_id(b, 2) == b"\x81" and b.jig_id == 1

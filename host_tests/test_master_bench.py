@@ -27,6 +27,9 @@ FAST = 200000  # pps
 @pytest.fixture
 def m(port):
     with Master(port, timeout=TIMEOUT) as master:
+        # First contact (variant detection) up front, so the tests below count only
+        # the requests they make themselves.
+        assert [master.variant(i) for i in (JIG, DRIVE, OTHER)] == [6, 6, 6]
         yield master
 
 
@@ -248,6 +251,7 @@ def test_no_reply_from_an_absent_or_silent_slave(bench, m):
     with pytest.raises(E.NoReplyError) as exc:
         m.get_axis_status(ABSENT)
     assert "no reply from slave 9 to GetAxisStatus within 150 ms" in str(exc.value)
+    assert m.variant(OTHER) == 6  # detected at first contact, before it falls silent
     drive(bench, OTHER).silent = True
     try:
         n0 = drive(bench, OTHER).requests
@@ -389,6 +393,38 @@ def test_ver8_framing_through_the_jig():
     with Bench(driver_ids=(DRIVE,), baud=115200) as b, Master(b.tcp_url, ver8=True, retries=0) as mm:
         with pytest.raises(E.NoReplyError):  # a Ver6 bus ignores Ver8 frames
             mm.get_slave_info(DRIVE)
+
+
+def test_mixed_bus_variants_detected_per_slave():
+    """Ver8 jig, a Ver6 and a Ver8 drive: Master finds each variant the vendor way and
+    uses it per slave, including Ver8's 64-bit inputs and GetMotionStatus axis flags."""
+    with Bench(driver_ids=(DRIVE, OTHER), baud=115200, jig_ver8=True, ver8_drivers=(OTHER,)) as b, \
+            Master(b.tcp_url, timeout=TIMEOUT) as mm:
+        found = mm.scan(range(0, 5), timeout=TIMEOUT)
+        assert sorted(found) == [JIG, DRIVE, OTHER]
+        assert mm.variants == {JIG: 8, DRIVE: 6, OTHER: 8}
+        assert mm.detect_variant(DRIVE) == 6 and mm.detect_variant(OTHER) == 8
+        assert found[OTHER].version.endswith("v8.0") and found[JIG].type_name == "MotorJig bridge"
+        for s in (DRIVE, OTHER):
+            mm.servo_enable(s, True)
+            mm.set_parameter(s, 3, 5)
+            mm.set_parameter(s, 4, 5)
+            mm.move_inc(s, 300, FAST)
+        for s in (DRIVE, OTHER):
+            mm.wait_motion_done(s, timeout=5)
+            assert mm.get_command_pos(s) == 300 and mm.get_all_status(s).command_pos == 300
+        mm.set_io_input(OTHER, 1 << 40, 0)  # a Ver8 input word has 64 bits
+        assert mm.get_io_input(OTHER) == 1 << 40
+        assert mm.get_all_status(OTHER).inputs == 1 << 40
+        assert mm.get_io_axis_status(OTHER).inputs == 1 << 40
+        ms8, ms6 = mm.get_motion_status(OTHER), mm.get_motion_status(DRIVE)
+        assert ms8.pt_number is None and ms8.axis.servo_on and ms6.axis is None and ms6.pt_number == 0
+        # one broadcast per variant: both drives stop their jog
+        for s in (DRIVE, OTHER):
+            mm.move_velocity(s, 2000, 1)
+        mm.all_move_stop()
+        for s in (DRIVE, OTHER):
+            assert not mm.wait_motion_done(s, timeout=5).motioning
 
 
 def test_every_public_method_is_exercised():

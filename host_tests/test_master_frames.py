@@ -41,6 +41,7 @@ def loop_master(**kw):
             sent.append(item)
 
     kw.setdefault("timeout", 0.01)
+    kw.setdefault("ver8", False)  # Ver6 framing, no detection probe (nothing answers)
     m = Master("loop://", trace=trace, echo=True, **kw)
     return m, sent
 
@@ -171,6 +172,7 @@ def test_names_cover_the_tables():
 
 def answering_master(*replies, **kw):
     """A loop:// master that, right after each request, hears the given wire frames."""
+    kw.setdefault("ver8", False)
     m = Master("loop://", timeout=kw.pop("timeout", 0.02), echo=True, **kw)
     queue = list(replies)
     sent = []

@@ -147,10 +147,17 @@ def test_length_limits_per_mode(bulk):
     p = FrameParser(ver8=True, bulk=bulk)
     assert len(feed_all(p, raw_frame(252, True))) == 1
     assert feed_all(p, raw_frame(253, True)) == [] and p.overlong == 1
-    # shortest: id, type, CRC (Ver6) / id, sync, type, CRC (Ver8)
+    # shortest in both modes: id, one byte, CRC. A Ver8 drive CRC-checks such a
+    # body whole and reads id / sync / type from its first three bytes, so the
+    # type is the first CRC byte and the data length is -1.
     assert len(feed_all(FrameParser(bulk=bulk), raw_frame(2))) == 1
     p = FrameParser(ver8=True, bulk=bulk)
-    assert feed_all(p, raw_frame(2)) == [] and p.short == 1
+    assert feed_all(p, b"\xaa\xcc\x01\x51\xaa\xee") == [] and p.short == 1
+    probe = frame.encode(5, frame.GET_COMMAND_POS)  # AA CC 05 51 crcL crcH AA EE
+    p.feed(probe)
+    assert p.ready and p.body_len == 4
+    assert (p.slave, p.sync, p.ftype) == (5, 0x51, probe[4])
+    assert p.data_end - p.data_start == -1
 
 
 def test_bulk_and_table_paths_agree_on_a_mixed_stream():

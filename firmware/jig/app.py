@@ -43,6 +43,7 @@ from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
 from jig.compat import const, ticks_add, ticks_diff
+from jig.frame import MAX_BODY
 from jig.handlers import Handlers
 from jig.rs485 import Rs485
 from jig.safety import SafetyStop
@@ -75,11 +76,14 @@ class App:
         # byte_us (one character time) lets the parser judge a gap from when a
         # late-drained burst began, not from its last byte. Cut through, the parsers
         # stop at each routing decision (EV_HEAD) and at each dropped frame.
-        head = 3 if ver8 else 2
+        # (a reply matches on its first two body bytes, whatever its layout: bridge.py)
         self.up_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_UP_BAUD],
                                              head_at=1 if cut else 0, stop_drop=cut)
         self.down_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_DOWN_BAUD],
-                                               head_at=head if cut else 0, stop_drop=cut)
+                                               head_at=2 if cut else 0, stop_drop=cut)
+        # The bridge reads driver frames layout-free (mixed Ver6/Ver8 bus): allow the
+        # longer Ver8 body whatever the jig's own protocol.
+        self.down_parser.max_body = MAX_BODY
         self.handlers = Handlers(self)
         self.t_beat = hal.ticks_us()
         self.due = [self.t_beat]  # the tick at which the slow pass must next run

@@ -6,11 +6,17 @@ the jig's own -- bus scan, safety stop -- is out); events are routing decisions 
 frames from either side and the timeout.
 
 * Frames for the jig's own id are answered by ``handlers`` on the PC port.
-* Every other id is forwarded byte for byte, and one matching reply -- same id,
-  frame type, and sync number in Ver8 -- is relayed unchanged. Id 99 is forwarded
-  and nothing is awaited.
+* Every other id is forwarded byte for byte, and one matching reply is relayed
+  unchanged. Id 99 is forwarded and nothing is awaited.
+* Matching needs no layout and no per-driver setting, so one bus may carry Ver6
+  and Ver8 drives whatever the jig's own protocol: a reply matches when its first
+  two body bytes equal the request's and it has a status byte (body of 5 bytes or
+  more). Those two bytes are id + frame type for a Ver6 frame and id + sync number
+  for a Ver8 one (a Ver8 drive echoes the sync; a Ver6-format probe sent to a Ver8
+  drive comes back as ``id 51 crcL 80``, again the request's first two bytes).
 * Anything else from the driver bus is dropped and counted: late replies (after
-  the timeout), replies to an aborted wait, wrong id/type, unsolicited frames.
+  the timeout), replies to an aborted wait, wrong id/type or sync, unsolicited
+  frames.
 * A new PC frame while a PC reply is awaited aborts the wait (counted). While
   the jig's own request is out, local frames are answered and the wait goes on;
   a PC frame for the driver bus aborts it (PC traffic has priority).
@@ -20,8 +26,8 @@ frames from either side and the timeout.
 Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
 
 * **cut-through** (default): the parsers raise EV_HEAD as soon as a frame's
-  routing bytes are in -- the slave id of a PC frame, id/[sync]/type of a driver
-  frame -- and the routing decision is taken there. A forwarded frame starts on
+  routing bytes are in -- the slave id of a PC frame, the two matching bytes of a
+  driver frame -- and the routing decision is taken there. A forwarded frame starts on
   the driver bus at once (header and id, re-stuffed) and every further byte
   follows as it arrives (``up_bytes``: the raw bytes the parser consumed); a
   matching reply goes to the PC the same way. DE stays up until the frame's tail
@@ -155,9 +161,9 @@ class Bridge:
         self.txbuf = bytearray(frame.MAX_WIRE)
         self.body = bytearray(frame.MAX_BODY)
         self.reply = bytearray(frame.MAX_DATA)
-        self.p_slave = -1
-        self.p_ftype = -1
-        self.p_sync = -1
+        # First two body bytes of the pending request: id and (Ver6) type / (Ver8) sync.
+        self.p_b0 = -1
+        self.p_b1 = -1
         self.deadline = 0
         self.client = None  # None: the PC; else an object with on_reply/on_timeout/on_abort
         self.seen = 0  # bitmap of driver ids that answered
@@ -247,7 +253,7 @@ class Bridge:
         else:
             flags = self._event(E_PC_FORWARD)
             v[C_FORWARDS] += 1
-            self.p_ftype = -1  # nothing matches until the frame type is known
+            self.p_b1 = -1  # nothing matches until the request's second byte is known
         if flags & F_ABORT:
             self._abort()
 
@@ -264,12 +270,12 @@ class Bridge:
             v[C_CUT_TRUNCATED] += 1
         else:
             v[C_CUT_CORRUPT] += 1
-        if self.state == AWAIT_PC and self.p_ftype < 0:
-            head = self.head
-            if st[S_N] >= head and why != _WHY_TIMEOUT:
+        if self.state == AWAIT_PC and self.p_b1 < 0:
+            n = st[S_N]
+            if n >= 2 and why != _WHY_TIMEOUT:
                 # The drive got a whole frame with a bad CRC (or length): it may answer
                 # it (status 0xAA), as it would on a direct line. Await that.
-                self._pend(None, body[0], body[head - 1], body[1] if head == 3 else -1)
+                self._pend(None, body[0], body[1], self._timeout_ms(body, n))
             else:
                 self._event(E_CUT_SHORT)
                 v[C_UNAWAITED] += 1
@@ -281,14 +287,13 @@ class Bridge:
         self.t_pc = t_in
         self.pc_frames += 1
         body = p.body
-        head = self.head
         fwd = self.fwd
         if fwd is not None:
             # Cut through: the tail has gone out with the raw bytes; now await.
             self.fwd = None
             fwd.finish()
             if self.state == AWAIT_PC:
-                self._pend(None, body[0], body[head - 1], body[1] if head == 3 else -1)
+                self._pend(None, body[0], body[1], self._timeout_ms(body, p.st[S_N]))
             return
         slave = body[0]
         if slave == self.params.ram[P_SLAVE_ID]:
@@ -307,7 +312,7 @@ class Bridge:
             v[C_DOWN_OUT] += 1
             if flags & F_FORWARD:
                 v[C_FORWARDS] += 1
-                self._pend(None, slave, body[head - 1], body[1] if head == 3 else -1)
+                self._pend(None, slave, body[1], self._timeout_ms(body, p.st[S_N]))
             else:
                 v[C_BROADCASTS] += 1
 
@@ -319,13 +324,19 @@ class Bridge:
         rs.send(self.txbuf, n)
         self._turnaround(ticks_diff(rs.t_tx_start, t_in))
 
-    def _pend(self, client, slave, ftype, sync, timeout_ms=-1):
+    def _timeout_ms(self, body, n):
+        """The reply timeout of a request: the frame type is body[1] (Ver6) or
+        body[2] (Ver8); wait as long as the slower of the two readings asks (no
+        layout assumed)."""
+        m = TIMEOUT_MULTIPLIER[body[1]]
+        if n > 2 and TIMEOUT_MULTIPLIER[body[2]] > m:
+            m = TIMEOUT_MULTIPLIER[body[2]]
+        return self.params.ram[P_REPLY_TIMEOUT_MS] * m
+
+    def _pend(self, client, b0, b1, timeout_ms):
         self.client = client
-        self.p_slave = slave
-        self.p_ftype = ftype
-        self.p_sync = sync
-        if timeout_ms < 0:
-            timeout_ms = self.params.ram[P_REPLY_TIMEOUT_MS] * TIMEOUT_MULTIPLIER[ftype]
+        self.p_b0 = b0
+        self.p_b1 = b1
         # The wait starts when our request has left the wire.
         d = ticks_add(self._ticks(), timeout_ms * 1000)
         self.deadline = d
@@ -334,18 +345,25 @@ class Bridge:
             due[0] = d
 
     def _local(self, p, t_in):
-        v = self.v
-        v[K.C_LOCAL] += 1
-        body = p.body
+        self.v[K.C_LOCAL] += 1
         n = self.handlers.handle(p, self.reply)
-        status = self.reply[0]
+        if n < 0:
+            return  # deferred: the handler answers later through local_reply
+        body = p.body
+        head = self.head
+        self.local_reply(body[0], body[head - 1], body[1] if head == 3 else -1, self.reply, n, t_in)
+        self.handlers.after_reply(p)
+
+    def local_reply(self, slave, ftype, sync, data, n, t_in):
+        """Send the jig's reply (data[0:n], status first) to the PC; t_in is when the
+        request ended (for the turnaround figures)."""
+        v = self.v
+        status = data[0]
         if status == frame.STATUS_FRAME_TYPE_ERROR or status == frame.STATUS_DATA_ERROR or status == frame.STATUS_FRAME_ERROR:
             v[K.C_LOCAL_ERRORS] += 1
-        head = self.head
-        blen = frame.build_body(self.body, body[0], body[head - 1], self.reply, 0, n, body[1] if head == 3 else -1)
+        blen = frame.build_body(self.body, slave, ftype, data, 0, n, sync)
         self._send(self.up, self.body, blen, t_in)
-        v[K.C_UP_OUT] += 1
-        self.handlers.after_reply(p)
+        v[C_UP_OUT] += 1
 
     # --- jig-originated requests ---------------------------------------------
     def request(self, client, slave, ftype, data, n, timeout_ms):
@@ -363,7 +381,7 @@ class Bridge:
         v = self.v
         v[K.C_INT_REQUESTS] += 1
         v[K.C_DOWN_OUT] += 1
-        self._pend(client, slave, ftype, sync, timeout_ms)
+        self._pend(client, slave, self.body[1], timeout_ms)
         return True
 
     def busy(self):
@@ -410,30 +428,29 @@ class Bridge:
         return st[S_STATE] == HUNT
 
     def _matches(self, body):
-        return (body[0] == self.p_slave and body[self.head - 1] == self.p_ftype
-                and (self.head == 2 or body[1] == self.p_sync))
+        # Stale-reply protection keeps its strength: for a Ver6 drive the second byte
+        # is the frame type, as always; for a Ver8 drive it is the sync number, which
+        # changes with every request, so a late reply to an older request never
+        # matches (the type check adds nothing once the sync differs).
+        return body[0] == self.p_b0 and body[1] == self.p_b1
 
     def _down_head(self, body, now):
-        """Cut-through, a PC request awaited: id, [sync] and type of a driver frame are in."""
-        head = self.head
-        if body[0] != self.p_slave or body[head - 1] != self.p_ftype:
+        """Cut-through, a PC request awaited: the first two body bytes of a driver
+        frame are in. A match goes on to the PC from here."""
+        b0 = body[0]
+        b1 = body[1]
+        if b0 != self.p_b0 or b1 != self.p_b1:
             return
-        if head == 3 and body[1] != self.p_sync:
-            return
-        # AA CC and the head bytes, re-stuffed (ids and types are never 0xAA; a sync may be)
+        # AA CC and the two bytes, re-stuffed (an id is never 0xAA; a sync may be)
         hdr = self.hdr
-        hdr[2] = body[0]
-        k = 3
-        if head == 3:
-            b = body[1]
-            hdr[3] = b
-            k = 4
-            if b == frame.STUFF:
-                hdr[4] = b
-                k = 5
-        hdr[k] = body[head - 1]
+        hdr[2] = b0
+        hdr[3] = b1
+        k = 4
+        if b1 == frame.STUFF:
+            hdr[4] = b1
+            k = 5
         rel = self.up
-        rel.begin(hdr, 0, k + 1)
+        rel.begin(hdr, 0, k)
         self._turnaround(ticks_diff(rel.t_tx_start, now))
         self.rel = rel
         self._watch_gap(self.down_timeout_us)
@@ -468,7 +485,7 @@ class Bridge:
             v[C_REPLIES] += 1
             v[C_UP_OUT] += 1
             return
-        match = self.state != IDLE and p.st[S_N] > self.head + 2 and self._matches(body)
+        match = self.state != IDLE and p.st[S_N] >= 5 and self._matches(body)
         if match and self.cut_through and self.client is None:
             match = False  # cut through, a reply to the PC is relayed from its head or not at all
         flags = self._event(E_REPLY if match else E_DOWN_OTHER)

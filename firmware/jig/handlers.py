@@ -5,6 +5,12 @@ first -- into a preallocated buffer, returning its length. Requests whose data
 length is not the documented one get 0x82, unknown frame types 0x80, values out
 of range or unknown parameter numbers 0x81.
 
+In Ver8 a 4-byte body (a Ver6 frame without data, e.g. the vendor library's
+GetCommandPos probe ``id 51 crcL crcH``) parses with a data length of -1 and is
+answered as a Ver8 drive answers it: frame-type error 0x80, whatever its third
+byte reads as, so the reply is ``id, sync=0x51, type=crcL, 0x80`` -- which is how
+the vendor library recognises a Ver8 slave.
+
 "No axis here": vendor masters probe every id with GetCommandPos (0x51) and poll
 GetAxisStatus (0x40) / GetAllStatus (0x43), checking reply lengths exactly. The jig
 answers them with status 0 and the documented length, all fields zero: position
@@ -13,6 +19,17 @@ answers them with status 0 and the documented length, all fields zero: position
 The jig's I/O (SetIOOutput / GetIOOutput / GetIOInput) uses bits 0..15 only (LEDs,
 relays, buttons of the board); the upper 16 bits of the masks are ignored and read
 as 0, which keeps every value a small int (no heap use on MicroPython).
+
+No shadowing: SetParameter ``jig_slave_id`` (0) to an id at which a driver
+answers on the driver bus gets 0x81, since the jig would answer in its place and
+hide it. Ids the jig has relayed a reply from (``Bridge.seen``) or found in its
+bus scan are refused at once; any other new id is probed first with GetSlaveInfo
+through ``Bridge.request`` (``scan_timeout_ms``), and the PC's reply is deferred
+until that probe ends: an answer -> 0x81, a timeout -> the id is taken (the reply
+still comes from the old id). A PC frame for the driver bus meanwhile aborts the
+probe and the change (no reply: the PC has moved on). If the jig's own request is
+out when the change comes (scan probe, safety stop), the id cannot be checked and
+is refused too.
 
 ReadCrashLog (0xF4) is the one handler that allocates: the HAL builds the summary
 as a string. It runs only when a person asks for the crash log, never in the
@@ -24,6 +41,51 @@ from jig import params as P
 from jig.frame import get_u16, put_u16, put_u32
 
 LEN_ANY = -1
+DEFERRED = -1  # handle(): no reply now; the handler sends it later (Bridge.local_reply)
+
+
+class SlaveIdCheck:
+    """The probe of a new jig_slave_id: a Bridge.request client that answers the
+    waiting SetParameter when the probe ends. Preallocated: nothing per frame."""
+
+    def __init__(self, app):
+        self.app = app
+        self.busy = False
+        self.new_id = 0
+        self.slave = 0  # the request's id, sync and type, to answer it
+        self.sync = -1
+        self.ftype = 0
+        self.out = bytearray(1)
+        self.empty = bytearray(1)
+
+    def start(self, p, new_id):
+        """Probe new_id; False if the bridge cannot send now."""
+        app = self.app
+        if not app.bridge.request(self, new_id, frame.GET_SLAVE_INFO, self.empty, 0,
+                                  app.params.ram[P.P_SCAN_TIMEOUT_MS]):
+            return False
+        self.busy = True
+        self.new_id = new_id
+        self.slave = p.slave
+        self.sync = p.sync
+        self.ftype = p.ftype
+        return True
+
+    def _answer(self, status):
+        self.busy = False
+        self.out[0] = status
+        b = self.app.bridge
+        b.local_reply(self.slave, self.ftype, self.sync, self.out, 1, b.hal.ticks_us())
+
+    def on_reply(self, p):
+        self._answer(frame.STATUS_DATA_ERROR)  # a driver answers there: refuse
+
+    def on_timeout(self):
+        self.app.params.set(P.P_SLAVE_ID, self.new_id)
+        self._answer(frame.STATUS_OK)
+
+    def on_abort(self):
+        self.busy = False  # the PC moved on: no change, no reply
 
 
 class Handlers:
@@ -37,6 +99,7 @@ class Handlers:
         self.info = info
         self.counter_values = [0] * diag.N_WIRE
         self.pending_change = -1
+        self.id_check = SlaveIdCheck(app)
         # frame type -> (handler, required request data length or LEN_ANY)
         self.table = {
             frame.GET_SLAVE_INFO: (self.slave_info, 0),
@@ -63,13 +126,14 @@ class Handlers:
         self.no_axis_len[frame.GET_COMMAND_POS] = 1 + 4
 
     def handle(self, p, out):
-        """Reply data (status first) for request p into out; returns its length."""
+        """Reply data (status first) for request p into out; returns its length, or
+        DEFERRED when the reply is sent later (a jig_slave_id check is under way)."""
+        n = p.data_end - p.data_start
         entry = self.table.get(p.ftype)
-        if entry is None:
+        if entry is None or n < 0:  # n < 0: a Ver6 frame read as Ver8 (type = a CRC byte)
             out[0] = frame.STATUS_FRAME_TYPE_ERROR
             return 1
         fn, need = entry
-        n = p.data_end - p.data_start
         if need != LEN_ANY and n != need:
             out[0] = frame.STATUS_FRAME_ERROR
             return 1
@@ -110,11 +174,28 @@ class Handlers:
 
     def set_param(self, p, d, o, out):
         num = d[o]
+        if num == P.P_SLAVE_ID:
+            return self._set_slave_id(p, frame.get_i32(d, o + 1), out)
         if num >= P.COUNT or not self.app.params.set(num, frame.get_i32(d, o + 1)):
             out[0] = frame.STATUS_DATA_ERROR
             return 1
         if P.TABLE[num][6] == P.IMMEDIATE:
             self.pending_change = num
+        out[0] = frame.STATUS_OK
+        return 1
+
+    def _set_slave_id(self, p, new_id, out):
+        app = self.app
+        out[0] = frame.STATUS_DATA_ERROR
+        if not P.valid(P.P_SLAVE_ID, new_id):
+            return 1
+        if new_id != app.params.ram[P.P_SLAVE_ID]:
+            bit = 1 << new_id
+            if (app.bridge.seen | app.scanner.found) & bit or self.id_check.busy:
+                return 1  # a driver answers there (or a check is still running)
+            if not self.id_check.start(p, new_id):
+                return 1  # the jig's own request is out: cannot check now
+            return DEFERRED
         out[0] = frame.STATUS_OK
         return 1
 

@@ -12,8 +12,13 @@ below only runs it, and ``docs/parser-states.md`` is generated from it)::
 
 * ``AA CC`` anywhere restarts a frame; ``AA AA`` inside a frame is one 0xAA, so
   ``AA AA CC`` inside a frame is data, never a header.
-* A completed frame is checked: shorter than id+type+CRC, or a CRC that does not
-  come out to 0, is dropped and counted. A body longer than the protocol allows
+* A completed frame is checked: shorter than MIN_BODY (id, one more byte, CRC),
+  or a CRC that does not come out to 0, is dropped and counted.
+* Ver8 accepts a 4-byte body too, as a Ver8 drive does: it CRC-checks the whole
+  body and reads id / sync / type from its first three bytes, so the Ver6-format
+  GetCommandPos probe ``id 51 crcL crcH`` parses as sync 0x51, type crcL and a
+  data length of -1 (``data_end == data_start - 1``), which marks it for a
+  frame-type error reply. A body longer than the protocol allows
   (id, [sync], type, MAX_DATA data bytes, CRC: 253 bytes in Ver6, 254 in Ver8) is
   dropped as soon as it overflows, and the parser hunts for the next header.
 * A gap longer than the inter-byte timeout inside a frame drops the partial frame,
@@ -130,6 +135,9 @@ S_SIZE = const(21)
 COUNTER_NAMES = ("good", "noise", "stuff_errors", "crc_errors", "short", "overlong", "timeouts", "resyncs")
 
 DEFAULT_INTERBYTE_TIMEOUT_US = const(5000)
+
+# Shortest body in either layout: id, one byte (Ver6 type / Ver8 sync), CRC.
+MIN_BODY = const(4)
 
 
 def byte_class(b):
@@ -351,7 +359,7 @@ class FrameParser:
         st[S_BYTE_US] = byte_us
         # Longest body accepted: id, [sync], type, MAX_DATA data bytes, CRC.
         st[S_LIMIT] = MAX_BODY if ver8 else MAX_BODY - 1
-        st[S_MIN_LEN] = head + 2
+        st[S_MIN_LEN] = MIN_BODY
         st[S_HEAD_AT] = head_at
         st[S_STOP_DROP] = 1 if stop_drop else 0
         st[S_BULK] = 0 if engine == "table" else 1
@@ -439,6 +447,12 @@ class FrameParser:
     @property
     def max_body(self):
         return self.st[S_LIMIT]
+
+    @max_body.setter
+    def max_body(self, n):
+        """A reader that keeps whole frames, never fields, takes the longer Ver8 body
+        whatever its own layout (a mixed Ver6/Ver8 bus)."""
+        self.st[S_LIMIT] = n
 
     @property
     def slave(self):

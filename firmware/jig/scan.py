@@ -1,5 +1,9 @@
 """Background bus scan: GetSlaveInfo to ids 0..15 on the driver bus, one per idle slot.
 
+Any reply counts as a driver at that id, also from a driver of the other protocol
+variant (mixed Ver6/Ver8 bus); only a good GetSlaveInfo in the jig's own layout
+gives its slave type, else the type reads 0 (unknown).
+
 StartBusScan (0xF2) only arms it; ``poll`` sends the next probe whenever the bridge
 is idle, so no local reply ever waits for the scan and PC traffic always wins (a
 PC request aborts the probe in flight, which is then retried). The result is read
@@ -48,7 +52,10 @@ class Scanner:
     def on_reply(self, p):
         i = self.next_id
         self.found |= 1 << i
-        if p.data_end - p.data_start >= 2:
+        # A driver of the other protocol variant answers too (a frame-type error, or
+        # an OK read in the wrong layout): found, its type stays 0 (unknown) unless
+        # the reply reads as a good GetSlaveInfo in the jig's layout.
+        if p.data_end - p.data_start >= 2 and p.body[p.data_start] == 0 and p.ftype == frame.GET_SLAVE_INFO:
             self.types[i] = p.body[p.data_start + 1]
         self.waiting = False
         self.next_id = i + 1

@@ -95,7 +95,11 @@ def _global_options(p, suppress):
                    help="reply timeout in ms (default 100, longer for slow frames)")
     g.add_argument("--retries", type=number, default=d(2),
                    help="re-sends of a failed request that is safe to repeat (default 2)")
-    g.add_argument("--ver8", action="store_true", default=d(False), help="use Ver8 framing (sync number)")
+    g.add_argument("--ver8", action="store_true", default=d(False),
+                   help="use Ver8 framing (sync number) for every slave, no detection")
+    g.add_argument("--ver6", action="store_true", default=d(False),
+                   help="use Ver6 framing for every slave, no detection (default: each slave's variant is "
+                        "detected at first contact, as the vendor library does)")
     g.add_argument("--echo", action="store_true", default=d(False),
                    help="the adapter hears its own transmissions: skip the copy of each request")
     g.add_argument("--json", action="store_true", default=d(False), help="machine-readable JSON output")
@@ -129,7 +133,7 @@ def build_parser():
         return sp
 
     add("ports", cmd_ports, "list the serial ports of this computer")
-    sp = add("scan", cmd_scan, "find the slaves on the bus (GetSlaveInfo to every id)")
+    sp = add("scan", cmd_scan, "find the slaves on the bus and their protocol variant (Ver6/Ver8)")
     sp.add_argument("--first", type=number, default=0, help="first id (default 0)")
     sp.add_argument("--last", type=number, default=F.MAX_SLAVE_ID, help="last id (default 15)")
     sp.add_argument("--via-jig", action="store_true",
@@ -231,6 +235,8 @@ def _validate(args):
         raise UsageError("timeout must be 1..60000 ms, not %d" % args.timeout)
     if not 0 <= args.retries <= 10:
         raise UsageError("retries must be 0..10, not %d" % args.retries)
+    if args.ver8 and args.ver6:
+        raise UsageError("--ver6 and --ver8 exclude each other (give neither to detect each slave's variant)")
 
 def main(argv=None):
     parser = build_parser()

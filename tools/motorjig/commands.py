@@ -84,7 +84,16 @@ def open_master(args):
         raise UsageError("no port given: use --port PORT (or set JIGCTL_PORT); `jigctl ports` lists them")
     trace = _tracer() if args.verbose else None
     return Master(args.port, baud=args.baud, timeout=args.timeout / 1000.0, retries=args.retries,
-                  ver8=args.ver8, trace=trace, echo=args.echo)
+                  ver8=forced_variant(args), trace=trace, echo=args.echo)
+
+
+def forced_variant(args):
+    """Master's ver8 argument: True/False when --ver8/--ver6 force it, None to detect."""
+    if getattr(args, "ver8", False):
+        return True
+    if getattr(args, "ver6", False):
+        return False
+    return None
 
 
 def _tracer():
@@ -131,16 +140,19 @@ def cmd_scan(args):
         found = m.scan(range(lo, hi + 1), timeout=args.timeout / 1000.0, progress=progress if tty else None)
         if tty:  # the progress line becomes a summary; pipes and logs get only the result
             sys.stderr.write("\rscanned ids %d..%d: %d found%s\n" % (lo, hi, len(found), " " * 10))
+        variants = m.variants
+    forced = forced_variant(args)
     rows = []
     for i, info in sorted(found.items()):
-        row = {"slave": i, "jig": info is not None and info.type == JIG_TYPE}
+        row = {"slave": i, "jig": info is not None and info.type == JIG_TYPE,
+               "variant": variants.get(i, 8 if forced else 6), "detected": forced is None}
         if info is not None:
             row.update(jsonable(info))
         rows.append(row)
     lines = []
     for r in rows:
         what = "%s (type %d) %s" % (r["type_name"], r["type"], r["version"]) if "type" in r else "(answers, no info)"
-        lines.append("id %2d  %s%s" % (r["slave"], what, "  <- the jig" if r["jig"] else ""))
+        lines.append("id %2d  Ver%d  %s%s" % (r["slave"], r["variant"], what, "  <- the jig" if r["jig"] else ""))
     if not rows:
         if args.json:
             emit(args, rows, "")
@@ -394,11 +406,36 @@ def cmd_param(args):
         p.check(args.value)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    if which == "jig" and p.number == 0:
+        return _set_jig_id(args, s, args.value)
     with open_master(args) as m:
         m.set_parameter(s, p.number, args.value)
         v = m.get_parameter(s, p.number)
     emit(args, {"slave": s, "param": p.number, "name": p.name, "value": v},
          "%d %s = %d%s (RAM; `param save` keeps it)" % (p.number, p.name, v, " " + p.unit if p.unit else ""))
+    return EXIT_OK
+
+
+def _set_jig_id(args, s, new):
+    """jig_slave_id: the jig answers at the new id right after its reply, so read it
+    back there; a refusal (0x81) means a driver answers at that id on the driver bus."""
+    with open_master(args) as m:
+        try:
+            m.set_parameter(s, 0, new)
+        except StatusError as exc:
+            if exc.status != F.STATUS_DATA_ERROR:
+                raise
+            exc.args = ("the jig (slave %d) refused jig_slave_id = %d (status 0x81): a driver answers at id %d "
+                        "on its driver bus and the jig would hide it, or the jig could not check the id just "
+                        "now; pick a free id (`jigctl scan`)" % (s, new, new),)
+            raise
+        v = m.get_parameter(new, 0)
+    moved = new != s
+    text = "0 jig_slave_id = %d (RAM; `param save` keeps it)" % v
+    if moved:
+        text += "\nthe jig now answers as slave %d, no longer %d: use --slave %d --jig-id %d" % (new, s, new, new)
+    emit(args, {"slave": new, "previous_slave": s, "param": 0, "name": "jig_slave_id", "value": v, "moved": moved},
+         text)
     return EXIT_OK
 
 
@@ -447,7 +484,8 @@ def cmd_raw(args):
         else:
             if len(data) < 2:
                 raise UsageError("give at least the slave id and the frame type (e.g. 02 40)")
-            sync = m.next_sync(data[0]) if args.ver8 else -1
+            v8 = data[0] != F.BROADCAST_ID and 0 <= data[0] <= F.MAX_SLAVE_ID and m.variant(data[0]) == 8
+            sync = m.next_sync(data[0]) if (args.ver8 or v8) else -1
             try:
                 wire = F.encode(data[0], data[1], data[2:], sync)
             except ValueError:

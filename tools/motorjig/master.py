@@ -10,6 +10,15 @@ Every request is encoded with ``jig.frame`` and every reply is read with
 ``jig.parser.FrameParser`` -- the firmware's own modules; there is no second
 encoder, CRC or parser on the host side.
 
+Ver6 or Ver8 is decided per slave, as FASTECH's own host library does it, at
+first contact (or ``scan``): a Ver6-format GetCommandPos probe ``id 51 crc``; a
+normal Ver6 reply (``id 51 00 pos32``) means Ver6; a Ver8-layout frame-type error
+(``id, 0x51, crcL, 0x80``: a Ver8 drive reads the probe's first three bytes as
+id / sync / type) means Ver8, confirmed by a Ver8 GetCommandPos with sync 0xF1;
+from then on each Ver8 request to that slave carries the next sync number
+(0xF2, ...). ``ver8=True`` / ``ver8=False`` skip the detection and use one
+framing for every slave. One bus may carry both variants.
+
 A reply is the first good frame with the same slave id and frame type (and, in
 Ver8 framing, the same sync number) as the request; anything else on the line
 (a stale reply, the echo of our own request with ``echo=True``) is skipped. No reply within the
@@ -116,6 +125,9 @@ REPLY_LEN_VER8 = dict(REPLY_LEN)
 REPLY_LEN_VER8.update({F.GET_IO_INPUT: (4, 8), F.GET_IO_AXIS_STATUS: (12, 16), F.GET_ALL_STATUS: (32, 36)})
 
 SYNC_SEED = 0xF0  # the vendor V8 class starts its per-slave counters here
+#: frame types a Ver6 drive knows: a Ver8 broadcast on a mixed bus avoids them as its
+#: sync number, since a Ver6 drive reads that byte as the frame type
+_V6_TYPES = frozenset(REQUEST_LEN)
 POS_TABLE_ITEM_SIZE = 64
 _READ_SLICE = 0.005  # seconds one port read may block; bounds the timeout overshoot
 
@@ -127,7 +139,10 @@ SlaveInfo = namedtuple("SlaveInfo", "type type_name version")
 MotorInfo = namedtuple("MotorInfo", "type text")
 Alarm = namedtuple("Alarm", "code name")
 IOAssign = namedtuple("IOAssign", "mask level")
-MotionStatus = namedtuple("MotionStatus", "command_pos actual_pos pos_error actual_vel pt_number")
+MotionStatus = namedtuple("MotionStatus", "command_pos actual_pos pos_error actual_vel pt_number axis",
+                          defaults=(None,))
+MotionStatus.__doc__ = """GetMotionStatus: Ver6 ends with the running PT number (axis None); Ver8 with
+the axis flags instead (pt_number None)."""
 IOAxisStatus = namedtuple("IOAxisStatus", "inputs outputs axis")
 BusScan = namedtuple("BusScan", "state types")
 AllStatus = namedtuple("AllStatus", "inputs outputs axis command_pos actual_pos pos_error actual_vel "
@@ -187,7 +202,7 @@ def _u32(value):
 
 
 def pack(*fields):
-    """Little-endian data from (kind, value) pairs; kind is 'u8', 'u16', 'i32' or 'u32'."""
+    """Little-endian data from (kind, value) pairs; kind is 'u8', 'u16', 'i32', 'u32' or 'u64'."""
     out = bytearray()
     for kind, value in fields:
         value = int(value)
@@ -201,6 +216,10 @@ def pack(*fields):
             b = bytearray(2)
             F.put_u16(b, 0, value)
             out += b
+        elif kind == "u64":
+            if not 0 <= value <= 0xFFFFFFFFFFFFFFFF:
+                raise ValueError("%d does not fit an unsigned 64-bit field" % value)
+            out += bytes((value >> (8 * i)) & 0xFF for i in range(8))
         else:
             b = bytearray(4)
             F.put_u32(b, 0, _i32(value) if kind == "i32" else _u32(value))
@@ -235,7 +254,8 @@ class Master:
 
     ``timeout`` is the per-call reply timeout in seconds (multiplied for slow frame
     types), ``retries`` how often an idempotent request is re-sent after a failed
-    attempt, ``ver8`` selects the framing with a sync-number byte. ``trace`` is
+    attempt. ``ver8``: None (default) detects each slave's variant at first contact,
+    True / False use Ver8 (sync-number byte) / Ver6 framing for every slave. ``trace`` is
     called as ``trace(direction, wire_or_frame)`` for every frame sent ("tx",
     bytes) and received ("rx", Frame) -- the CLI's -v uses it. ``echo=True`` is for
     adapters that hear their own transmissions: the copy of each request is skipped.
@@ -243,7 +263,7 @@ class Master:
     One Master per port, used from one thread at a time.
     """
 
-    def __init__(self, port, baud=DEFAULT_BAUD, timeout=DEFAULT_TIMEOUT, retries=2, ver8=False,
+    def __init__(self, port, baud=DEFAULT_BAUD, timeout=DEFAULT_TIMEOUT, retries=2, ver8=None,
                  trace=None, echo=False, open=True):
         self.url = port
         self.baud = baud
@@ -252,9 +272,12 @@ class Master:
         self.ver8 = ver8
         self.trace = trace
         self.echo = echo
-        self.parser = FrameParser(ver8=ver8)
+        # Finds good frames in either layout; fields are read per slave (_frame).
+        self.parser = FrameParser()
+        self.parser.max_body = F.MAX_BODY
         self._serial = None
         self._sync = {}
+        self._variants = {}  # slave id -> 6 or 8, as detected
         self._rx = b""
         self._rx_pos = 0
         if open:
@@ -319,7 +342,9 @@ class Master:
         """The sync number for the next Ver8 request to slave (one counter per slave)."""
         if slave == F.BROADCAST_ID:
             used = set(self._sync.values())
-            s = (max(used) + 1) & 0xFF if used else SYNC_SEED
+            if 6 in self._variants.values():  # Ver6 drives hear it too: no type of theirs
+                used |= _V6_TYPES
+            s = (max(self._sync.values()) + 1) & 0xFF if self._sync else SYNC_SEED
             while s in used:
                 s = (s + 1) & 0xFF
             for k in self._sync:
@@ -365,6 +390,72 @@ class Master:
         self._rx_pos = 0
         self.parser.reset()
 
+    # --- variants ----------------------------------------------------------------
+    @property
+    def variants(self):
+        """{slave id: 6 or 8} of the slaves whose variant is known (detected or forced)."""
+        return dict(self._variants)
+
+    def _known_ver8(self, slave):
+        """True/False when slave's framing is known (forced or detected), else None."""
+        if self.ver8 is not None:
+            return bool(self.ver8)
+        v = self._variants.get(slave)
+        return None if v is None else v == 8
+
+    def variant(self, slave):
+        """6 or 8: the slave's protocol variant, detected now if not known yet (Ver6
+        when the slave gives no recognisable answer: requests then fail as usual)."""
+        known = self._known_ver8(slave)
+        if known is None:
+            self.detect_variant(slave)
+            known = self._known_ver8(slave)
+        return 8 if known else 6
+
+    def detect_variant(self, slave, timeout=None, retries=None):
+        """Run the vendor library's detection on slave: 6, 8, or None (no answer, or an
+        answer that is neither a normal Ver6 reply nor a Ver8 frame-type error)."""
+        _check_slave(slave)
+        if timeout is None:
+            timeout = self.timeout
+        if retries is None:
+            retries = min(self.retries, 1)  # the vendor library sends the probe twice
+        probe = _unstuffed_body(slave, F.GET_COMMAND_POS, b"", -1)  # id 51 crcL crcH
+        found = None
+        for _ in range(1 + retries):
+            self.discard_input()
+            self.write(F.encode(slave, F.GET_COMMAND_POS))
+            try:
+                fr = self._await_reply(slave, F.GET_COMMAND_POS, -1, timeout, probe)
+            except (NoReplyError, ReplyCRCError):
+                continue
+            b = fr.body
+            if len(b) == 9 and b[2] == F.STATUS_OK:
+                found = 6  # id 51 00 pos32: a normal Ver6 reply
+            elif len(b) == 6 and b[2] == probe[2] and b[3] == F.STATUS_FRAME_TYPE_ERROR:
+                found = 8  # id, sync=51, type=crcL, 80: a Ver8 drive's frame-type error
+            break
+        if found == 8:
+            # The Ver8 probe: sync 0xF1 (the counter's first), echoed in the reply.
+            sync = self.next_sync(slave)
+            body = _unstuffed_body(slave, F.GET_COMMAND_POS, b"", sync)
+            self.discard_input()
+            self.write(F.encode(slave, F.GET_COMMAND_POS, b"", sync))
+            try:
+                self._await_reply(slave, F.GET_COMMAND_POS, sync, timeout, body)
+            except (NoReplyError, ReplyCRCError):
+                found = None
+        if found is not None:
+            self._variants[slave] = found
+        return found
+
+    def _frame(self, body, t, ver8=None):
+        """A Frame from an unstuffed body, read in slave's known layout (Ver6 if unknown)."""
+        if ver8 is None:
+            ver8 = bool(self._known_ver8(body[0]))
+        h = 3 if ver8 and len(body) >= 5 else 2
+        return Frame(body[0], body[1] if h == 3 else -1, body[h - 1], body[h:len(body) - 2], body, t)
+
     def read_frame(self, timeout):
         """The next good frame off the line, or None after timeout seconds."""
         deadline = time.monotonic() + timeout
@@ -373,9 +464,7 @@ class Master:
             while self._rx_pos < len(self._rx):
                 self._rx_pos = p.feed(self._rx, self._rx_pos, len(self._rx))
                 if p.ready:
-                    body = bytes(p.body[:p.body_len])
-                    fr = Frame(p.slave, p.sync, p.ftype, bytes(p.body[p.data_start:p.data_end]), body,
-                               time.time())
+                    fr = self._frame(bytes(p.body[:p.body_len]), time.time())
                     if self.trace:
                         self.trace("rx", fr)
                     return fr
@@ -414,8 +503,12 @@ class Master:
             if echo_pending and fr.body == sent_body:
                 echo_pending = False  # our own request, heard back by an echoing adapter
                 continue
-            if fr.slave == slave and fr.ftype == ftype and (sync < 0 or fr.sync == sync) and fr.data:
-                return fr
+            # Same id, type (and sync) in the layout we sent, and a status byte; read
+            # off the raw body, since the frame's fields follow the slave's known layout.
+            b = fr.body
+            h = 3 if sync >= 0 else 2
+            if len(b) >= h + 3 and b[:h] == sent_body[:h]:
+                return self._frame(b, fr.t, sync >= 0)
 
     def request(self, slave, ftype, data=b"", timeout=None, retries=None, check=True):
         """Send one request and return its reply Frame (``data[0]`` is the status).
@@ -430,9 +523,10 @@ class Master:
         if retries is None:
             retries = self.retries
         attempts = 1 + retries if ftype in IDEMPOTENT else 1
+        ver8 = self._broadcast_ver8() if slave == F.BROADCAST_ID else self.variant(slave) == 8
         last = None
         for attempt in range(attempts):
-            sync = self.next_sync(slave) if self.ver8 else -1
+            sync = self.next_sync(slave) if ver8 else -1
             wire = F.encode(slave, ftype, data, sync)
             body = _unstuffed_body(slave, ftype, data, sync)
             self.discard_input()
@@ -453,7 +547,7 @@ class Master:
         status = fr.data[0]
         if status != F.STATUS_OK:
             raise status_error(status, fr.slave, fr.ftype, N.frame_name(fr.ftype))
-        table = REPLY_LEN_VER8 if self.ver8 else REPLY_LEN
+        table = REPLY_LEN_VER8 if fr.sync >= 0 else REPLY_LEN
         want = table.get(fr.ftype)
         got = len(fr.data) - 1
         allowed = want if isinstance(want, tuple) else (want,)
@@ -468,12 +562,23 @@ class Master:
         """request() and return only the reply data after the status byte."""
         return self.request(slave, ftype, data, **kw).data[1:]
 
+    def _broadcast_ver8(self):
+        return bool(self.ver8) or (self.ver8 is None and 8 in self._variants.values())
+
     def broadcast(self, ftype, data=b""):
-        """Send a frame to every slave (id 99); no reply is awaited."""
-        sync = self.next_sync(F.BROADCAST_ID) if self.ver8 else -1
+        """Send a frame to every slave (id 99); no reply is awaited.
+
+        With detection on and both variants known on the bus, it goes out twice: in
+        Ver6 (a Ver8 drive reads that as a frame-type error and, as for any broadcast,
+        does not answer) and in Ver8 with a sync number that no Ver6 drive takes for a
+        frame type of its own."""
         self.discard_input()
-        self.write(F.encode(F.BROADCAST_ID, ftype, data, sync))
-        time.sleep(0.001)
+        if not self._broadcast_ver8() or (self.ver8 is None and 6 in self._variants.values()):
+            self.write(F.encode(F.BROADCAST_ID, ftype, data))
+            time.sleep(0.001)
+        if self._broadcast_ver8():
+            self.write(F.encode(F.BROADCAST_ID, ftype, data, self.next_sync(F.BROADCAST_ID)))
+            time.sleep(0.001)
 
     # --- info / parameters -------------------------------------------------------
     def is_slave_exist(self, slave, timeout=None):
@@ -512,7 +617,9 @@ class Master:
         self.call(slave, F.SET_IO_OUTPUT, pack(("u32", set_mask), ("u32", clear_mask)))
 
     def set_io_input(self, slave, set_mask=0, clear_mask=0):
-        self.call(slave, F.SET_IO_INPUT, pack(("u32", set_mask), ("u32", clear_mask)))
+        """Virtual inputs; Ver8 drives take 64-bit masks."""
+        kind = "u64" if self.variant(slave) == 8 else "u32"
+        self.call(slave, F.SET_IO_INPUT, pack((kind, set_mask), (kind, clear_mask)))
 
     def get_io_input(self, slave):
         d = self.call(slave, F.GET_IO_INPUT)
@@ -633,9 +740,13 @@ class Master:
         return IOAxisStatus(_uint(d, 0, w), F.get_u32(d, w), AxisStatus(F.get_u32(d, w + 4)))
 
     def get_motion_status(self, slave):
-        d = self.call(slave, F.GET_MOTION_STATUS)
-        return MotionStatus(F.get_i32(d, 0), F.get_i32(d, 4), F.get_i32(d, 8), F.get_i32(d, 12),
-                            F.get_u32(d, 16))
+        fr = self.request(slave, F.GET_MOTION_STATUS)
+        d = fr.data[1:]
+        last = F.get_u32(d, 16)
+        if fr.sync >= 0:  # Ver8: axis flags in place of the PT number
+            return MotionStatus(F.get_i32(d, 0), F.get_i32(d, 4), F.get_i32(d, 8), F.get_i32(d, 12), None,
+                                AxisStatus(last))
+        return MotionStatus(F.get_i32(d, 0), F.get_i32(d, 4), F.get_i32(d, 8), F.get_i32(d, 12), last)
 
     def get_all_status(self, slave):
         d = self.call(slave, F.GET_ALL_STATUS)
@@ -700,15 +811,23 @@ class Master:
             time.sleep(poll)
 
     def scan(self, ids=range(F.MAX_SLAVE_ID + 1), timeout=None, progress=None):
-        """Probe ids with GetSlaveInfo (one try each); returns {id: SlaveInfo or None}.
+        """Find the slaves on ids; returns {id: SlaveInfo or None}; ``variants`` has
+        each found slave's variant afterwards.
 
-        A slave that replies with an error status is listed with None as its info.
+        With detection on, each id gets the vendor's Ver6-format probe (one try) and
+        a slave that answers it recognisably is then asked GetSlaveInfo in its own
+        variant; with a forced variant, GetSlaveInfo in that framing (one try). A
+        slave that replies with an error status is listed with None as its info.
         ``progress(id, found_so_far)`` is called before each probe.
         """
         found = {}
         for i in ids:
             if progress:
                 progress(i, dict(found))
+            if self.ver8 is None:
+                self._variants.pop(i, None)  # a scan looks again
+                if self.detect_variant(i, timeout=timeout, retries=0) is None:
+                    continue
             try:
                 fr = self.request(i, F.GET_SLAVE_INFO, timeout=timeout, retries=0, check=False)
             except (NoReplyError, ReplyCRCError):

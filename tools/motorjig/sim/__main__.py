@@ -1,36 +1,65 @@
 """python -m motorjig.sim: the virtual bench, interactive.
 
-Starts the simulated jig and drivers in real time, prints the pseudo-terminal path
-and the pyserial TCP URL of the PC side, runs a short demo session (scan -> info ->
-servo on -> move -> status) through that TCP port, then keeps serving until
-Ctrl-C (or --duration seconds).
+Starts the simulated jig and drivers in real time, prints the jig's protocol and
+each driver's variant, the pseudo-terminal path and the pyserial TCP URL of the PC
+side, runs a short demo session (scan with variant detection -> servo on -> move
+-> status) through that TCP port, then keeps serving until Ctrl-C (or --duration
+seconds). Each driver is Ver6 or Ver8 on its own: --drivers 2,3:v8.
 """
 
 import argparse
-import struct
 import sys
 import time
-
-from jig import frame as F
-from jig.parser import FrameParser
 
 from .bench import Bench
 
 
-def _ids(text):
-    try:
-        ids = tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError("expected comma-separated ids, e.g. 2,3")
-    for i in ids:
+class DriverSpec(tuple):
+    """Parsed --drivers: the ids, and ``ver8`` (the ids of the Ver8 drivers)."""
+
+    ver8 = ()
+
+
+def _drivers(text):
+    """'2,3:v8' -> ids (2, 3), ver8 (3,); a driver without a suffix is Ver6."""
+    ids, ver8 = [], []
+    for item in (x.strip() for x in text.split(",")):
+        if not item:
+            continue
+        num, _, variant = item.partition(":")
+        try:
+            i = int(num)
+        except ValueError:
+            raise argparse.ArgumentTypeError("expected ids with an optional :v6 or :v8, e.g. 2,3:v8; not %r" % item)
         if not 0 <= i <= 15:
             raise argparse.ArgumentTypeError("driver ids must be 0..15, got %d" % i)
-    return ids
+        if variant.lower() not in ("", "v6", "v8"):
+            raise argparse.ArgumentTypeError("driver variant must be v6 or v8, not %r" % variant)
+        if i in ids:
+            raise argparse.ArgumentTypeError("driver id %d given twice" % i)
+        ids.append(i)
+        if variant.lower() == "v8":
+            ver8.append(i)
+    if not ids:
+        raise argparse.ArgumentTypeError("give at least one driver id")
+    spec = DriverSpec(ids)
+    spec.ver8 = tuple(ver8)
+    return spec
+
+
+def _protocol(text):
+    t = text.lower().lstrip("v").replace("ver", "")
+    if t not in ("6", "8"):
+        raise argparse.ArgumentTypeError("jig protocol must be 6 or 8, not %r" % text)
+    return int(t)
 
 
 def parse_args(argv):
     ap = argparse.ArgumentParser(prog="python -m motorjig.sim", description=__doc__.split("\n\n")[1])
-    ap.add_argument("--drivers", type=_ids, default=(2, 3), help="simulated driver ids (default 2,3)")
+    ap.add_argument("--drivers", type=_drivers, default=_drivers("2,3"), metavar="IDS",
+                    help="simulated driver ids, each optionally :v6 (default) or :v8, e.g. 2,3:v8 (default 2,3)")
+    ap.add_argument("--jig-protocol", type=_protocol, default=6, metavar="{6,8}",
+                    help="the jig's protocol parameter: 6 (Ver6, default) or 8 (Ver8)")
     ap.add_argument("--baud", type=int, default=115200, help="baud rate of both buses (default 115200)")
     ap.add_argument("--tcp-port", type=int, default=0, help="TCP port for socket:// (default: a free one)")
     ap.add_argument("--no-demo", action="store_true", help="skip the scripted demo session")
@@ -39,63 +68,39 @@ def parse_args(argv):
     return ap.parse_args(argv)
 
 
-class DemoClient:
-    """A minimal bus master over pyserial (what any PC program would do)."""
-
-    def __init__(self, url):
-        import serial
-
-        self.ser = serial.serial_for_url(url, timeout=0.05)
-
-    def request(self, slave, ftype, data=b"", timeout=0.3):
-        self.ser.reset_input_buffer()
-        self.ser.write(F.encode(slave, ftype, data))
-        p = FrameParser()
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            chunk = self.ser.read(256)
-            i = 0
-            while i < len(chunk):
-                i = p.feed(chunk, i)
-                if p.ready and p.slave == slave and p.ftype == ftype:
-                    return bytes(p.body[p.data_start : p.data_end])
-        return None
-
-    def close(self):
-        self.ser.close()
-
-
 def demo(url, ids, out=print):
-    c = DemoClient(url)
-    try:
-        out("demo: scanning ids 0..15 with GetSlaveInfo (0x01) ...")
-        found = []
-        for i in range(16):
-            r = c.request(i, F.GET_SLAVE_INFO, timeout=0.05)
-            if r and r[0] == 0:
-                name = r[2:].split(b"\x00")[0].decode("ascii", "replace")
-                found.append(i)
-                out("  id %2d: slave type %3d  %s" % (i, r[1], name))
+    """A session through the TCP port with ``motorjig.master.Master``: it finds every
+    slave and its variant the way the vendor library does, then moves a drive."""
+    from motorjig.errors import JigError
+    from motorjig.master import Master
+
+    with Master(url, timeout=0.3) as m:
+        out("demo: scanning ids 0..15 (Ver6 GetCommandPos probe, then GetSlaveInfo in each slave's variant) ...")
+        found = m.scan(range(16), timeout=0.05)
+        for i, info in sorted(found.items()):
+            what = "%s (type %d) %s" % (info.type_name, info.type, info.version) if info else "(no info)"
+            out("  id %2d: Ver%d  %s" % (i, m.variants.get(i, 6), what))
         drivers = [i for i in found if i in ids]
         if not drivers:
             out("demo: no driver answered")
             return False
         d = drivers[0]
-        r = c.request(d, F.SERVO_ENABLE, b"\x01")
-        out("demo: servo on id %d -> status 0x%02X" % (d, r[0] if r else -1))
-        r = c.request(d, F.MOVE_INC_POS, struct.pack("<iI", 10000, 20000))
-        out("demo: move id %d by 10000 pulses at 20000 pps -> status 0x%02X" % (d, r[0] if r else -1))
-        for _ in range(8):
-            time.sleep(0.15)
-            r = c.request(d, F.GET_ALL_STATUS)
-            if r:
-                _in, _out, flags, cmd, act, err, vel, _pt = struct.unpack("<IIIiiiiI", r[1:])
-                out("  status: pos %6d  speed %6d pps  flags 0x%08X%s" % (cmd, vel, flags, "  moving" if flags & (1 << 27) else ""))
-                if not flags & (1 << 27) and cmd == 10000:
+        try:
+            m.servo_enable(d, True)
+            out("demo: servo on id %d" % d)
+            m.move_inc(d, 10000, 20000)
+            out("demo: move id %d by 10000 pulses at 20000 pps" % d)
+            for _ in range(8):
+                time.sleep(0.15)
+                st = m.get_all_status(d)
+                out("  status: pos %6d  speed %6d pps  flags 0x%08X%s" % (
+                    st.command_pos, st.actual_vel, int(st.axis), "  moving" if st.axis.motioning else ""))
+                if not st.axis.motioning and st.command_pos == 10000:
                     break
+        except JigError as exc:
+            out("demo: %s" % exc)
+            return False
         return True
-    finally:
-        c.close()
 
 
 def main(argv=None):
@@ -106,7 +111,8 @@ def main(argv=None):
     if not 0 <= args.tcp_port <= 65535:
         print("error: --tcp-port must be 0..65535", file=sys.stderr)
         return 2
-    bench = Bench(driver_ids=args.drivers, baud=args.baud, tcp_port=args.tcp_port, pty=not args.no_pty)
+    bench = Bench(driver_ids=tuple(args.drivers), baud=args.baud, tcp_port=args.tcp_port, pty=not args.no_pty,
+                  jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8)
     try:
         bench.start()
     except OSError as exc:
@@ -114,7 +120,9 @@ def main(argv=None):
         print("error: cannot start the bench: %s" % exc, file=sys.stderr)
         return 1
     try:
-        print("MotorJig virtual bench: jig = slave 1, drivers %s, %d baud" % (",".join(map(str, args.drivers)), args.baud))
+        drivers = ", ".join("%d (Ver%d)" % (i, 8 if i in args.drivers.ver8 else 6) for i in args.drivers)
+        print("MotorJig virtual bench: jig = slave 1 (protocol Ver%d), drivers %s, %d baud"
+              % (args.jig_protocol, drivers, args.baud))
         if bench.pty_path:
             print("  pty: %s" % bench.pty_path)
         print("  tcp: %s" % bench.tcp_url)

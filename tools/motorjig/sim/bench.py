@@ -8,6 +8,10 @@ the PC side as a pseudo-terminal and a TCP port, for any pyserial program::
     with Bench(driver_ids=(2, 3), baud=115200) as bench:
         serial.serial_for_url(bench.tcp_url)      # or bench.pty_path
 
+Each simulated driver speaks Ver6 or Ver8 on its own (``ver8_drivers``), and the
+jig's protocol setting is chosen apart from them (``jig_ver8``), so mixed buses
+can be built; ``ver8`` alone keeps the old meaning (everything Ver8).
+
 The jig is the real firmware (``jig.app.App``) on ``SimHAL``; its main loop is
 polled whenever bytes reach one of its ports and whenever ``App.wait_us`` says a
 deadline is due.
@@ -47,7 +51,10 @@ class PcPort:
     def __init__(self, bench, bus, ver8=False):
         self.bench = bench
         self.node = bus.add_node("pc", self._rx, auto_de=True, record=False)
-        self.parser = FrameParser(ver8, byte_us=max(1, int(bus.bt)))  # see SimDriver
+        # Only finds good frames (wire bytes are kept, never fields): any layout.
+        # byte_us: see SimDriver.
+        self.parser = FrameParser(ver8, byte_us=max(1, int(bus.bt)))
+        self.parser.max_body = F.MAX_BODY
         self.raw = bytearray()  # every byte received, in order
         self.frames = []  # (time µs, wire bytes of a good frame)
         self.listeners = []  # fn(data) called with raw bytes (pty/TCP)
@@ -128,7 +135,12 @@ class SimBench:
 
     def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
-                 echo_down=False, record=True, servo_on=False, start_us=None):
+                 echo_down=False, record=True, servo_on=False, start_us=None, jig_ver8=None,
+                 ver8_drivers=None):
+        """``ver8``: the default variant of the jig and every driver. ``jig_ver8``
+        (None: ``ver8``) sets the jig's protocol parameter; ``ver8_drivers`` (None:
+        every driver follows ``ver8``) lists the ids of the Ver8 drivers, all others
+        are Ver6."""
         if realtime:
             self.clock = PacedClock()
         else:
@@ -139,17 +151,27 @@ class SimBench:
             settings.setdefault(P.P_UP_BAUD, baud)
         if down_baud is not None or baud is not None:
             settings.setdefault(P.P_DOWN_BAUD, down_baud or baud)
-        if ver8:
+        if jig_ver8 is None:
+            jig_ver8 = ver8
+        if jig_ver8:
             settings.setdefault(P.P_PROTOCOL, 1)
+        if ver8_drivers is None:
+            ver8_drivers = tuple(driver_ids) if ver8 else ()
+        ver8_drivers = frozenset(ver8_drivers)
+        unknown = ver8_drivers - set(driver_ids)
+        if unknown:
+            raise ValueError("ver8_drivers %s are not among the driver ids" % sorted(unknown))
         baud = baud or 115200
         down_baud = down_baud or baud
         self.up_bus = Bus(self.clock, baud, "up")
         self.down_bus = Bus(self.clock, down_baud, "down")
         self.ver8 = ver8
+        self.jig_ver8 = bool(jig_ver8)
         self.pc = PcPort(self, self.up_bus, ver8)
         self.drivers = {}
         for i in driver_ids:
-            self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, ver8, servo_on=servo_on)
+            self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, i in ver8_drivers,
+                                        servo_on=servo_on)
         self.fs = fs if fs is not None else SimFS()
         self.hal = SimHAL(self.clock, self.up_bus, self.down_bus, self.fs, rxsize=rxsize,
                           echo_up=echo_up, echo_down=echo_down, record=record)
@@ -193,9 +215,29 @@ class SimBench:
     def run_for(self, us):
         self.clock.run_until(self.clock.now + us)
 
-    def encode(self, slave, ftype, data=b""):
+    def variant_ver8(self, slave):
+        """True if slave speaks Ver8 on this bench: the jig's protocol for the jig's
+        id, the driver's own variant, else the bench default ``ver8``."""
+        if slave == self.jig_id:
+            return self.jig_ver8
+        d = self.drivers.get(slave)
+        return self.ver8 if d is None else d.ver8
+
+    @property
+    def variants(self):
+        """{id: 6 or 8} for the jig and every driver."""
+        out = {self.jig_id: 8 if self.jig_ver8 else 6}
+        for i, d in sorted(self.drivers.items()):
+            out[i] = 8 if d.ver8 else 6
+        return out
+
+    def encode(self, slave, ftype, data=b"", ver8=None):
+        """Wire bytes of a request in slave's variant (``ver8`` overrides); Ver8 takes
+        the next number of one bench-wide sync counter."""
+        if ver8 is None:
+            ver8 = self.variant_ver8(slave)
         sync = -1
-        if self.ver8:
+        if ver8:
             sync = self._sync
             self._sync = (self._sync + 1) & 0xFF
         return F.encode(slave, ftype, bytes(data), sync)
@@ -216,10 +258,11 @@ class SimBench:
 
     def request(self, slave, ftype, data=b"", timeout_us=100000.0):
         """Encode, send, wait: returns (reply wire bytes, reply data incl. status) or (None, None)."""
-        wire = self.transact(self.encode(slave, ftype, data), timeout_us)
+        ver8 = self.variant_ver8(slave)
+        wire = self.transact(self.encode(slave, ftype, data, ver8), timeout_us)
         if wire is None:
             return None, None
-        p = FrameParser(self.ver8)
+        p = FrameParser(ver8)
         p.feed(wire)
         if not p.ready:
             return wire, None

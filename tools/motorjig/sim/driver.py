@@ -10,6 +10,19 @@ e-stop, pause) evolve over time. Alarms, limit positions and communication
 faults (silence, garbage, late or wrong-id replies, bad CRC, a forced status such
 as 0xAA "your request arrived corrupted") can be injected.
 RAM and ROM parameters 0-28 (SaveAllParameters copies RAM to ROM).
+
+Each drive speaks Ver6 or Ver8 (``ver8``), independently of the others on the bus.
+A Ver8 drive reads every frame the Ver8 way: it CRC-checks the whole body and takes
+id / sync / type from its first three bytes, echoes the sync in its reply, and
+answers an unknown type with 0x80. So the vendor library's Ver6-format probe
+``id 51 crcL crcH`` gets ``id, 51, crcL, 80`` (a 4-byte body has no data at all:
+always 0x80), which is how a host tells a Ver8 drive. Of Ver8's documented
+frame-code changes (protocol notes §8) the drive models the ones whose layout the
+notes give: inputs are 64 bits wide in SetIOInput 0x21 (u64 set + u64 clear),
+GetIOInput 0x22, GetIOAxisStatus 0x41 and GetAllStatus 0x43, and GetMotionStatus
+0x42 ends with the axis flags instead of the PT number. The reassigned or new
+codes whose layout the notes do not give (0x24, 0x25, 0x27, 0x28, 0x44, 0x4F)
+are answered with 0x80 by a Ver8 drive (``VER8_UNMODELLED``).
 """
 
 import random
@@ -73,6 +86,19 @@ REPLY_LEN = {
     0x2E: 1, 0x40: 4, 0x41: 12, 0x42: 20, 0x43: 32, 0x51: 4, 0x53: 4, 0x54: 4, 0x55: 4,
     0x60: 64, 0x61: 1, 0x62: 1, 0x63: 1, 0x65: 32, 0x69: 1, 0x6A: 4, 0x6C: 8, 0x79: 1,
 }
+
+# Ver8 request lengths that differ from Ver6 (64-bit input masks)
+REQ_LEN_VER8 = dict(REQ_LEN)
+REQ_LEN_VER8[0x21] = 16
+# Ver8 frame codes with a changed meaning or new, whose layout the protocol notes do
+# not give: a Ver8 drive answers them with 0x80 instead of a guessed layout.
+VER8_UNMODELLED = (0x24, 0x25, 0x27, 0x28, 0x44, 0x4F)
+# Ver8 reply lengths after the status byte that differ from Ver6
+REPLY_LEN_VER8 = dict(REPLY_LEN)
+REPLY_LEN_VER8.update({0x22: 8, 0x41: 16, 0x43: 36})
+for _t in VER8_UNMODELLED:
+    REQ_LEN_VER8.pop(_t, None)
+    REPLY_LEN_VER8.pop(_t, None)
 
 STEP_MS = 1.0  # motion integration step
 
@@ -168,13 +194,15 @@ class SimDriver:
     """One simulated drive. Set the fault attributes to misbehave."""
 
     def __init__(self, clock, bus, slave_id, turnaround_us=300.0, ver8=False, slave_type=20,
-                 name=b"Ezi-STEP Plus-R ST (sim) v6.0", servo_on=False, seed=None):
+                 name=None, servo_on=False, seed=None):
         self.clock = clock
         self.bus = bus
         self.id = slave_id
         self.turnaround_us = turnaround_us
         self.ver8 = ver8
         self.slave_type = slave_type
+        if name is None:
+            name = b"Ezi-STEP Plus-R ST (sim) v8.0" if ver8 else b"Ezi-STEP Plus-R ST (sim) v6.0"
         self.name = name
         self.node = bus.add_node("driver-%d" % slave_id, self._rx, auto_de=True, record=False)
         # byte_us: bytes handed over in one piece arrived one character time apart
@@ -190,7 +218,7 @@ class SimDriver:
         self.paused = False
         self.origin_ok = False
         self.outputs = 0
-        self.inputs = 0
+        self.inputs = 0  # 32 bits in Ver6, 64 in Ver8
         self.io_map = {}
         self.pos_table = {}
         self.limit_plus = None  # position of the + limit sensor (None: none)
@@ -339,6 +367,10 @@ class SimDriver:
         forced = None if broadcast or self.silent else self._forced()
         if forced is not None:
             reply = bytes([forced])
+        elif p.data_end < p.data_start:
+            # Ver8 reading of a 4-byte body (a Ver6 frame without data): the "type"
+            # is a CRC byte, there is no data at all -> frame-type error.
+            reply = bytes([F.STATUS_FRAME_TYPE_ERROR])
         else:
             reply = self.handle(p.ftype, data, broadcast)
         if broadcast or self.silent:
@@ -361,7 +393,7 @@ class SimDriver:
 
     def handle(self, ftype, data, broadcast=False):
         """Reply data (status first) for one request; also used directly by tests."""
-        need = REQ_LEN.get(ftype)
+        need = (REQ_LEN_VER8 if self.ver8 else REQ_LEN).get(ftype)
         if need is None:
             return bytes([F.STATUS_FRAME_TYPE_ERROR])
         if ftype == 0x78:
@@ -431,13 +463,18 @@ class SimDriver:
         self.outputs = (self.outputs | s) & ~c & 0xFFFFFFFF
         return 0
 
+    def _in_fmt(self):
+        """struct code of the input word: 64 bits in Ver8, 32 in Ver6."""
+        return "Q" if self.ver8 else "I"
+
     def _h21(self, d):
-        s, c = struct.unpack("<II", d)
-        self.inputs = (self.inputs | s) & ~c & 0xFFFFFFFF
+        w = self._in_fmt()
+        s, c = struct.unpack("<" + w + w, d)
+        self.inputs = (self.inputs | s) & ~c & (0xFFFFFFFFFFFFFFFF if self.ver8 else 0xFFFFFFFF)
         return 0
 
     def _h22(self, d):
-        return self._ok("I", self.inputs)
+        return self._ok(self._in_fmt(), self.inputs)
 
     def _h23(self, d):
         return self._ok("I", self.out_bits())
@@ -582,15 +619,17 @@ class SimDriver:
         return self._ok("I", self.flags())
 
     def _h41(self, d):
-        return self._ok("III", self.inputs, self.out_bits(), self.flags())
+        return self._ok(self._in_fmt() + "II", self.inputs, self.out_bits(), self.flags())
 
     def _h42(self, d):
         cmd, act, err, vel = self._positions()
-        return self._ok("iiiiI", cmd, act, err, vel, 0)
+        # Ver8: the axis flags take the place of the running PT number
+        return self._ok("iiiiI", cmd, act, err, vel, self.flags() if self.ver8 else 0)
 
     def _h43(self, d):
         cmd, act, err, vel = self._positions()
-        return self._ok("IIIiiiiI", self.inputs, self.out_bits(), self.flags(), cmd, act, err, vel, 0)
+        return self._ok(self._in_fmt() + "IIiiiiI", self.inputs, self.out_bits(), self.flags(), cmd, act, err,
+                        vel, 0)
 
     def _h50(self, d):
         (self.motion.pos,) = struct.unpack("<i", d)
