@@ -102,6 +102,7 @@ class App:
         self._down_read = self.down.read_into
         self._up_bytes = self.bridge.up_bytes
         self._down_bytes = self.bridge.down_bytes
+        self._work = self.work  # noqa (bound once for run())
         self.base_echo = 0
         self.base_up_ovf = hal.up.overflows
         self.base_down_ovf = hal.down.overflows
@@ -158,14 +159,38 @@ class App:
 
     # --- main loop -----------------------------------------------------------------
     def poll(self):
-        """One pass of the main loop."""
+        """One pass of the main loop: nothing but two ``any()`` calls, a tick and a
+        compare unless bytes are waiting or the slow pass is due (``work``)."""
+        d = self._down_any()
+        u = self._up_any()
+        if d or u or (self._ticks() - self.due[0]) & TICKS_MASK < TICKS_HALF:
+            self.work(d, u)
+
+    def run(self, passes=-1):
+        """The main loop: ``poll`` forever (or ``passes`` times), with its names in
+        locals so an idle pass costs only what it must."""
+        down_any = self._down_any
+        up_any = self._up_any
+        ticks = self._ticks
+        due = self.due
+        work = self._work
+        while passes != 0:
+            passes -= 1
+            d = down_any()
+            u = up_any()
+            if d or u or (ticks() - due[0]) & TICKS_MASK < TICKS_HALF:
+                work(d, u)
+
+    def work(self, down_waiting, up_waiting):
+        """Drain the ports that have bytes waiting into the bridge, then the slow pass
+        if it is due."""
         # Driver bus first: a reply already in must be relayed before a new PC
         # request aborts its wait.
-        if self._down_any():
+        if down_waiting:
             n = self._down_read(self.down_rx, RX_CHUNK)
             if n:
                 self._down_bytes(self.down_parser, self.down_rx, n, self._ticks())
-        if self._up_any():
+        if up_waiting:
             n = self._up_read(self.up_rx, RX_CHUNK)
             if n:
                 self._up_bytes(self.up_parser, self.up_rx, n, self._ticks())
@@ -214,10 +239,6 @@ class App:
         d = ticks_diff(self.due[0], hal.ticks_us())
         return d if d > 0 else 0
 
-    def run(self):
-        poll = self.poll
-        while True:
-            poll()
 
 
 def _earlier(due, now, wait):

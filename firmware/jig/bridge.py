@@ -38,12 +38,13 @@ Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
   from the parsed body (stuffing is canonical, so the bytes are the received ones).
 """
 
-from jig import counters as K
 from jig import frame
 from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED, C_DOWN_IN, C_DOWN_OUT,
-                          C_FORWARDS, C_RELAY_CORRUPT, C_REPLIES, C_UNAWAITED, C_UP_IN, C_UP_OUT)
+                          C_FORWARDS, C_INT_ABORTS, C_INT_REPLIES, C_INT_REQUESTS, C_INT_TIMEOUTS, C_LOCAL,
+                          C_LOCAL_ERRORS, C_RELAY_CORRUPT, C_REPLIES, C_STALE, C_TIMEOUTS, C_UNAWAITED, C_UP_IN,
+                          C_UP_OUT)
 from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
-from jig.compat import const, ticks_add, ticks_diff
+from jig.compat import const, ticks_diff
 from jig.params import P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
 IDLE = const(0)
@@ -141,6 +142,9 @@ _FLAGS = tuple([f for row in TRANSITIONS for f, _n in row])
 _WHY_TIMEOUT = const(0)
 _TICKS_MASK = const(0x3FFFFFFF)
 _TICKS_HALF = const(0x20000000)
+# jig.frame's values, folded here (a module attribute is a dictionary look-up per use)
+_STUFF = const(0xAA)
+_BROADCAST_ID = const(99)
 
 
 class Bridge:
@@ -192,9 +196,9 @@ class Bridge:
 
     def _abort(self):
         if self.client is None:
-            self.v[K.C_ABORTS] += 1
+            self.v[C_ABORTS] += 1
         else:
-            self.v[K.C_INT_ABORTS] += 1
+            self.v[C_INT_ABORTS] += 1
             client = self.client
             self.client = None
             client.on_abort()
@@ -234,20 +238,25 @@ class Bridge:
         hdr = self.hdr
         hdr[2] = slave
         k = 3
-        if slave == frame.STUFF:
+        if slave == _STUFF:
             hdr[3] = slave
             k = 4
         if fwd is None:
             fwd = self.down
             fwd.begin(hdr, 0, k)
-            self._turnaround(ticks_diff(fwd.t_tx_start, now))
             self.fwd = fwd
-            self._watch_gap(self.up_timeout_us)
+            # The slow pass must look at the line within the inter-byte timeout (and
+            # keeps doing so while the frame lasts) to end the transmission cleanly
+            # if the PC falls silent.
+            t = (now + self.up_timeout_us + 1) & _TICKS_MASK
+            due = self.due
+            if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
+                due[0] = t
         else:
             fwd.part(hdr, 0, k)
         v = self.v
         v[C_DOWN_OUT] += 1
-        if slave == frame.BROADCAST_ID:
+        if slave == _BROADCAST_ID:
             flags = self._event(E_PC_BROADCAST)
             v[C_BROADCASTS] += 1
         else:
@@ -275,7 +284,7 @@ class Bridge:
             if n >= 2 and why != _WHY_TIMEOUT:
                 # The drive got a whole frame with a bad CRC (or length): it may answer
                 # it (status 0xAA), as it would on a direct line. Await that.
-                self._pend(None, body[0], body[1], self._timeout_ms(body, n))
+                self._pend_pc(body, n)
             else:
                 self._event(E_CUT_SHORT)
                 v[C_UNAWAITED] += 1
@@ -293,12 +302,12 @@ class Bridge:
             self.fwd = None
             fwd.finish()
             if self.state == AWAIT_PC:
-                self._pend(None, body[0], body[1], self._timeout_ms(body, p.st[S_N]))
+                self._pend_pc(body, p.st[S_N])
             return
         slave = body[0]
         if slave == self.params.ram[P_SLAVE_ID]:
             ev = E_PC_LOCAL
-        elif slave == frame.BROADCAST_ID:
+        elif slave == _BROADCAST_ID:
             ev = E_PC_BROADCAST
         else:
             ev = E_PC_FORWARD
@@ -312,7 +321,7 @@ class Bridge:
             v[C_DOWN_OUT] += 1
             if flags & F_FORWARD:
                 v[C_FORWARDS] += 1
-                self._pend(None, slave, body[1], self._timeout_ms(body, p.st[S_N]))
+                self._pend_pc(body, p.st[S_N])
             else:
                 v[C_BROADCASTS] += 1
 
@@ -324,28 +333,28 @@ class Bridge:
         rs.send(self.txbuf, n)
         self._turnaround(ticks_diff(rs.t_tx_start, t_in))
 
-    def _timeout_ms(self, body, n):
-        """The reply timeout of a request: the frame type is body[1] (Ver6) or
-        body[2] (Ver8); wait as long as the slower of the two readings asks (no
-        layout assumed)."""
+    def _pend_pc(self, body, n):
+        """Await the reply to the PC request body[0:n]. Its timeout: the frame type is
+        body[1] (Ver6) or body[2] (Ver8); wait as long as the slower of the two
+        readings asks (no layout assumed)."""
         m = TIMEOUT_MULTIPLIER[body[1]]
         if n > 2 and TIMEOUT_MULTIPLIER[body[2]] > m:
             m = TIMEOUT_MULTIPLIER[body[2]]
-        return self.params.ram[P_REPLY_TIMEOUT_MS] * m
+        self._pend(None, body[0], body[1], self.params.ram[P_REPLY_TIMEOUT_MS] * m)
 
     def _pend(self, client, b0, b1, timeout_ms):
         self.client = client
         self.p_b0 = b0
         self.p_b1 = b1
         # The wait starts when our request has left the wire.
-        d = ticks_add(self._ticks(), timeout_ms * 1000)
+        d = (self._ticks() + timeout_ms * 1000) & _TICKS_MASK
         self.deadline = d
         due = self.due
-        if ticks_diff(d, due[0]) < 0:
+        if (d - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # d comes before due[0]
             due[0] = d
 
     def _local(self, p, t_in):
-        self.v[K.C_LOCAL] += 1
+        self.v[C_LOCAL] += 1
         n = self.handlers.handle(p, self.reply)
         if n < 0:
             return  # deferred: the handler answers later through local_reply
@@ -360,7 +369,7 @@ class Bridge:
         v = self.v
         status = data[0]
         if status == frame.STATUS_FRAME_TYPE_ERROR or status == frame.STATUS_DATA_ERROR or status == frame.STATUS_FRAME_ERROR:
-            v[K.C_LOCAL_ERRORS] += 1
+            v[C_LOCAL_ERRORS] += 1
         blen = frame.build_body(self.body, slave, ftype, data, 0, n, sync)
         self._send(self.up, self.body, blen, t_in)
         v[C_UP_OUT] += 1
@@ -379,8 +388,8 @@ class Bridge:
         m = frame.stuff_into(self.txbuf, self.body, blen)
         self.down.send(self.txbuf, m)
         v = self.v
-        v[K.C_INT_REQUESTS] += 1
-        v[K.C_DOWN_OUT] += 1
+        v[C_INT_REQUESTS] += 1
+        v[C_DOWN_OUT] += 1
         self._pend(client, slave, self.body[1], timeout_ms)
         return True
 
@@ -446,22 +455,15 @@ class Bridge:
         hdr[2] = b0
         hdr[3] = b1
         k = 4
-        if b1 == frame.STUFF:
+        if b1 == _STUFF:
             hdr[4] = b1
             k = 5
         rel = self.up
         rel.begin(hdr, 0, k)
-        self._turnaround(ticks_diff(rel.t_tx_start, now))
         self.rel = rel
-        self._watch_gap(self.down_timeout_us)
-
-    def _watch_gap(self, timeout_us):
-        """A frame is being cut through: the slow pass must look at the line within the
-        inter-byte timeout (it keeps watching while the frame lasts), to end the
-        transmission cleanly if the sender falls silent."""
-        t = (self._ticks() + timeout_us + 1) & _TICKS_MASK
+        t = (now + self.down_timeout_us + 1) & _TICKS_MASK  # as in _pc_head
         due = self.due
-        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t is earlier than due[0]
+        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:
             due[0] = t
 
     def _end_relay(self, count_abort):
@@ -498,11 +500,11 @@ class Bridge:
         elif flags & F_DELIVER:
             client = self.client
             self.client = None
-            v[K.C_INT_REPLIES] += 1
+            v[C_INT_REPLIES] += 1
             self.due[0] = t_in  # let the client send its next request at once
             client.on_reply(p)
         elif flags & F_STALE:
-            v[K.C_STALE] += 1
+            v[C_STALE] += 1
 
     def poll(self, now):
         """Time out the pending wait."""
@@ -510,10 +512,10 @@ class Bridge:
             self._event(E_TIMEOUT)
             client = self.client
             if client is None:
-                self.v[K.C_TIMEOUTS] += 1
+                self.v[C_TIMEOUTS] += 1
             else:
                 self.client = None
-                self.v[K.C_INT_TIMEOUTS] += 1
+                self.v[C_INT_TIMEOUTS] += 1
                 client.on_timeout()
 
     def wait_us(self, now):

@@ -38,7 +38,8 @@ NAMES = (
     "safety_stops",  # times the master-silence stop fired
     "param_errors",  # parameter file missing/corrupt at boot (defaults used)
     "param_saves",  # SaveAllParameters that wrote the file
-    "turnaround_count",  # frames whose handling time was measured
+    "turnaround_count",  # frames whose handling time was measured (local replies and
+    # frames sent on whole, store-and-forward; cut through, make bench measures the latency)
     "turnaround_min_us",  # jig handling time: last byte in -> DE up for the answer
     "turnaround_avg_us",
     "turnaround_max_us",

@@ -16,7 +16,7 @@ convenience for host code.
 
 from jig import crc as _crc
 from jig import mem
-from jig.compat import const
+from jig.compat import NATIVE, const
 
 # Delimiters
 STUFF = const(0xAA)  # the only delimiter byte; doubled inside a frame
@@ -157,6 +157,8 @@ def build_body(body, slave, ftype, data=b"", data_start=0, data_end=-1, sync=-1)
     n = data_end - data_start
     if n < 0 or n > MAX_DATA:
         raise ValueError("data length out of range")
+    if NATIVE is not None and data_start == 0:
+        return NATIVE.put_body(body, slave, sync, ftype, data, n, _crc.TABLE)
     body[0] = slave
     pos = 1
     if sync >= 0:
@@ -176,8 +178,11 @@ def stuff_into(out, body, body_len, out_off=0):
     """Write header, stuffed body[0:body_len] and tail into out at out_off.
 
     The body must already end with its CRC. Returns the end offset in out. Runs of
-    bytes between 0xAA are copied in one go; only the 0xAA bytes are handled singly.
+    bytes between 0xAA are copied in one go; only the 0xAA bytes are handled singly
+    (on the board the viper loop of jig.native does it all).
     """
+    if NATIVE is not None and out_off == 0:
+        return NATIVE.stuff(out, body, body_len)
     out[out_off] = STUFF
     out[out_off + 1] = HEADER2
     o = out_off + 2

@@ -39,6 +39,7 @@ bridging steady state.
 from jig import diag, frame, mem
 from jig import params as P
 from jig.frame import get_u16, put_u16, put_u32
+from jig.parser import S_HEAD, S_N
 
 LEN_ANY = -1
 DEFERRED = -1  # handle(): no reply now; the handler sends it later (Bridge.local_reply)
@@ -128,8 +129,12 @@ class Handlers:
     def handle(self, p, out):
         """Reply data (status first) for request p into out; returns its length, or
         DEFERRED when the reply is sent later (a jig_slave_id check is under way)."""
-        n = p.data_end - p.data_start
-        entry = self.table.get(p.ftype)
+        # (read from the parser's state array: its properties are calls)
+        st = p.st
+        body = p.body
+        head = st[S_HEAD]
+        n = st[S_N] - 2 - head  # data length
+        entry = self.table.get(body[head - 1])
         if entry is None or n < 0:  # n < 0: a Ver6 frame read as Ver8 (type = a CRC byte)
             out[0] = frame.STATUS_FRAME_TYPE_ERROR
             return 1
@@ -137,7 +142,7 @@ class Handlers:
         if need != LEN_ANY and n != need:
             out[0] = frame.STATUS_FRAME_ERROR
             return 1
-        return fn(p, p.body, p.data_start, out)
+        return fn(p, body, head, out)
 
     def after_reply(self, p):
         """Run changes that must wait until the reply has gone (new slave id etc.)."""
@@ -151,7 +156,7 @@ class Handlers:
         return n
 
     def no_axis(self, p, d, o, out):
-        n = self.no_axis_len[p.ftype]
+        n = self.no_axis_len[d[o - 1]]  # by frame type
         for i in range(n):
             out[i] = 0
         return n

@@ -175,3 +175,54 @@ def copy(dst, dst_off: int, src, src_off: int, n: int):
     while i < n:
         d[dst_off + i] = s[src_off + i]
         i += 1
+
+
+@micropython.viper
+def put_body(body, slave: int, sync: int, ftype: int, data, n: int, table) -> int:
+    """frame.build_body for data[0:n]: id, [sync] (if >= 0), type, data, CRC; returns
+    the body length."""
+    b = ptr8(body)
+    d = ptr8(data)
+    t = ptr16(table)
+    b[0] = slave
+    k = 1
+    if sync >= 0:
+        b[1] = sync
+        k = 2
+    b[k] = ftype
+    k += 1
+    i = 0
+    while i < n:
+        b[k + i] = d[i]
+        i += 1
+    k += n
+    crc = 0xFFFF
+    i = 0
+    while i < k:
+        crc = (crc >> 8) ^ t[(crc ^ b[i]) & 0xFF]
+        i += 1
+    b[k] = crc & 0xFF
+    b[k + 1] = (crc >> 8) & 0xFF
+    return k + 2
+
+
+@micropython.viper
+def stuff(out, body, n: int) -> int:
+    """frame.stuff_into at offset 0: header, body[0:n] with every 0xAA doubled, tail."""
+    o = ptr8(out)
+    b = ptr8(body)
+    o[0] = 0xAA
+    o[1] = 0xCC
+    k = 2
+    i = 0
+    while i < n:
+        c = b[i]
+        o[k] = c
+        k += 1
+        if c == 0xAA:
+            o[k] = c
+            k += 1
+        i += 1
+    o[k] = 0xAA
+    o[k + 1] = 0xEE
+    return k + 2

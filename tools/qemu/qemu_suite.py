@@ -240,6 +240,19 @@ def bench_parser(repeat=40, chunk=256):
            % (p.engine, n, frames, instr(dt) // n, instr(dt) // frames, a1 - a0))
 
 
+# Calls into the stand-in HAL (Python methods here, C methods of machine.UART/Pin and
+# time.sleep_us on the board), counted so their own cost can be taken out of the
+# figures: what is left is the firmware's.
+H_ANY = 0
+H_READ = 1
+H_WRITE = 2
+H_DE = 3
+H_SLEEP = 4
+H_LOAD = 5  # the rig putting bytes on the line
+HAL_CALL_NAMES = ("any", "readinto", "write", "de", "sleep_us", "load")
+HAL_CALLS = [0] * len(HAL_CALL_NAMES)
+
+
 class MemPort(MemRx):
     """A HAL port over memory: ``load`` puts received bytes on the line, ``write``
     counts the frames sent (a frame cut through is written in pieces)."""
@@ -253,13 +266,26 @@ class MemPort(MemRx):
         self.writes = 0
         self.tx_bytes = 0
 
+    def any(self):
+        HAL_CALLS[H_ANY] += 1
+        return self.rx_n - self.rx_pos
+
+    def readinto(self, buf, n):
+        HAL_CALLS[H_READ] += 1
+        return MemRx.readinto(self, buf, n)
+
+    def load(self, data, n, off=0):
+        HAL_CALLS[H_LOAD] += 1
+        MemRx.load(self, data, n, off)
+
     def write(self, buf, off, n):
+        HAL_CALLS[H_WRITE] += 1
         self.tx_bytes += n
         if buf[off + n - 1] == 0xEE:
             self.writes += 1
 
     def de(self, v):
-        pass
+        HAL_CALLS[H_DE] += 1
 
     def hw_de(self, on, pre16, post16):
         return False
@@ -273,11 +299,59 @@ class MemHal(bridge_probe.Hal):
         self.ticks_us = ticks_us
 
     def sleep_us(self, us):
-        pass  # DE delays are waiting, not work: left out of the instruction count
+        HAL_CALLS[H_SLEEP] += 1  # DE delays are waiting, not work: left out
 
     def open(self, up_baud, down_baud):
         self.up = MemPort(up_baud)
         self.down = MemPort(down_baud)
+
+
+def hal_call_costs():
+    """Instructions per call of each stand-in HAL method (HAL_CALL_NAMES order)."""
+    port = MemPort(115200)
+    hal = MemHal()
+    buf = bytearray(8)
+    data = b"\x00" * 8
+    n = 400
+
+    any_ = port.any
+    readinto = port.readinto
+    write = port.write
+    de = port.de
+    sleep = hal.sleep_us
+    load = port.load
+
+    def loop():
+        t0 = ticks_us()
+        for _ in range(n):
+            pass
+        return ticks_diff(ticks_us(), t0)
+
+    def run(k):
+        # One loop per method: the loop is the same for all and is subtracted.
+        t0 = ticks_us()
+        if k == H_ANY:
+            for _ in range(n):
+                any_()
+        elif k == H_READ:
+            for _ in range(n):
+                readinto(buf, 8)
+        elif k == H_WRITE:
+            for _ in range(n):
+                write(data, 0, 8)
+        elif k == H_DE:
+            for _ in range(n):
+                de(1)
+        elif k == H_SLEEP:
+            for _ in range(n):
+                sleep(1)
+        elif k == H_LOAD:
+            for _ in range(n):
+                load(data, 1, 0)
+        return ticks_diff(ticks_us(), t0)
+
+    base = loop()
+    return [instr(run(k) - base) // n for k in range(len(HAL_CALL_NAMES))]
 
 
 def mem_total():
@@ -369,16 +443,17 @@ class BridgeRig:
             self._until(up, up.writes + 1)
 
     def idle(self, count):
-        poll = self.poll
-        for _ in range(count):
-            poll()
+        self.app.run(count)  # the board's loop, nothing arriving
 
 
-def measure(fn, count):
-    """(instructions per call of fn(1), heap bytes allocated per call), with the heap
-    locked: any allocation raises MemoryError, which is reported as a failure."""
+def measure(fn, count, costs):
+    """(firmware instructions per call of fn(1), heap bytes allocated per call, HAL
+    calls per call), with the heap locked: any allocation raises MemoryError, which
+    is reported as a failure. The stand-in HAL's own instructions (``costs``) are
+    taken out."""
     fn(5)  # warm up: first-use allocations happen here
     gc.collect()
+    calls0 = HAL_CALLS[:]
     m0 = mem_total()
     heap_lock(True)
     try:
@@ -387,21 +462,31 @@ def measure(fn, count):
         dt = ticks_diff(ticks_us(), t0)
     except MemoryError:
         heap_lock(False)
-        return -1, -1
+        return -1, -1, 0
     heap_lock(False)
-    return instr(dt) // count, (mem_total() - m0) // count
+    hal = 0
+    calls = 0
+    for k in range(len(costs)):
+        d = HAL_CALLS[k] - calls0[k]
+        hal += d * costs[k]
+        if k != H_LOAD:
+            calls += d
+    return (instr(dt) - hal) // count, (mem_total() - m0) // count, calls // count
 
 
 def bench_bridge(transactions=200):
     from jig import params
 
+    costs = hal_call_costs()
+    result("stand-in HAL instructions per call (taken out below; C methods on the board): "
+           + ", ".join(["%s %d" % (HAL_CALL_NAMES[k], costs[k]) for k in range(len(costs))]))
     for mode, name in ((params.CUT_THROUGH, "cut-through"), (params.STORE_AND_FORWARD, "store-and-forward")):
         rig = BridgeRig(mode)
         rx = len(rig.request) + len(rig.reply)
-        per_t, heap_t = measure(rig.forward, transactions)
-        per_b, heap_b = measure(rig.forward_bytewise, transactions // 4)
-        local, heap_l = measure(rig.answer_local, transactions)
-        idle, heap_i = measure(rig.idle, 1000)
+        per_t, heap_t, calls_t = measure(rig.forward, transactions, costs)
+        per_b, heap_b, calls_b = measure(rig.forward_bytewise, transactions // 4, costs)
+        local, heap_l, calls_l = measure(rig.answer_local, transactions, costs)
+        idle, heap_i, calls_i = measure(rig.idle, 1000, costs)
         if rig.stuck:
             fail("bridge %s: a transaction did not complete" % name)
         for what, heap in (("forward", heap_t), ("bytewise forward", heap_b), ("local", heap_l), ("idle", heap_i)):
@@ -409,10 +494,11 @@ def bench_bridge(transactions=200):
                 fail("bridge %s: %s allocated with the heap locked" % (name, what))
             elif heap > 0 and compat.IS_MICROPYTHON:
                 fail("bridge %s: %s allocated %d heap bytes per call" % (name, what, heap))
-        result("bridge %s: forwarded transaction (%d+%d bytes, two bursts) %d instructions; every byte on its own "
-               "%d instructions/byte; local GetSlaveInfo %d; idle pass %d; heap allocated per transaction %d / "
-               "per idle pass %d bytes (heap locked)"
-               % (name, len(rig.request), len(rig.reply), per_t, per_b // rx, local, idle, heap_t, heap_i))
+        result("bridge %s: forwarded transaction (%d+%d bytes, two bursts) %d instructions + %d HAL calls; "
+               "every byte on its own %d instructions/byte + %d HAL calls; local GetSlaveInfo %d + %d HAL calls; "
+               "idle pass %d + %d HAL calls; heap allocated per transaction %d / per idle pass %d bytes (heap locked)"
+               % (name, len(rig.request), len(rig.reply), per_t, calls_t, per_b // rx, calls_b // rx, local, calls_l,
+                  idle, calls_i, heap_t, heap_i))
 
 
 def probe_cross_check(n=200):
