@@ -115,6 +115,7 @@ class Board:
         self.t_start = ticks_ms()
         self.t_house = self.t_start
         self.t_traffic = self.t_start
+        self.traffic_on = False
         self.t_error = 0
         self.error_on = False
         self.seen_overflows = 0
@@ -178,8 +179,11 @@ class Board:
         seen_down = down.traffic()
         if seen_up or seen_down:
             self.t_traffic = now
-            self.traffic_led(True)
-        elif ticks_diff(now, self.t_traffic) > TRAFFIC_LED_MS:
+            if not self.traffic_on:
+                self.traffic_on = True
+                self.traffic_led(True)
+        elif self.traffic_on and ticks_diff(now, self.t_traffic) > TRAFFIC_LED_MS:
+            self.traffic_on = False
             self.traffic_led(False)
         up.check_overflow()
         down.check_overflow()

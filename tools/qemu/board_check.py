@@ -91,19 +91,6 @@ def _use_c_methods(uart):
     uart.c_tx = tx
 
 
-class _Mem32:
-    def __init__(self):
-        self.regs = {}
-
-    def __getitem__(self, addr):
-        return self.regs.get(addr, 0)
-
-    def __setitem__(self, addr, value):
-        # No masking with 0xFFFFFFFF: that constant is a big int here and the
-        # housekeeping check runs with the heap locked.
-        self.regs[addr] = value
-
-
 class _Namespace:
     """Stands in for a module (MicroPython cannot instantiate the module type)."""
 
@@ -113,13 +100,19 @@ def _fake_modules():
     machine.Pin = _Pin
     machine.UART = _UART
     stm = _Namespace()
-    stm.mem32 = _Mem32()
     stm.USART2 = 0x40004400
     stm.USART3 = 0x40004800
     stm.USART_CR1 = 0
     stm.USART_CR3 = 8
     stm.USART_ISR = 0x1C
     stm.USART_ICR = 0x20
+    # stm.mem32 as a dict keyed by address: indexing is C, as on the board, and
+    # every register exists before the heap is locked (a new key would allocate).
+    # The addresses are above 2**30: big ints here, as on the board.
+    stm.mem32 = {}
+    for base in (stm.USART2, stm.USART3):
+        for off in (stm.USART_CR1, stm.USART_CR3, stm.USART_ISR, stm.USART_ICR):
+            stm.mem32[base + off] = 0
     return machine, stm
 
 
@@ -262,11 +255,10 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
     up = b.up
     isr = up._isr
     icr = up._icr
-    stm.mem32.regs[icr] = 0  # the dict entries exist before the heap is locked
-    stm.mem32.regs[isr] = uartport.USART_ISR_IDLE
+    stm.mem32[isr] = uartport.USART_ISR_IDLE
     now = ticks_ms()
     b.housekeep(now)
-    if b.led_traffic.level != 1 or stm.mem32.regs[icr] != uartport.USART_ICR_IDLECF:
+    if b.led_traffic.level != 1 or stm.mem32[icr] != uartport.USART_ICR_IDLECF:
         fail("board: the idle flag did not light the traffic LED / was not cleared")
     down = b.down.uart
     down.rx = bytearray(uartport.RXBUF)  # the ring holds RXBUF bytes: full
@@ -288,12 +280,12 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
 
     # 4. Hardware DE on MicroPython integers.
     base = stm.USART2
-    stm.mem32.regs[base] = 0x2000000D
-    stm.mem32.regs[base + 0x1C] = 0x40  # ISR.TC: the transmitter is idle
+    stm.mem32[base] = 0x2000000D
+    stm.mem32[base + 0x1C] = 0x40  # ISR.TC: the transmitter is idle
     if not port.hw_de(True, 5, 3):
         fail("board: hw_de refused with stm present")
-    cr1 = stm.mem32.regs[base]
-    cr3 = stm.mem32.regs[base + 8]
+    cr1 = stm.mem32[base]
+    cr3 = stm.mem32[base + 8]
     if cr1 != (0x2000000D | (5 << 21) | (3 << 16)) or cr3 != (1 << 14):
         fail("board: DE registers CR1=0x%08x CR3=0x%08x" % (cr1, cr3))
     else:
