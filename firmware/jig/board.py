@@ -28,7 +28,7 @@ from jig.safeboot import CLEAN_RUN_MS
 from jig.uartport import UartPort
 
 WDT_MS = const(8000)  # > the worst-case flash sector erase of a parameter save
-HOUSEKEEP_MS = const(5)  # at most this often, from wdt_feed
+HOUSEKEEP_MS = const(10)  # at most this often, from wdt_feed
 TRAFFIC_LED_MS = const(40)  # the traffic LED stays on this long after the last burst
 ERROR_LED_MS = const(1000)  # and the error LED after a receive overflow
 
@@ -174,9 +174,9 @@ class Board:
         down = self.down
         if up is None:
             return
-        # Both ports are asked every time: traffic() clears each one's idle flag.
-        seen_up = up.traffic()
-        seen_down = down.traffic()
+        # Both ports are asked every time: each call clears that port's idle flag.
+        seen_up = up.housekeep()
+        seen_down = down.housekeep()
         if seen_up or seen_down:
             self.t_traffic = now
             if not self.traffic_on:
@@ -185,8 +185,6 @@ class Board:
         elif self.traffic_on and ticks_diff(now, self.t_traffic) > TRAFFIC_LED_MS:
             self.traffic_on = False
             self.traffic_led(False)
-        up.check_overflow()
-        down.check_overflow()
         ovf = up.overflows + down.overflows
         if ovf != self.seen_overflows:
             self.seen_overflows = ovf

@@ -18,9 +18,9 @@ between and nothing allocated. Their contract (docs/hal.md):
   (stm32 waits for transmit-complete; there is no transmit buffer).
 
 A full ring loses bytes silently (the driver stops reading the USART, whose
-16-byte FIFO then overruns). ``check_overflow`` -- run by the board's
-housekeeping every few ms, never on the hot path -- counts each time the ring is
-found full; what that can and cannot see is in docs/board.md.
+16-byte FIFO then overruns). ``housekeep`` -- run by the board every few ms,
+never on the hot path -- counts each time the ring is found full (what that can
+and cannot see is in docs/board.md) and reports traffic for the LED.
 
 Driver enable: the DE pin is the pin whose alternate function is the USART's
 RTS/DE output. In software mode it is a plain output that ``jig.rs485`` raises
@@ -150,32 +150,28 @@ class UartPort:
             self._isr = self.base + stm.USART_ISR
             self._icr = self.base + getattr(stm, "USART_ICR", USART_ICR_OFFSET)
 
-    # --- housekeeping (the board calls these every few ms, never per byte) ------------
-    def check_overflow(self):
-        """Count it when the receive ring is found full; returns True if it is.
+    # --- housekeeping (the board calls this every few ms, never per byte) --------------
+    def housekeep(self):
+        """Count a receive overflow; True if bytes arrived since the last call.
 
-        A full ring means the bytes after it are being lost (the USART FIFO holds
-        16 more). One count per time it is found full, however long it stays so.
+        Overflow: a full ring means the bytes after it are being lost (the USART
+        FIFO holds 16 more); one count per time it is found full, however long it
+        stays so. Traffic (for the LED): the USART sets ISR.IDLE when the line goes
+        quiet after a burst and keeps it until it is cleared, so reading and
+        clearing it here sees every burst that ended since the last call, however
+        fast the main loop drained it; bytes still waiting count too (a burst still
+        going on; or no stm module).
         """
-        full = self.any() >= RXBUF
+        n = self.any()
+        full = n >= RXBUF
         if full and not self._full:
             self.overflows += 1
         self._full = full
-        return full
-
-    def traffic(self):
-        """True if bytes arrived since the last call (for the traffic LED).
-
-        The USART sets ISR.IDLE when the line goes quiet after a burst and keeps it
-        until it is cleared, so reading and clearing it here sees every burst that
-        ended since the last look, however fast the main loop drained it. Bytes
-        still waiting count too (a burst still going on; or no stm module).
-        """
         isr = self._isr
         if isr is not None and stm.mem32[isr] & USART_ISR_IDLE:
             stm.mem32[self._icr] = USART_ICR_IDLECF
             return True
-        return self.any() > 0
+        return n > 0
 
     # --- hardware DE ---------------------------------------------------------------
     def hw_de(self, on, pre16, post16):
