@@ -5,14 +5,16 @@ Frozen into the image (it runs even with an empty filesystem). Order:
 1. room for interrupt exception reports, littlefs mounted at /flash (formatted on
    a blank board);
 2. a watchdog reset since the last boot is logged as a crash;
-3. safe boot -- SAFE button held at reset, or SAFE_AFTER_CRASHES crashes in a row
-   without a clean minute of bridging in between: nothing is started, both RS-485
-   drivers stay off the bus, the USB REPL is free (error + heartbeat LEDs on);
+3. safe boot (jig.safeboot) -- SAFE button held at reset, or SAFE_AFTER_CRASHES
+   crashes in a row without a clean minute of bridging in between: nothing is
+   started, both RS-485 drivers stay off the bus, the USB REPL is free (error +
+   heartbeat LEDs on);
 4. otherwise ``jig.app.App(board).run()`` forever.
 
-If the bridge raises, the exception and the counters go to /flash/crash.txt and
-the board resets (a clean restart beats a half-working bridge). Ctrl-C on the
-REPL stops the bridge and leaves the REPL, with the watchdog kept fed by a timer.
+If the bridge raises, the exception and the counters go to the crash log
+(jig.crashlog, /flash/crash.txt) and the board resets (a clean restart beats a
+half-working bridge). Ctrl-C on the REPL stops the bridge and leaves the REPL,
+with the watchdog kept fed by a timer.
 
 Under CPython (no ``machine``) importing this file does nothing; the host tests
 call ``main()`` with fake hardware modules.
@@ -39,19 +41,20 @@ def counter_pairs(app):
 def main():
     import machine
 
-    from jig import board
+    from jig import board, crashlog, safeboot
 
     fs = board.early_boot()
     if board.watchdog_reset_happened():
-        board.record_crash(wdt=True)
-    _crashes, streak, _wdt = board.parse_crash_counts(board.read_crash_log())
-    mode = board.decide_boot(board.safe_button_held(), streak)
+        crashlog.record_crash(wdt=True)
+    _crashes, streak, _wdt = crashlog.parse_crash_counts(crashlog.read_crash_log())
+    pin, active = board.safe_button()
+    mode = safeboot.decide_boot(safeboot.button_held(pin, active), streak)
     hal = board.Board()
-    if mode != board.MODE_BRIDGE:
+    if mode != safeboot.MODE_BRIDGE:
         hal.error_led(True)
         hal.heartbeat(True)
         print("MotorJig %s -- bridge not started, REPL free (flash: %s)." % (mode, fs))
-        print("Crash log: %s" % board.crash_summary())
+        print("Crash log: %s" % crashlog.crash_summary())
         return mode
     app = None
     t0 = ticks_ms()
@@ -66,8 +69,8 @@ def main():
         return "stopped"
     except Exception as exc:
         hal.error_led(True)
-        board.record_crash(exc, counter_pairs(app), ticks_diff(ticks_ms(), t0))
-        print("MotorJig bridge crashed: %s" % board.crash_summary())
+        crashlog.record_crash(exc, counter_pairs(app), ticks_diff(ticks_ms(), t0))
+        print("MotorJig bridge crashed: %s" % crashlog.crash_summary())
         sleep_ms(RESET_DELAY_MS)
         machine.reset()
     return "crashed"

@@ -1,12 +1,13 @@
-"""jig.board under CPython with fake machine/micropython/stm modules.
+"""jig.board and jig.uartport under CPython with fake machine/micropython/stm modules.
 
-Checks the USART driver-enable register arithmetic and the register write order,
-the receive-idle interrupt path (bytes reach the ring buffer, nothing in the
-handler builds objects), the software-DE fallback, the jig I/O bit mapping, the
-safe-boot decision and the crash log.
+Checks the receive path (bytes visible while a frame is still arriving, the
+port's any/readinto/write being the UART's own methods, no interrupt handler),
+the overflow count and the traffic LED from housekeeping, the USART
+driver-enable register arithmetic and write order, the software-DE fallback, the
+jig I/O bit mapping, jig.app bridging on the board, and main.py's safe boot,
+crash and Ctrl-C paths. The pure boot modules are in test_boot.py.
 """
 
-import dis
 import importlib
 import sys
 import types
@@ -16,12 +17,15 @@ import pytest
 # Import the portable firmware modules with the real CPython environment first:
 # jig.compat must not see the fake `micropython` module (it would try viper).
 import jig.compat  # noqa: F401
+import jig.crashlog
 import jig.params  # noqa: F401
-import jig.ringbuf  # noqa: F401
+import jig.safeboot
 
 USART2 = 0x40004400
 USART3 = 0x40004800
-CR1, CR3, ISR = 0x00, 0x08, 0x1C
+CR1, CR3, ISR, ICR = 0x00, 0x08, 0x1C, 0x20
+ISR_IDLE, ISR_TC = 1 << 4, 1 << 6
+BASES = {2: USART2, 3: USART3}
 
 
 class FakePin:
@@ -55,8 +59,31 @@ class FakePin:
         return None
 
 
+class Mem32:
+    """stm.mem32 stand-in: a register file that logs every write; writing a 1 to a
+    USART's ICR clears that bit in its ISR, as on the chip."""
+
+    def __init__(self):
+        self.regs = {}
+        self.log = []
+
+    def __getitem__(self, addr):
+        return self.regs.get(addr, 0)
+
+    def __setitem__(self, addr, value):
+        value &= 0xFFFFFFFF
+        self.regs[addr] = value
+        self.log.append((addr, value))
+        for base in BASES.values():
+            if addr == base + ICR:
+                self.regs[base + ISR] = self.regs.get(base + ISR, 0) & ~value
+
+
 class FakeUART:
-    IRQ_RXIDLE = 0x10
+    """machine.UART on stm32 as far as the port uses it: an rxbuf ring that the
+    (C) RX interrupt fills, read and written through the stream methods."""
+
+    mem = None  # the fake stm.mem32, for the USART's idle flag
     instances = {}
 
     def __init__(self, uart_id, **kw):
@@ -64,18 +91,21 @@ class FakeUART:
         self.kw = kw
         self.pending = bytearray()
         self.sent = []
-        self.handler = None
+        self.irq_calls = 0
+        self.over_asks = 0  # reads asked for more than was waiting (would wait on stm32)
         FakeUART.instances[uart_id] = self
 
-    def irq(self, handler, trigger, hard=False):
-        self.handler = handler
-        self.trigger = trigger
-        self.hard = hard
+    def irq(self, *args, **kw):
+        self.irq_calls += 1
 
     def any(self):
-        return len(self.pending)
+        return min(len(self.pending), self.kw["rxbuf"])
 
-    def readinto(self, buf, n):
+    def readinto(self, buf, n=None):
+        if n is None:
+            n = len(buf)
+        if n > len(self.pending):
+            self.over_asks += 1
         n = min(n, len(buf), len(self.pending))
         if n == 0:
             return None
@@ -83,14 +113,21 @@ class FakeUART:
         del self.pending[:n]
         return n
 
-    def write(self, buf, off, n):
+    def write(self, buf, a, b=None):
+        off, n = (0, a) if b is None else (a, b)
         self.sent.append(bytes(buf[off : off + n]))
         return n
 
-    def receive(self, data):
-        """Bytes arrive, then the line goes idle: the IRQ fires."""
+    def arrive(self, data):
+        """Bytes arrive while the line is still busy: in the ring, no idle yet."""
         self.pending += data
-        self.handler(self)
+
+    def receive(self, data):
+        """A burst arrives and the line goes idle: USART_ISR.IDLE is set."""
+        self.pending += data
+        base = BASES.get(self.id)
+        if base is not None and FakeUART.mem is not None:
+            FakeUART.mem.regs[base + ISR] = FakeUART.mem.regs.get(base + ISR, 0) | ISR_IDLE
 
 
 class FakeWDT:
@@ -115,22 +152,6 @@ class FakeTimer:
         FakeTimer.made.append(self)
 
 
-class Mem32:
-    """stm.mem32 stand-in: a register file that logs every write."""
-
-    def __init__(self):
-        self.regs = {}
-        self.log = []
-
-    def __getitem__(self, addr):
-        return self.regs.get(addr, 0)
-
-    def __setitem__(self, addr, value):
-        value &= 0xFFFFFFFF
-        self.regs[addr] = value
-        self.log.append((addr, value))
-
-
 @pytest.fixture
 def fakes(monkeypatch, tmp_path):
     FakePin.levels = {}
@@ -138,7 +159,6 @@ def fakes(monkeypatch, tmp_path):
     FakeUART.instances = {}
     FakeWDT.created = 0
     FakeTimer.made = []
-    irq_calls = []
     machine = types.ModuleType("machine")
     machine.Pin = FakePin
     machine.UART = FakeUART
@@ -148,26 +168,29 @@ def fakes(monkeypatch, tmp_path):
     machine.resets = []
     machine.reset = lambda: machine.resets.append(1)
     machine.Timer = FakeTimer
-    machine.disable_irq = lambda: irq_calls.append("off") or 7
-    machine.enable_irq = lambda state: irq_calls.append(("on", state))
     micropython = types.ModuleType("micropython")
     micropython.alloc_emergency_exception_buf = lambda n: None
     micropython.const = lambda v: v
     stm = types.ModuleType("stm")
     stm.mem32 = Mem32()
+    FakeUART.mem = stm.mem32
     stm.USART2 = USART2
     stm.USART3 = USART3
     stm.USART_CR1 = CR1
     stm.USART_CR3 = CR3
     stm.USART_ISR = ISR
-    stm.mem32.regs[USART2 + ISR] = 1 << 6  # TC set: the line is idle
-    stm.mem32.regs[USART3 + ISR] = 1 << 6
+    stm.USART_ICR = ICR
+    stm.mem32.regs[USART2 + ISR] = ISR_TC  # TC set: the line is idle
+    stm.mem32.regs[USART3 + ISR] = ISR_TC
     for name, mod in (("machine", machine), ("micropython", micropython), ("stm", stm)):
         monkeypatch.setitem(sys.modules, name, mod)
     monkeypatch.delitem(sys.modules, "jig.board", raising=False)
+    monkeypatch.delitem(sys.modules, "jig.uartport", raising=False)
+    uartport = importlib.import_module("jig.uartport")
     board = importlib.import_module("jig.board")
-    yield types.SimpleNamespace(board=board, machine=machine, stm=stm, irq_calls=irq_calls, tmp=tmp_path)
+    yield types.SimpleNamespace(board=board, uartport=uartport, machine=machine, stm=stm, tmp=tmp_path)
     sys.modules.pop("jig.board", None)
+    sys.modules.pop("jig.uartport", None)
 
 
 def make_board(fakes, name="MotorJig STM32H7_JIG with STM32H743VI"):
@@ -176,37 +199,169 @@ def make_board(fakes, name="MotorJig STM32H7_JIG with STM32H743VI"):
     return b
 
 
+# --- receive path ------------------------------------------------------------------------
+def test_uart_opened_with_the_rxbuf_ring_and_no_python_irq(fakes):
+    make_board(fakes)
+    for uid in (2, 3):
+        u = FakeUART.instances[uid]
+        assert u.kw["rxbuf"] == fakes.uartport.RXBUF >= 1024
+        assert u.kw["baudrate"] == 115200
+        assert u.kw["timeout"] == 0  # a read with nothing waiting returns at once
+        assert u.irq_calls == 0  # the C RX interrupt fills the ring; no Python handler
+
+
+def test_any_readinto_write_are_the_uarts_own_methods(fakes):
+    """No Python wrapper between the app and the C methods: the port's attributes
+    are the UART's bound methods, made once."""
+    b = make_board(fakes)
+    for port in (b.up, b.down):
+        for name in ("any", "readinto", "write"):
+            m = getattr(port, name)
+            assert m.__self__ is port.uart and m.__func__ is getattr(FakeUART, name)
+        assert port.de.__self__ is port.de_pin
+        assert port.tx_blocks is True and port.baud == 115200
+        assert port.echo_free is True  # /RE tied to DE on the jig
+        assert not hasattr(port, "t_last")  # the app takes the tick of its own read
+
+
+def test_bytes_are_readable_while_the_frame_is_still_arriving(fakes):
+    """Cut-through needs the first bytes before the last has arrived."""
+    b = make_board(fakes)
+    u = FakeUART.instances[2]
+    frame_ = b"\xaa\xcc\x02\x40\xaa\xaa\x01\xc6\xaa\xee"
+    u.arrive(frame_[:3])  # header + slave id so far; the line is still busy
+    buf = bytearray(16)
+    n = b.up.any()
+    assert n == 3 and b.up.readinto(buf, n) == 3 and buf[:3] == frame_[:3]
+    assert b.up.any() == 0
+    u.arrive(frame_[3:])
+    n = b.up.any()
+    assert b.up.readinto(buf, n) == len(frame_) - 3 and bytes(buf[:n]) == frame_[3:]
+    assert u.over_asks == 0
+
+
+def test_write_passes_offset_and_length_without_slicing(fakes):
+    b = make_board(fakes)
+    buf = bytearray(b"\x00\x00\xaa\xcc\x01\x01\xc1\xe0\xaa\xee" + b"\x00" * 20)
+    b.down.write(buf, 2, 8)
+    b.down.write(buf, 4)
+    assert FakeUART.instances[3].sent == [b"\xaa\xcc\x01\x01\xc1\xe0\xaa\xee", b"\x00\x00\xaa\xcc"]
+
+
+def test_a_full_ring_counts_one_overflow_per_time_it_is_found_full(fakes):
+    b = make_board(fakes)
+    u = FakeUART.instances[3]
+    rxbuf = fakes.uartport.RXBUF
+    u.arrive(b"\x55" * (rxbuf - 1))
+    b.housekeep(1000)
+    assert b.down.overflows == 0 and FakePin.instances["LED_ERR"].level == 0
+    u.arrive(b"\x55" * 50)  # the ring is full: the driver drops what follows
+    b.housekeep(1010)
+    b.housekeep(1020)  # still full: the same event
+    assert b.down.overflows == 1 and b.up.overflows == 0
+    assert FakePin.instances["LED_ERR"].level == 1
+    buf = bytearray(256)
+    b.down.readinto(buf, 256)
+    b.housekeep(1030)
+    u.arrive(b"\x55" * 256)  # full again
+    b.housekeep(1040)
+    assert b.down.overflows == 2
+    b.housekeep(1040 + fakes.board.ERROR_LED_MS + 1)
+    assert FakePin.instances["LED_ERR"].level == 0
+
+
+def test_traffic_led_sees_a_burst_the_app_already_drained(fakes):
+    """The USART's idle flag marks every burst that ended since the last look;
+    housekeeping clears it, so the LED goes off once the line stays quiet."""
+    b = make_board(fakes)
+    led = FakePin.instances["LED_TRAFFIC"]
+    mem = fakes.stm.mem32
+    pc = FakeUART.instances[2]
+    pc.receive(b"\xaa\xcc\x01\x01\xc1\xe0\xaa\xee")
+    b.up.readinto(bytearray(8), b.up.any())  # the main loop drained it at once
+    b.housekeep(2000)
+    assert led.level == 1
+    assert mem[USART2 + ISR] & ISR_IDLE == 0  # cleared through ICR
+    assert mem[USART2 + ISR] & ISR_TC  # nothing else touched
+    b.housekeep(2000 + fakes.board.TRAFFIC_LED_MS - 1)
+    assert led.level == 1
+    b.housekeep(2000 + fakes.board.TRAFFIC_LED_MS + 1)
+    assert led.level == 0
+    FakeUART.instances[3].receive(b"\x01")  # the driver bus lights it too
+    b.housekeep(3000)
+    assert led.level == 1
+
+
+def test_traffic_led_without_stm_uses_waiting_bytes(fakes, monkeypatch):
+    monkeypatch.setattr(fakes.uartport, "stm", None)
+    b = make_board(fakes)
+    led = FakePin.instances["LED_TRAFFIC"]
+    FakeUART.instances[2].arrive(b"\x01\x02")
+    b.housekeep(1000)
+    assert led.level == 1
+    b.up.readinto(bytearray(2), 2)
+    b.housekeep(1000 + fakes.board.TRAFFIC_LED_MS + 1)
+    assert led.level == 0
+
+
+def test_housekeeping_runs_from_wdt_feed_at_most_every_few_ms(fakes, monkeypatch):
+    b = make_board(fakes)
+    ran = []
+    monkeypatch.setattr(b, "housekeep", lambda now: ran.append(now))
+    clock = [10000]
+    monkeypatch.setattr(fakes.board, "ticks_ms", lambda: clock[0])
+    b.t_house = clock[0]
+    b.wdt_feed()
+    clock[0] += fakes.board.HOUSEKEEP_MS - 1
+    b.wdt_feed()
+    assert ran == [] and b.wdt.feeds == 2
+    clock[0] += 1
+    b.wdt_feed()
+    assert ran == [clock[0]]
+
+
+def test_crash_streak_cleared_after_a_clean_minute(fakes, monkeypatch, tmp_path):
+    path = str(tmp_path / "crash.txt")
+    monkeypatch.setattr(jig.crashlog, "CRASH_PATH", path)
+    jig.crashlog.record_crash(RuntimeError("x"))
+    b = make_board(fakes)
+    b.housekeep(b.t_start + jig.safeboot.CLEAN_RUN_MS - 1)
+    assert jig.crashlog.parse_crash_counts(jig.crashlog.read_crash_log()) == (1, 1, 0)
+    b.housekeep(b.t_start + jig.safeboot.CLEAN_RUN_MS + 1)
+    assert jig.crashlog.parse_crash_counts(jig.crashlog.read_crash_log()) == (1, 0, 0)
+
+
 # --- DE register arithmetic ----------------------------------------------------------
 def test_cr1_de_times_land_in_deat_and_dedt(fakes):
-    bd = fakes.board
-    cr1 = bd.cr1_with_de_times(0, 5, 3)
+    up = fakes.uartport
+    cr1 = up.cr1_with_de_times(0, 5, 3)
     assert (cr1 >> 21) & 0x1F == 5
     assert (cr1 >> 16) & 0x1F == 3
     assert cr1 & ~((0x1F << 21) | (0x1F << 16)) == 0
 
 
 def test_cr1_de_times_keep_other_bits_and_replace_old_times(fakes):
-    bd = fakes.board
+    up = fakes.uartport
     other = (1 << 29) | (1 << 3) | (1 << 2) | 1  # FIFOEN, TE, RE, UE
     old = other | (31 << 21) | (31 << 16)
-    cr1 = bd.cr1_with_de_times(old, 2, 1)
+    cr1 = up.cr1_with_de_times(old, 2, 1)
     assert cr1 == other | (2 << 21) | (1 << 16)
 
 
 def test_cr1_de_times_are_clamped_to_five_bits(fakes):
-    bd = fakes.board
-    cr1 = bd.cr1_with_de_times(0, 100, -4)
+    up = fakes.uartport
+    cr1 = up.cr1_with_de_times(0, 100, -4)
     assert (cr1 >> 21) & 0x1F == 31
     assert (cr1 >> 16) & 0x1F == 0
     assert cr1 >> 26 == 0  # nothing spilled into bits above DEAT
 
 
 def test_cr3_de_mode_and_polarity(fakes):
-    bd = fakes.board
-    assert bd.cr3_with_de(0, True) == 1 << 14
-    assert bd.cr3_with_de(1 << 15, True) == 1 << 14  # DEP cleared: DE active high
-    assert bd.cr3_with_de((1 << 14) | 1, False) == 1
-    assert bd.USART_CR3_DEM == 1 << 14 and bd.USART_CR3_DEP == 1 << 15
+    up = fakes.uartport
+    assert up.cr3_with_de(0, True) == 1 << 14
+    assert up.cr3_with_de(1 << 15, True) == 1 << 14  # DEP cleared: DE active high
+    assert up.cr3_with_de((1 << 14) | 1, False) == 1
+    assert up.USART_CR3_DEM == 1 << 14 and up.USART_CR3_DEP == 1 << 15
 
 
 def test_hw_de_register_sequence_and_pin_function(fakes):
@@ -221,12 +376,12 @@ def test_hw_de_register_sequence_and_pin_function(fakes):
     assert writes[1] == (CR3, 1 << 14)
     assert writes[2] == (CR1, 0x2000000D | (4 << 21) | (2 << 16))
     pin = FakePin.instances["UP_DE"]
-    assert pin.mode == FakePin.ALT and pin.alt == 7
-    # In hardware mode the software DE calls leave the pin alone.
-    before = list(pin.writes)
+    assert pin.mode == FakePin.ALT and pin.alt == 7 and b.up.hw is True
+    # In hardware mode a software DE call reaches only the output register: the
+    # pin stays in its alternate function, driven by the USART.
     b.up.de(1)
-    assert pin.writes == before
-    # Off again: pin back to a low output, DEM cleared.
+    assert pin.mode == FakePin.ALT
+    # Off again: pin back to a low output, DEM cleared, software DE works.
     assert b.up.hw_de(False, 0, 0) is True
     assert pin.mode == FakePin.OUT and pin.level == 0
     assert mem[USART2 + CR3] & (1 << 14) == 0
@@ -235,7 +390,7 @@ def test_hw_de_register_sequence_and_pin_function(fakes):
 
 
 def test_software_de_when_stm_is_missing(fakes, monkeypatch):
-    monkeypatch.setattr(fakes.board, "stm", None)
+    monkeypatch.setattr(fakes.uartport, "stm", None)
     b = make_board(fakes)
     assert b.up.base is None
     assert b.up.hw_de(True, 4, 2) is False
@@ -245,78 +400,7 @@ def test_software_de_when_stm_is_missing(fakes, monkeypatch):
     assert FakePin.instances["UP_DE"].level == 0
 
 
-# --- receive path ------------------------------------------------------------------------
-def test_uart_opened_with_large_rxbuf_and_hard_idle_irq(fakes):
-    make_board(fakes)
-    for uid in (2, 3):
-        u = FakeUART.instances[uid]
-        assert u.kw["rxbuf"] >= 1024
-        assert u.kw["baudrate"] == 115200
-        assert u.trigger == FakeUART.IRQ_RXIDLE and u.hard is True
-
-
-def test_idle_irq_moves_bursts_into_the_ring(fakes):
-    b = make_board(fakes)
-    u = FakeUART.instances[2]
-    data = bytes(range(256)) * 3 + b"\xaa\xcc\x01\x01\xc1\xe0\xaa\xee"  # > SCRATCH bytes
-    u.receive(data)
-    assert u.any() == 0
-    assert b.up.any() == len(data)
-    out = bytearray(1024)
-    n = b.up.readinto(out, 1024)
-    assert bytes(out[:n]) == data
-    assert b.up.t_last == b.up.ring.t_last
-    assert FakePin.instances["LED_TRAFFIC"].level == 1
-
-
-def test_ring_overflow_is_counted_not_silent(fakes):
-    b = make_board(fakes)
-    u = FakeUART.instances[3]
-    cap = b.down.ring.capacity()
-    u.receive(b"\x55" * (cap + 100))
-    assert b.down.any() == cap
-    assert b.down.overflows == 100
-
-
-def test_long_burst_without_idle_is_pumped_with_irqs_off(fakes):
-    b = make_board(fakes)
-    u = FakeUART.instances[2]
-    u.pending += b"\x11" * fakes.board.PUMP_AT  # no idle interrupt yet
-    assert b.up.any() == fakes.board.PUMP_AT
-    assert fakes.irq_calls == ["off", ("on", 7)]
-    assert b.up.pumps == 1
-
-
-def test_irq_handler_builds_no_objects(fakes):
-    """The handler bytecode has no container/slice/format/closure/keyword-call ops,
-    and calls only the bound methods stored once in __init__."""
-    bd = fakes.board
-    code = bd.Port._on_rx_idle.__code__
-    banned = ("BUILD_", "SLICE", "FORMAT", "MAKE_FUNCTION", "CALL_FUNCTION_KW", "CALL_KW", "KW_NAMES", "LIST_", "DICT_")
-    ops = [ins.opname for ins in dis.get_instructions(code)]
-    assert not [op for op in ops if any(op.startswith(b) or b in op for b in banned)]
-    assert not [c for c in code.co_consts if isinstance(c, (float, str, tuple)) and c != code.co_consts[0]]
-    b = make_board(fakes)
-    port = b.up
-    stored = (port._uart_any, port._uart_readinto, port._ring_write, port._scratch)
-    for _ in range(3):
-        FakeUART.instances[2].receive(b"\x01\x02\x03")
-    assert (port._uart_any, port._uart_readinto, port._ring_write, port._scratch) == stored
-    # Every method the handler calls is reached through self._x, never self.a.b(...).
-    attrs = [ins.argval for ins in dis.get_instructions(code) if ins.opname in ("LOAD_ATTR", "LOAD_METHOD")]
-    assert {"_uart_any", "_uart_readinto", "_ring_write", "_scratch", "_led"} <= set(attrs)
-    assert "ring" not in attrs and "uart" not in attrs
-
-
-def test_write_passes_length_without_slicing(fakes):
-    b = make_board(fakes)
-    buf = bytearray(b"\xaa\xcc\x01\x01\xc1\xe0\xaa\xee" + b"\x00" * 20)
-    b.down.write(buf, 0, 8)
-    assert FakeUART.instances[3].sent == [b"\xaa\xcc\x01\x01\xc1\xe0\xaa\xee"]
-    assert b.down.tx_blocks is True
-
-
-# --- jig I/O, watchdog ------------------------------------------------------------------
+# --- jig I/O, watchdog, profiles --------------------------------------------------------
 def test_outputs_drive_relays_and_read_back(fakes):
     b = make_board(fakes)
     b.set_outputs(0b1010 | (1 << 20))
@@ -348,52 +432,24 @@ def test_profiles(fakes):
     assert bd.profile_for("something else")[0] == "STM32H7_JIG"
     jig = dict(bd.PROFILES)["STM32H7_JIG"]
     assert jig["up"][0] != jig["down"][0]
+    nucleo = make_board(fakes, "NUCLEO_H743ZI2 with STM32H743")
+    assert nucleo.up.echo_free is False and FakeUART.instances[6].kw["rxbuf"] == fakes.uartport.RXBUF
 
 
-# --- safe boot ---------------------------------------------------------------------------
-def test_safe_boot_decision(fakes):
-    bd = fakes.board
-    assert bd.decide_boot(False, 0) == bd.MODE_BRIDGE
-    assert bd.decide_boot(True, 0) == bd.MODE_SAFE_BUTTON
-    assert bd.decide_boot(False, bd.SAFE_AFTER_CRASHES - 1) == bd.MODE_BRIDGE
-    assert "3 times" in bd.decide_boot(False, 3)
-
-
-def test_safe_button_debounced(fakes, monkeypatch):
-    bd = fakes.board
-    monkeypatch.setattr(bd, "sleep_ms", lambda ms: None)
+def test_safe_button_pin_per_profile(fakes, monkeypatch):
+    monkeypatch.setattr(jig.safeboot, "sleep_ms", lambda ms: None)
+    pin, active = fakes.board.safe_button("STM32H7_JIG")
+    assert pin.name == "BTN_SAFE" and active == 0 and pin.pull == FakePin.PULL_UP
     FakePin.levels = {"BTN_SAFE": 0}
-    assert bd.safe_button_held("STM32H7_JIG") is True
-    FakePin.levels = {"BTN_SAFE": 1}
-    assert bd.safe_button_held("STM32H7_JIG") is False
+    assert jig.safeboot.button_held(pin, active) is True
+    pin, active = fakes.board.safe_button("NUCLEO_H743ZI")
     FakePin.levels = {"PC13": 1}  # NUCLEO user button is active high
-    assert bd.safe_button_held("NUCLEO_H743ZI") is True
+    assert jig.safeboot.button_held(pin, active) is True
 
 
-# --- crash log -----------------------------------------------------------------------------
-def test_crash_log_counts_streak_and_clears(fakes):
-    bd = fakes.board
-    path = str(fakes.tmp / "crash.txt")
-    try:
-        raise ValueError("boom")
-    except ValueError as e:
-        assert bd.record_crash(e, (("forwards", 12), ("replies", 11)), 1234, path=path) == (1, 1, 0)
-    text = bd.read_crash_log(path)
-    assert "ValueError: boom" in text and "forwards=12" in text and "1234 ms" in text
-    assert bd.record_crash(wdt=True, path=path) == (2, 2, 1)
-    assert bd.parse_crash_counts(bd.read_crash_log(path)) == (2, 2, 1)
-    assert "watchdog reset" in bd.crash_summary(path)
-    assert bd.clear_crash_streak(path) is True
-    assert bd.parse_crash_counts(bd.read_crash_log(path)) == (2, 0, 1)
-    assert bd.clear_crash_streak(path) is False
-
-
-def test_crash_log_missing_or_garbage(fakes):
-    bd = fakes.board
-    path = str(fakes.tmp / "none.txt")
-    assert bd.parse_crash_counts(bd.read_crash_log(path)) == (0, 0, 0)
-    assert bd.crash_summary(path) == "no crash recorded"
-    assert bd.parse_crash_counts("junk\ncrashes=x consecutive=2\n") == (0, 2, 0)
+def test_no_flash_device_off_the_board(fakes):
+    assert fakes.board.flash_device() is None  # no pyb module here
+    assert fakes.board.early_boot() == "none"
 
 
 # --- the app on this HAL ----------------------------------------------------------------
@@ -429,12 +485,36 @@ def test_app_bridges_on_the_board_hal(fakes, tmp_path):
     assert b.wdt is not None and b.wdt.feeds >= 1
 
 
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="jig.app asks readinto for RX_CHUNK bytes whatever any() said; on stm32 such a read "
+    "waits one character timeout (>= 2 ms) after the last byte. The HAL contract (docs/hal.md) is "
+    "n <= any(); remove this marker when the app keeps it.",
+)
+def test_app_reads_only_the_bytes_waiting(fakes, tmp_path):
+    from jig import frame
+    from jig.app import App
+
+    b = fakes.board.Board("MotorJig STM32H7_JIG with STM32H743VI")
+    b.param_path = str(tmp_path / "jigparams.bin")
+    app = App(b)
+    pc, drv = FakeUART.instances[2], FakeUART.instances[3]
+    pc.receive(frame.encode(2, frame.GET_AXIS_STATUS))
+    app.poll()
+    drv.receive(frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08"))
+    app.poll()
+    assert len(drv.sent) >= 1 and len(pc.sent) >= 1
+    assert pc.over_asks == 0 and drv.over_asks == 0
+
+
 # --- main.py ---------------------------------------------------------------------------------
 def load_main(fakes, monkeypatch, tmp_path):
     import importlib.util
     import os
 
-    monkeypatch.setattr(fakes.board, "CRASH_PATH", str(tmp_path / "crash.txt"))
+    monkeypatch.setattr(jig.crashlog, "CRASH_PATH", str(tmp_path / "crash.txt"))
+    monkeypatch.setattr(jig.safeboot, "sleep_ms", lambda ms: None)
     monkeypatch.setattr(fakes.board, "PARAM_PATH", str(tmp_path / "jigparams.bin"))
     path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "firmware", "main.py")
     spec = importlib.util.spec_from_file_location("jig_main_under_test", path)
@@ -446,7 +526,7 @@ def load_main(fakes, monkeypatch, tmp_path):
 def test_main_safe_boot_when_button_held(fakes, monkeypatch, tmp_path):
     FakePin.levels = {"BTN_SAFE": 0}
     mod = load_main(fakes, monkeypatch, tmp_path)  # the import-time run: safe boot
-    assert mod.main() == fakes.board.MODE_SAFE_BUTTON
+    assert mod.main() == jig.safeboot.MODE_SAFE_BUTTON
     assert FakeUART.instances == {}  # no port opened: both transceivers stay receiving
     assert FakePin.instances["LED_ERR"].level == 1
     assert FakeWDT.created == 0
@@ -456,8 +536,8 @@ def test_main_safe_boot_after_a_crash_streak(fakes, monkeypatch, tmp_path):
     FakePin.levels = {"BTN_SAFE": 0}
     mod = load_main(fakes, monkeypatch, tmp_path)
     FakePin.levels = {"BTN_SAFE": 1}
-    for _ in range(fakes.board.SAFE_AFTER_CRASHES):
-        fakes.board.record_crash(RuntimeError("x"))
+    for _ in range(jig.safeboot.SAFE_AFTER_CRASHES):
+        jig.crashlog.record_crash(RuntimeError("x"))
     assert "crashed 3 times" in mod.main()
 
 
@@ -475,9 +555,9 @@ def test_main_logs_a_crash_and_resets(fakes, monkeypatch, tmp_path):
     monkeypatch.setattr(App, "run", run)
     assert mod.main() == "crashed"
     assert fakes.machine.resets == [1]
-    log = fakes.board.read_crash_log()
+    log = jig.crashlog.read_crash_log()
     assert "RuntimeError: bridge fell over" in log and "up_frames_in=0" in log
-    assert fakes.board.parse_crash_counts(log) == (1, 1, 0)
+    assert jig.crashlog.parse_crash_counts(log) == (1, 1, 0)
 
 
 def test_main_ctrl_c_keeps_the_watchdog_fed(fakes, monkeypatch, tmp_path):

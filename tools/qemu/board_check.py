@@ -1,25 +1,34 @@
-"""jig.board on real MicroPython with stand-in machine/stm modules (qemu suite part).
+"""jig.uartport and jig.board on real MicroPython with stand-in machine/stm modules.
 
-The qemu port has no UART or Pin for the jig, so small fakes replace ``machine``
-and ``stm`` in ``sys.modules`` before ``jig.board`` is imported. What this checks
-that the CPython host tests cannot:
+Part of the qemu suite. The qemu port has no UART or Pin for the jig, so small
+fakes replace ``machine`` and ``stm`` in ``sys.modules`` before the board
+modules are imported. What this checks that the CPython host tests cannot:
 
-* the receive-idle handler runs with the heap locked (``micropython.heap_lock``,
-  exactly the state of a hard interrupt handler): any allocation would raise;
-* its cost in instructions per burst on the emulated Cortex-M7;
+* the port's ``any()``, ``readinto()`` and ``write()`` -- the calls the main loop
+  makes -- run with the heap locked (``micropython.heap_lock``): any allocation
+  would raise; and what one call costs in instructions on the emulated
+  Cortex-M7. Two stand-in UARTs: one written in Python (MemRx, its own body
+  counts), and one whose methods are C stream methods of ``io.BytesIO``, bound
+  to the port exactly as ``machine.UART``'s are on the board: that figure is
+  the nearer estimate of the board's (the board's C bodies do about as little);
+* the board's housekeeping (traffic LED from the USART idle flag, overflow
+  check, error LED) with the heap locked, and its cost per pass;
 * the DE register arithmetic with MicroPython's integers (addresses above 2**30
   are big ints there);
-* crash-log text formatting with MicroPython's ``sys.print_exception``.
-
-The fakes themselves allocate nothing per call (preallocated buffers, viper copy).
+* crash-log text formatting with MicroPython's ``sys.print_exception``, and the
+  safe-boot decision.
 """
 
+import io
 import sys
 
 import micropython
 
-from jig.compat import ticks_diff, ticks_us
+from jig.compat import ticks_diff, ticks_ms, ticks_us
 from memrx import MemRx
+
+CALLS = 500  # per timed loop: 1 instruction per call resolution (1 µs = 1 000)
+CHUNK = 8  # bytes per readinto / write call
 
 
 class _Pin:
@@ -47,30 +56,39 @@ class _Pin:
 
 
 class _UART(MemRx):
-    IRQ_RXIDLE = 16
+    """machine.UART stand-in written in Python (nothing allocates per call)."""
+
     last = None
+    make_c = False  # the next UART made gets C stream methods (see _use_c_methods)
 
     def __init__(self, uart_id, **kw):
         MemRx.__init__(self)
-        self.handler = None
+        self.kw = kw
+        self.irqs = 0
+        if _UART.make_c:
+            _use_c_methods(self)
         _UART.last = self
 
-    def irq(self, handler, trigger, hard=False):
-        self.handler = handler
+    def irq(self, *args, **kw):
+        self.irqs += 1
 
     def write(self, buf, off, n):
         return n
 
 
-class _Mem32:
-    def __init__(self):
-        self.regs = {}
-
-    def __getitem__(self, addr):
-        return self.regs.get(addr, 0)
-
-    def __setitem__(self, addr, value):
-        self.regs[addr] = value & 0xFFFFFFFF
+def _use_c_methods(uart):
+    """any/readinto/write as C methods of io.BytesIO, as instance attributes: the
+    port binds them like machine.UART's own. The receive stream holds enough
+    bytes for every timed read; the transmit stream is overwritten in place."""
+    rx = io.BytesIO(bytes(CALLS * CHUNK * 2))
+    tx = io.BytesIO(bytearray(CALLS * CHUNK * 2))
+    tx.write(b"\x00")  # first write copies the initial buffer: outside the lock
+    tx.seek(0)
+    uart.any = rx.tell  # a C method without arguments returning a small int
+    uart.readinto = rx.readinto
+    uart.write = tx.write
+    uart.c_rx = rx
+    uart.c_tx = tx
 
 
 class _Namespace:
@@ -81,30 +99,37 @@ def _fake_modules():
     machine = _Namespace()
     machine.Pin = _Pin
     machine.UART = _UART
-    machine.disable_irq = lambda: 0
-    machine.enable_irq = lambda s: None
     stm = _Namespace()
-    stm.mem32 = _Mem32()
     stm.USART2 = 0x40004400
     stm.USART3 = 0x40004800
     stm.USART_CR1 = 0
     stm.USART_CR3 = 8
     stm.USART_ISR = 0x1C
+    stm.USART_ICR = 0x20
+    # stm.mem32 as a dict keyed by address: indexing is C, as on the board, and
+    # every register exists before the heap is locked (a new key would allocate).
+    # The addresses are above 2**30: big ints here, as on the board.
+    stm.mem32 = {}
+    for base in (stm.USART2, stm.USART3):
+        for off in (stm.USART_CR1, stm.USART_CR3, stm.USART_ISR, stm.USART_ICR):
+            stm.mem32[base + off] = 0
     return machine, stm
 
 
 def run(result, fail, instr):
     saved = {}
-    for name in ("machine", "stm", "jig.board"):
+    names = ("machine", "stm", "jig.uartport", "jig.board")
+    for name in names:
         saved[name] = sys.modules.get(name)
     machine, stm = _fake_modules()
     sys.modules["machine"] = machine
     sys.modules["stm"] = stm
+    sys.modules.pop("jig.uartport", None)
     sys.modules.pop("jig.board", None)
     try:
-        from jig import board
+        from jig import board, crashlog, safeboot, uartport
 
-        _check(board, machine, stm, result, fail, instr)
+        _check(uartport, board, crashlog, safeboot, stm, result, fail, instr)
     finally:
         for name, mod in saved.items():
             if mod is None:
@@ -113,60 +138,176 @@ def run(result, fail, instr):
                 sys.modules[name] = mod
 
 
-def _check(board, machine, stm, result, fail, instr):
-    led = _Pin("LED_TRAFFIC", _Pin.OUT, value=0)
-    port = board.Port((2, "UP_TX", "UP_RX", "UP_DE", 7), 115200, led)
-    uart = _UART.last
-    burst = bytearray(b"\xaa\xcc\x02\x40\x00\x00\x00\x00\x08\x04\xc6\xaa\xee" * 2)
-    handler = uart.handler
-    handler(uart)  # first call outside the lock (nothing to warm up, but fair)
-    port.ring.clear()
-    rounds = 50
-    t0 = ticks_us()
+# --- timed loops (each call site as the app has it) -----------------------------------
+def _loop_empty(n):
+    for _ in range(n):
+        pass
+
+
+def _loop_any_attr(port, n):
+    for _ in range(n):
+        port.any()
+
+
+def _loop_call0(f, n):
+    for _ in range(n):
+        f()
+
+
+def _loop_read(f, buf, n):
+    for _ in range(n):
+        f(buf, CHUNK)
+
+
+def _loop_write(f, buf, n):
+    for _ in range(n):
+        f(buf, 0, CHUNK)
+
+
+def _loop_housekeep(b, now, n):
+    for _ in range(n):
+        b.housekeep(now)
+
+
+def _locked(fn, *args):
+    """Instructions fn(*args) took with the heap locked, or -1 if it allocated."""
     micropython.heap_lock()
-    err = None
     try:
-        for _ in range(rounds):
-            uart.load(burst, len(burst))
-            handler(uart)
-            port.ring.clear()
-    except MemoryError as e:
-        err = e
+        t0 = ticks_us()
+        fn(*args)
+        dt = ticks_diff(ticks_us(), t0)
+    except MemoryError:
+        dt = -1
     finally:
         micropython.heap_unlock()
-    dt = ticks_diff(ticks_us(), t0)
-    if err is not None:
-        fail("board: the RX idle handler allocated with the heap locked (as in a hard IRQ)")
-        return
-    uart.load(burst, len(burst))
-    handler(uart)
-    out = bytearray(64)
-    n = port.readinto(out, 64)
-    if n != len(burst) or out[0:n] != burst or led.level != 1:
-        fail("board: RX idle handler moved %d of %d bytes" % (n, len(burst)))
-    result("board RX idle IRQ handler (heap locked, fake UART): %d instructions per %d-byte burst, no allocation"
-           % (instr(dt) // rounds, len(burst)))
+    return dt
 
-    # Hardware DE on MicroPython integers.
+
+def _port_costs(port, rewind, fail, instr, what):
+    """Per-call instructions of any() (as port.any() and pre-bound), readinto and
+    write on port, loop overhead subtracted; None if something allocated."""
+    buf = bytearray(64)
+    rewind()
+    base = _locked(_loop_empty, CALLS)
+    times = (
+        _locked(_loop_any_attr, port, CALLS),
+        _locked(_loop_call0, port.any, CALLS),
+        _locked(_loop_read, port.readinto, buf, CALLS),
+        _locked(_loop_write, port.write, buf, CALLS),
+    )
+    if base < 0 or min(times) < 0:
+        fail("board: a port call allocated with the heap locked (%s)" % what)
+        return None
+    return [instr(t - base) // CALLS for t in times]
+
+
+def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
+    # 1. The port calls on a Python stand-in UART.
+    port = uartport.UartPort((2, "UP_TX", "UP_RX", "UP_DE", 7), 115200, True)
+    uart = port.uart
+    if uart.irqs:
+        fail("board: the port installed a UART IRQ handler")
+    if uart.kw.get("rxbuf") != uartport.RXBUF or uart.kw.get("timeout") != 0:
+        fail("board: UART opened with %r" % (uart.kw,))
+    burst = bytearray(b"\xaa\xcc\x02\x40\x00\x00\x00\x00\x08\x04\xc6\xaa\xee")
+    uart.load(burst, len(burst))
+    out = bytearray(64)
+    n = port.any()
+    got = port.readinto(out, n)
+    if n != len(burst) or got != n or out[0:n] != burst:
+        fail("board: port read %r of %d waiting bytes" % (got, n))
+    uart.rx = bytearray(CALLS * CHUNK)  # every timed read gets CHUNK bytes
+
+    def rewind_py():
+        uart.rx_n = CALLS * CHUNK
+        uart.rx_pos = 0
+
+    py = _port_costs(port, rewind_py, fail, instr, "Python stand-in UART")
+    if py is not None and uart.rx_pos != CALLS * CHUNK:
+        fail("board: Python stand-in read %d bytes, expected %d" % (uart.rx_pos, CALLS * CHUNK))
+
+    # 2. The same calls bound to C stream methods, as machine.UART's are.
+    _UART.make_c = True
+    try:
+        cport = uartport.UartPort((3, "DN_TX", "DN_RX", "DN_DE", 7), 115200, True)
+    finally:
+        _UART.make_c = False
+    cu = cport.uart
+
+    def rewind_c():
+        cu.c_rx.seek(0)
+        cu.c_tx.seek(0)
+
+    c = _port_costs(cport, rewind_c, fail, instr, "C stream methods")
+    if c is not None and (cu.c_tx.tell() != CALLS * CHUNK or cu.c_rx.tell() != CALLS * CHUNK):
+        fail("board: C-method reads/writes moved %d/%d bytes, expected %d"
+             % (cu.c_rx.tell(), cu.c_tx.tell(), CALLS * CHUNK))
+    if py is not None and c is not None:
+        result("board port calls (heap locked, no allocation), instructions per call -- C-method stand-in "
+               "(as machine.UART on the board): port.any() %d, pre-bound any() %d, readinto(buf, %d) %d, "
+               "write(buf, 0, %d) %d; Python stand-in UART: %d, %d, %d, %d"
+               % (c[0], c[1], CHUNK, c[2], CHUNK, c[3], py[0], py[1], py[2], py[3]))
+
+    # 3. Board housekeeping: traffic LED from the idle flag, overflow check, LEDs;
+    # the ports' UARTs have C methods (any() is the position of their rx stream).
+    b = board.Board("STM32H7_JIG")
+    _UART.make_c = True
+    try:
+        b.open(115200, 115200)
+    finally:
+        _UART.make_c = False
+    b.streak_cleared = True  # no flash write in this check
+    isr = b.up._isr
+    icr = b.up._icr
+    stm.mem32[isr] = uartport.USART_ISR_IDLE  # a burst ended on the PC bus
+    now = ticks_ms()
+    b.housekeep(now)
+    if b.led_traffic.level != 1 or stm.mem32[icr] != uartport.USART_ICR_IDLECF:
+        fail("board: the idle flag did not light the traffic LED / was not cleared")
+    b.down.uart.c_rx.seek(uartport.RXBUF)  # the driver-bus ring holds RXBUF bytes: full
+    dt = _locked(_loop_housekeep, b, now, 1)
+    if dt < 0:
+        fail("board: housekeeping allocated with the heap locked")
+    elif b.down.overflows != 1 or b.up.overflows != 0 or b.led_err.level != 1:
+        fail("board: a full ring gave %d/%d overflows, error LED %d"
+             % (b.down.overflows, b.up.overflows, b.led_err.level))
+    dt = _locked(_loop_housekeep, b, now, 100)
+    if dt < 0:
+        fail("board: housekeeping allocated with the heap locked")
+    elif b.down.overflows != 1:
+        fail("board: a ring that stays full was counted %d times" % b.down.overflows)
+    else:
+        result("board housekeeping (idle flags, overflow check, LEDs unchanged; C-method UARTs; heap locked): "
+               "%d instructions per pass, at most every %d ms from wdt_feed" % (instr(dt) // 100, board.HOUSEKEEP_MS))
+
+    # 4. Hardware DE on MicroPython integers.
     base = stm.USART2
-    stm.mem32.regs[base] = 0x2000000D
-    stm.mem32.regs[base + 0x1C] = 0x40  # ISR.TC: the transmitter is idle
+    stm.mem32[base] = 0x2000000D
+    stm.mem32[base + 0x1C] = 0x40  # ISR.TC: the transmitter is idle
     if not port.hw_de(True, 5, 3):
         fail("board: hw_de refused with stm present")
-    cr1 = stm.mem32.regs[base]
-    cr3 = stm.mem32.regs[base + 8]
+    cr1 = stm.mem32[base]
+    cr3 = stm.mem32[base + 8]
     if cr1 != (0x2000000D | (5 << 21) | (3 << 16)) or cr3 != (1 << 14):
         fail("board: DE registers CR1=0x%08x CR3=0x%08x" % (cr1, cr3))
     else:
         result("board DE registers on MicroPython ints: CR1=0x%08x CR3=0x%08x" % (cr1, cr3))
 
-    # Crash-log text with MicroPython's traceback printer.
+    # 5. Crash-log text with MicroPython's traceback printer; the boot decision.
     try:
         raise ValueError("qemu check")
     except ValueError as e:
-        text = board.format_crash_log((2, 1, 0), "ValueError: qemu check", board.exception_text(e), (("forwards", 3),))
-    counts = board.parse_crash_counts(text)
+        text = crashlog.format_crash_log(
+            (2, 1, 0), "ValueError: qemu check", crashlog.exception_text(e), (("forwards", 3),)
+        )
+    counts = crashlog.parse_crash_counts(text)
     if counts != (2, 1, 0) or "ValueError: qemu check" not in text or "forwards=3" not in text:
         fail("board: crash log text %r" % text)
-    if board.decide_boot(True, 0) != board.MODE_SAFE_BUTTON or board.decide_boot(False, 5) == board.MODE_BRIDGE:
+    elif "Traceback" not in text:
+        fail("board: no traceback in the crash log text")
+    else:
+        result("board crash log text with MicroPython's print_exception: %d lines, counts %r"
+               % (text.count("\n"), counts))
+    if (safeboot.decide_boot(True, 0) != safeboot.MODE_SAFE_BUTTON
+            or safeboot.decide_boot(False, 5) == safeboot.MODE_BRIDGE):
         fail("board: safe-boot decision")

@@ -10,8 +10,9 @@ which runs ``import qemu_suite; qemu_suite.main()`` in qemu-system-arm with
    parser, compared line by line with the report CPython produced for it;
 2. CRC parity: the viper CRC and copy (jig.native, which must load here) against
    the table CRC and a plain loop, on pseudo-random buffers;
-3. jig.board on real MicroPython with stand-in machine/stm modules: the RX
-   interrupt handler runs with the heap locked, as in a hard IRQ (board_check);
+3. jig.board / jig.uartport on real MicroPython with stand-in machine/stm
+   modules: the port's any/readinto/write and the board's housekeeping with the
+   heap locked, and their instruction cost (board_check);
 4. figures: instructions per byte for the CRC and the parser, and per forwarded
    transaction (PC request -> driver -> reply relayed) through ``jig.app.App``
    on a HAL whose ports are memory buffers, plus heap bytes allocated in steady
@@ -518,7 +519,7 @@ def probe_cross_check(n=200):
 
 
 def check_board():
-    """jig.board with stand-in hardware modules (MicroPython only: see board_check)."""
+    """jig.board and jig.uartport with stand-in hardware modules (MicroPython only: see board_check)."""
     if not compat.IS_MICROPYTHON:
         return
     try:
