@@ -510,11 +510,12 @@ class Master:
             if len(b) >= h + 3 and b[:h] == sent_body[:h]:
                 return self._frame(b, fr.t, sync >= 0)
 
-    def request(self, slave, ftype, data=b"", timeout=None, retries=None, check=True):
+    def request(self, slave, ftype, data=b"", timeout=None, retries=None, check=True, ver8=None):
         """Send one request and return its reply Frame (``data[0]`` is the status).
 
         With ``check`` (default) a non-zero status raises its StatusError and the
-        reply length is checked against the frame type.
+        reply length is checked against the frame type. ``ver8`` None frames it in the
+        slave's variant (detected first if not known); True/False force the framing.
         """
         if slave != F.BROADCAST_ID:
             _check_slave(slave)
@@ -523,7 +524,8 @@ class Master:
         if retries is None:
             retries = self.retries
         attempts = 1 + retries if ftype in IDEMPOTENT else 1
-        ver8 = self._broadcast_ver8() if slave == F.BROADCAST_ID else self.variant(slave) == 8
+        if ver8 is None:
+            ver8 = self._broadcast_ver8() if slave == F.BROADCAST_ID else self.variant(slave) == 8
         last = None
         for attempt in range(attempts):
             sync = self.next_sync(slave) if ver8 else -1
@@ -582,9 +584,13 @@ class Master:
 
     # --- info / parameters -------------------------------------------------------
     def is_slave_exist(self, slave, timeout=None):
-        """True when slave answers GetSlaveInfo (any status) within the timeout; one try."""
+        """True when slave answers GetSlaveInfo (any status) within the timeout; one try
+        (after the variant probe, with the same timeout, when the variant is not known)."""
+        ver8 = self._known_ver8(slave)
+        if ver8 is None:
+            ver8 = self.detect_variant(slave, timeout=timeout, retries=0) == 8
         try:
-            self.request(slave, F.GET_SLAVE_INFO, timeout=timeout, retries=0, check=False)
+            self.request(slave, F.GET_SLAVE_INFO, timeout=timeout, retries=0, check=False, ver8=ver8)
             return True
         except (NoReplyError, ReplyCRCError):
             return False
