@@ -251,3 +251,16 @@ def test_reply_identical_to_its_request_is_not_taken_for_an_echo():
     m, sent = answering_master()  # no reply at all: the echo alone must not count
     with m, pytest.raises(E.NoReplyError):
         m.step_alarm_reset(2, False)
+
+
+def test_decoder_reads_ver8_64_bit_inputs_and_motion_flags():
+    from motorjig.decode import Decoder
+    from motorjig.master import Frame
+
+    dec = Decoder()
+    d = b"\x00" + (1 << 40).to_bytes(8, "little") + bytes(28)  # GetAllStatus, 64-bit inputs
+    got = dec.as_dict(Frame(3, 0xF2, F.GET_ALL_STATUS, d, b"", 0.0))
+    assert got["kind"] == "reply" and got["inputs"] == "0x0000010000000000"
+    ms = b"\x00" + bytes(16) + (1 << 20).to_bytes(4, "little")  # GetMotionStatus, Ver8: axis flags last
+    assert dec.as_dict(Frame(3, 0xF3, F.GET_MOTION_STATUS, ms, b"", 0.0), "reply")["flags"] == ["servo_on"]
+    assert "flags" not in dec.as_dict(Frame(2, -1, F.GET_MOTION_STATUS, ms, b"", 0.0), "reply")
