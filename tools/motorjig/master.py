@@ -125,9 +125,9 @@ REPLY_LEN_VER8 = dict(REPLY_LEN)
 REPLY_LEN_VER8.update({F.GET_IO_INPUT: (4, 8), F.GET_IO_AXIS_STATUS: (12, 16), F.GET_ALL_STATUS: (32, 36)})
 
 SYNC_SEED = 0xF0  # the vendor V8 class starts its per-slave counters here
-#: frame types a Ver6 drive knows: a Ver8 broadcast on a mixed bus avoids them as its
-#: sync number, since a Ver6 drive reads that byte as the frame type
-_V6_TYPES = frozenset(REQUEST_LEN)
+#: sync numbers of a Ver8 broadcast on a mixed bus: a Ver6 drive reads that byte as its
+#: frame type, and the protocol notes list none (not even vendor-internal) in this range
+MIXED_BROADCAST_SYNCS = range(0xC0, 0xF0)
 POS_TABLE_ITEM_SIZE = 64
 _READ_SLICE = 0.005  # seconds one port read may block; bounds the timeout overshoot
 
@@ -342,9 +342,13 @@ class Master:
         """The sync number for the next Ver8 request to slave (one counter per slave)."""
         if slave == F.BROADCAST_ID:
             used = set(self._sync.values())
-            if 6 in self._variants.values():  # Ver6 drives hear it too: no type of theirs
-                used |= _V6_TYPES
             s = (max(self._sync.values()) + 1) & 0xFF if self._sync else SYNC_SEED
+            if 6 in self._variants.values():  # Ver6 drives hear it too: no type of theirs
+                r = MIXED_BROADCAST_SYNCS
+                if s not in r:
+                    s = r[0]
+                while s in used:
+                    s = s + 1 if s + 1 in r else r[0]
             while s in used:
                 s = (s + 1) & 0xFF
             for k in self._sync:
