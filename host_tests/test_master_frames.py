@@ -251,3 +251,37 @@ def test_reply_identical_to_its_request_is_not_taken_for_an_echo():
     m, sent = answering_master()  # no reply at all: the echo alone must not count
     with m, pytest.raises(E.NoReplyError):
         m.step_alarm_reset(2, False)
+
+
+def test_decoder_reads_ver8_64_bit_inputs_and_motion_flags():
+    from motorjig.decode import Decoder
+    from motorjig.master import Frame
+
+    dec = Decoder()
+    d = b"\x00" + (1 << 40).to_bytes(8, "little") + bytes(28)  # GetAllStatus, 64-bit inputs
+    got = dec.as_dict(Frame(3, 0xF2, F.GET_ALL_STATUS, d, b"", 0.0))
+    assert got["kind"] == "reply" and got["inputs"] == "0x0000010000000000"
+    ms = b"\x00" + bytes(16) + (1 << 20).to_bytes(4, "little")  # GetMotionStatus, Ver8: axis flags last
+    assert dec.as_dict(Frame(3, 0xF3, F.GET_MOTION_STATUS, ms, b"", 0.0), "reply")["flags"] == ["servo_on"]
+    assert "flags" not in dec.as_dict(Frame(2, -1, F.GET_MOTION_STATUS, ms, b"", 0.0), "reply")
+
+
+def test_detection_and_broadcast_on_a_mixed_bus():
+    """Ver6 reply to the probe -> Ver6; Ver8 frame-type error -> Ver8 probe with sync
+    0xF1. A broadcast then goes once per variant, the Ver8 one with a sync in 0xC0..0xEF
+    (no frame type a Ver6 drive would act on)."""
+    probe3 = F.encode(3, F.GET_COMMAND_POS)
+    m, sent = answering_master(
+        F.encode(2, F.GET_COMMAND_POS, b"\x00" + bytes(4)),  # Ver6 drive 2
+        F.encode(3, probe3[4], b"\x80", sync=0x51),  # Ver8 drive 3: id, 51, crcL, 80
+        F.encode(3, F.GET_COMMAND_POS, b"\x00" + bytes(4), sync=0xF1),  # the Ver8 probe's answer
+        ver8=None)
+    with m:
+        assert m.detect_variant(2) == 6 and m.detect_variant(3) == 8 and m.variants == {2: 6, 3: 8}
+        assert sent[1] == probe3 and sent[2] == F.encode(3, F.GET_COMMAND_POS, sync=0xF1)
+        del sent[:]
+        m.all_move_stop()
+    p = FrameParser(ver8=True)
+    assert sent[0] == F.encode(F.BROADCAST_ID, F.ALL_MOVE_STOP)
+    p.feed(sent[1])
+    assert p.ready and p.slave == F.BROADCAST_ID and p.ftype == F.ALL_MOVE_STOP and 0xC0 <= p.sync <= 0xEF

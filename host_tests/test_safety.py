@@ -67,3 +67,27 @@ def test_traffic_keeps_it_quiet():
         b.request(2, F.GET_AXIS_STATUS)
         b.run_for(50000.0)
     assert b.counters["safety_stops"] == 0
+
+
+def test_mixed_bus_each_driver_executes_one_stop():
+    """Ver8 jig (and Ver6 jig), a Ver6 and a Ver8 drive: the stop in the jig's framing
+    is refused (0x80) by the driver of the other variant, which then gets it in its
+    own framing; the driver of the jig's variant gets exactly one frame."""
+    for jig_ver8 in (False, True):
+        b = SimBench(driver_ids=(2, 3), servo_on=True, jig_ver8=jig_ver8, ver8_drivers=(3,))
+        for d in b.drivers.values():
+            d.record_requests = True
+        data = bytes([P.P_SAFETY_TIMEOUT_MS]) + struct.pack("<i", 100)
+        assert b.request(1, F.SET_PARAMETER, data)[1] == b"\x00"
+        for i in (2, 3):
+            assert b.request(i, F.MOVE_VELOCITY, struct.pack("<IB", 2000, 1))[1] == b"\x00"
+        n = {i: len(b.drivers[i].received) for i in (2, 3)}
+        b.run_for(2e6)
+        same, other = (3, 2) if jig_ver8 else (2, 3)
+        assert len(b.drivers[same].received) - n[same] == 1  # one stop, executed
+        assert len(b.drivers[other].received) - n[other] == 2  # refused framing, then its own
+        for i in (2, 3):
+            assert len(stops(b.drivers[i])) == 1 and not b.drivers[i].flags() & (1 << 27)  # stopped
+            assert b.drivers[i].servo_on  # nothing else was executed
+        c = b.counters
+        assert c["safety_stops"] == 1 and c["int_requests"] == 3 and c["int_replies"] == 3

@@ -79,8 +79,8 @@ def test_cli_demo_runs_bounded():
     assert r.returncode == 0, r.stderr
     out = r.stdout
     assert "pty: /dev/" in out and "tcp: socket://127.0.0.1:" in out
-    assert "id  1: slave type 200" in out and "id  5: slave type  20" in out
-    assert "servo on id 2 -> status 0x00" in out and "move id 2" in out
+    assert "id  1: Ver6  MotorJig bridge (type 200)" in out and "id  5: Ver6  Ezi-STEP Plus-R ST (type 20)" in out
+    assert "servo on id 2" in out and "move id 2" in out
     assert "pos  10000" in out
 
 

@@ -196,3 +196,22 @@ def test_jig_bus_scan_finds_drivers_of_both_variants(jig_ver8):
     assert r[1] == 2 and struct.unpack_from("<H", r, 2)[0] == (1 << 2) | (1 << 3)
     types = r[4:20]
     assert (types[2], types[3]) == ((0, 20) if jig_ver8 else (20, 0))
+
+
+def test_jig_own_ver8_syncs_are_no_frame_type_of_a_ver6_drive():
+    """A Ver8 jig's scan reaches a Ver6 drive too, which reads the sync byte as its
+    frame type: over many scans no sync may be a type (e.g. 0x2A ServoEnable, whose
+    data byte would be GetSlaveInfo's 0x01: servo on)."""
+    from motorjig.master import REQUEST_LEN
+
+    bench = SimBench(driver_ids=(2,), jig_ver8=True, ver8_drivers=())
+    m = VendorStyleMaster(bench)
+    m.connect()
+    seen = []
+    bench.down_bus.monitor = lambda seg, data: seen.append(bytes(data)) if seg.node.name == "jig-down" else None
+    for _ in range(20):  # 320 probes: more than every byte value
+        assert m.request(1, 0xF2) == b"\x00"
+        bench.run_for(1000000.0)
+    syncs = {body_of(w)[1] for w in seen if body_of(w) is not None}
+    assert len(syncs) >= 40 and not syncs & (set(REQUEST_LEN) | set(range(0x84, 0xB4)))
+    assert not bench.drivers[2].servo_on and not bench.drivers[2].alarm_reset_held

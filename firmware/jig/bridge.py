@@ -77,6 +77,13 @@ F_UNAWAITED = const(1024)
 FLAG_NAMES = ("abort", "local", "forward", "broadcast", "send", "relay", "deliver", "stale", "timeout", "refused",
               "unawaited")
 
+# Sync numbers of the jig's own Ver8 requests cycle through 0xC0..0xEF, where the
+# protocol notes list no frame type (not even vendor-internal ones): a Ver6 drive on
+# a mixed bus reads the sync byte as its frame type and must find an unknown one,
+# never e.g. ServoEnable 0x2A or a firmware-flashing code.
+INT_SYNC_FIRST = const(0xC0)
+INT_SYNC_LAST = const(0xEF)
+
 # Driver ids 0..SEEN_IDS-1 are tracked in the ``seen`` bitmap (a small int on MicroPython).
 SEEN_IDS = const(30)
 
@@ -173,7 +180,7 @@ class Bridge:
         self.seen = 0  # bitmap of driver ids that answered
         self.t_pc = 0  # tick of the last frame from the PC
         self.pc_frames = 0  # PC frames since boot (the safety stop arms on the first)
-        self.sync_next = 0  # Ver8 sync numbers of jig-originated requests
+        self.sync_next = INT_SYNC_FIRST  # Ver8 sync numbers of jig-originated requests
         # Cut-through: the Rs485 a frame is being streamed to (None: none), per side.
         self.fwd = None  # PC frame -> driver bus
         self.rel = None  # driver frame -> PC bus
@@ -375,15 +382,16 @@ class Bridge:
         v[C_UP_OUT] += 1
 
     # --- jig-originated requests ---------------------------------------------
-    def request(self, client, slave, ftype, data, n, timeout_ms):
-        """Send a request of our own downstream; False if the bridge is busy."""
+    def request(self, client, slave, ftype, data, n, timeout_ms, framing=-1):
+        """Send a request of our own downstream; False if the bridge is busy.
+        ``framing``: -1 the jig's protocol, 0 Ver6, 1 Ver8 (a mixed bus)."""
         flags = self._event(E_INTERNAL)
         if not flags & F_SEND:
             return False
         sync = -1
-        if self.ver8:
+        if framing == 1 or (framing < 0 and self.ver8):
             sync = self.sync_next
-            self.sync_next = (sync + 1) & 0xFF
+            self.sync_next = sync + 1 if sync < INT_SYNC_LAST else INT_SYNC_FIRST
         blen = frame.build_body(self.body, slave, ftype, data, 0, n, sync)
         m = frame.stuff_into(self.txbuf, self.body, blen)
         self.down.send(self.txbuf, m)

@@ -5,6 +5,12 @@ has sent at least one frame, if it then stays silent longer than
 ``safety_timeout_ms`` (0 = off), the jig sends MoveStop or EmergencyStop
 (``safety_action``) once to every driver id that has answered through the bridge,
 and counts the event. It re-arms when the PC speaks again.
+
+Mixed Ver6/Ver8 bus: the stop goes out in the jig's protocol first. A driver that
+executed it answers OK in that layout; any other answer (a driver of the other
+variant reads the frame as an unknown type and answers a frame-type error) makes
+the jig send the stop once more in the other variant's framing to that id. Each
+driver thus executes exactly one stop; on a bus of one variant nothing changes.
 """
 
 from jig import counters as K
@@ -23,6 +29,8 @@ class SafetyStop:
         self.todo = 0  # bitmap of ids still to stop
         self.next_id = 0
         self.waiting = False
+        self.other = False  # the current id gets the stop in the other variant's framing
+        self.ftype = frame.MOVE_STOP
         self.empty = bytearray(1)
 
     def wait_us(self, now):
@@ -59,15 +67,28 @@ class SafetyStop:
             self.todo = 0
             return
         ftype = frame.EMERGENCY_STOP if self.params.ram[P_SAFETY_ACTION] else frame.MOVE_STOP
-        if b.request(self, self.next_id, ftype, self.empty, 0, self.params.ram[P_REPLY_TIMEOUT_MS]):
+        self.ftype = ftype
+        framing = -1
+        if self.other:
+            framing = 0 if b.ver8 else 1
+        if b.request(self, self.next_id, ftype, self.empty, 0, self.params.ram[P_REPLY_TIMEOUT_MS], framing):
             self.waiting = True
 
     def _done(self):
         self.waiting = False
+        self.other = False
         self.todo &= ~(1 << self.next_id)
 
     def on_reply(self, p):
-        self._done()
+        # Executed: status 0 and nothing else, in the layout the stop was sent in.
+        if (not self.other and p.ftype == self.ftype and p.data_end - p.data_start == 1
+                and p.body[p.data_start] == 0):
+            self._done()
+        elif self.other:
+            self._done()
+        else:
+            self.waiting = False
+            self.other = True  # not executed there: the other variant's framing next
 
     def on_timeout(self):
         self._done()
@@ -75,4 +96,5 @@ class SafetyStop:
     def on_abort(self):
         # The PC is back: it is in charge again.
         self.waiting = False
+        self.other = False
         self.todo = 0

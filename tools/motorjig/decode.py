@@ -12,15 +12,23 @@ from jig import frame as F
 
 from motorjig import names as N
 from motorjig.errors import status_meaning
-from motorjig.master import REPLY_LEN, REQUEST_LEN, VAR, AxisStatus
+from motorjig.master import REPLY_LEN, REPLY_LEN_VER8, REQUEST_LEN, VAR, AxisStatus
 
 
 def _i32(d, o):
     return F.get_i32(d, o) if len(d) >= o + 4 else None
 
 
-def _reply_fields(ftype, d):
-    """Decoded fields of a good reply's data (after the status byte), or {}."""
+def _hex_word(d, off, w):
+    v = 0
+    for i in range(w):
+        v |= d[off + i] << (8 * i)
+    return "0x%0*X" % (2 * w, v), v
+
+
+def _reply_fields(ftype, d, ver8=False):
+    """Decoded fields of a good reply's data (after the status byte), or {}. Input
+    words are 32 bits in Ver6, 32 or 64 in Ver8 (told apart by the length)."""
     n = len(d)
     if ftype in (F.GET_SLAVE_INFO, F.GET_MOTOR_INFO) and n >= 1:
         text = bytes(d[1:]).split(b"\x00")[0].decode("ascii", "replace")
@@ -32,22 +40,28 @@ def _reply_fields(ftype, d):
     if ftype in (F.GET_PARAMETER, F.GET_ROM_PARAMETER, F.GET_COMMAND_POS, F.GET_ACTUAL_POS,
                  F.GET_POS_ERROR, F.GET_ACTUAL_VEL) and n == 4:
         return {"value": F.get_i32(d, 0)}
-    if ftype in (F.GET_IO_INPUT, F.GET_IO_OUTPUT) and n == 4:
+    if (ftype == F.GET_IO_OUTPUT and n == 4) or (ftype == F.GET_IO_INPUT and n in ((4, 8) if ver8 else (4,))):
         table = N.INPUT_BITS if ftype == F.GET_IO_INPUT else N.OUTPUT_BITS
-        return {"value": "0x%08X" % F.get_u32(d, 0), "bits": N.bit_names(F.get_u32(d, 0), table)}
+        text, v = _hex_word(d, 0, n)
+        return {"value": text, "bits": N.bit_names(v, table)}
     if ftype == F.GET_ALARM_TYPE and n == 1:
         return {"alarm": N.ALARM_NAMES.get(d[0], d[0])}
-    if ftype == F.GET_ALL_STATUS and n == 32:
-        return {"inputs": "0x%08X" % F.get_u32(d, 0), "outputs": "0x%08X" % F.get_u32(d, 4),
-                "flags": AxisStatus(F.get_u32(d, 8)).flags, "command_pos": F.get_i32(d, 12),
-                "actual_pos": F.get_i32(d, 16), "pos_error": F.get_i32(d, 20),
-                "actual_vel": F.get_i32(d, 24), "pt_number": F.get_u32(d, 28)}
+    if ftype == F.GET_ALL_STATUS and n in ((32, 36) if ver8 else (32,)):
+        w = n - 28
+        return {"inputs": _hex_word(d, 0, w)[0], "outputs": "0x%08X" % F.get_u32(d, w),
+                "flags": AxisStatus(F.get_u32(d, w + 4)).flags, "command_pos": F.get_i32(d, w + 8),
+                "actual_pos": F.get_i32(d, w + 12), "pos_error": F.get_i32(d, w + 16),
+                "actual_vel": F.get_i32(d, w + 20), "pt_number": F.get_u32(d, w + 24)}
     if ftype == F.GET_MOTION_STATUS and n == 20:
-        return {"command_pos": F.get_i32(d, 0), "actual_pos": F.get_i32(d, 4),
-                "pos_error": F.get_i32(d, 8), "actual_vel": F.get_i32(d, 12)}
-    if ftype == F.GET_IO_AXIS_STATUS and n == 12:
-        return {"inputs": "0x%08X" % F.get_u32(d, 0), "outputs": "0x%08X" % F.get_u32(d, 4),
-                "flags": AxisStatus(F.get_u32(d, 8)).flags}
+        out = {"command_pos": F.get_i32(d, 0), "actual_pos": F.get_i32(d, 4),
+               "pos_error": F.get_i32(d, 8), "actual_vel": F.get_i32(d, 12)}
+        if ver8:  # Ver8: the axis flags in place of the PT number
+            out["flags"] = AxisStatus(F.get_u32(d, 16)).flags
+        return out
+    if ftype == F.GET_IO_AXIS_STATUS and n in ((12, 16) if ver8 else (12,)):
+        w = n - 8
+        return {"inputs": _hex_word(d, 0, w)[0], "outputs": "0x%08X" % F.get_u32(d, w),
+                "flags": AxisStatus(F.get_u32(d, w + 4)).flags}
     if ftype == D.READ_CRASH_LOG:
         try:
             return {"crash_log": D.decode_crash_log(b"\x00" + bytes(d))}
@@ -76,13 +90,13 @@ def _request_fields(ftype, d):
     return {}
 
 
-def looks_like_reply(ftype, data):
+def looks_like_reply(ftype, data, ver8=False):
     if not data or data[0] not in N.STATUS_NAMES:
         return False
     if data[0] != F.STATUS_OK:
         return len(data) == 1
-    want = REPLY_LEN.get(ftype)
-    return want == VAR or want == len(data) - 1
+    want = (REPLY_LEN_VER8 if ver8 else REPLY_LEN).get(ftype)
+    return want == VAR or want == len(data) - 1 or (isinstance(want, tuple) and len(data) - 1 in want)
 
 
 def looks_like_request(ftype, data):
@@ -111,7 +125,7 @@ class Decoder:
         if key in self.pending and fr.data:
             self.pending.discard(key)
             return "reply"
-        if looks_like_reply(fr.ftype, fr.data) and not looks_like_request(fr.ftype, fr.data):
+        if looks_like_reply(fr.ftype, fr.data, fr.sync >= 0) and not looks_like_request(fr.ftype, fr.data):
             return "reply"
         self.pending.add(key)
         return "request"
@@ -126,7 +140,7 @@ class Decoder:
             out["status"] = fr.data[0]
             out["status_name"] = N.status_name(fr.data[0])
             if fr.data[0] == F.STATUS_OK:
-                out.update(_reply_fields(fr.ftype, fr.data[1:]))
+                out.update(_reply_fields(fr.ftype, fr.data[1:], fr.sync >= 0))
             else:
                 out["meaning"] = status_meaning(fr.data[0])
         elif kind != "reply":

@@ -125,9 +125,9 @@ REPLY_LEN_VER8 = dict(REPLY_LEN)
 REPLY_LEN_VER8.update({F.GET_IO_INPUT: (4, 8), F.GET_IO_AXIS_STATUS: (12, 16), F.GET_ALL_STATUS: (32, 36)})
 
 SYNC_SEED = 0xF0  # the vendor V8 class starts its per-slave counters here
-#: frame types a Ver6 drive knows: a Ver8 broadcast on a mixed bus avoids them as its
-#: sync number, since a Ver6 drive reads that byte as the frame type
-_V6_TYPES = frozenset(REQUEST_LEN)
+#: sync numbers of a Ver8 broadcast on a mixed bus: a Ver6 drive reads that byte as its
+#: frame type, and the protocol notes list none (not even vendor-internal) in this range
+MIXED_BROADCAST_SYNCS = range(0xC0, 0xF0)
 POS_TABLE_ITEM_SIZE = 64
 _READ_SLICE = 0.005  # seconds one port read may block; bounds the timeout overshoot
 
@@ -342,9 +342,13 @@ class Master:
         """The sync number for the next Ver8 request to slave (one counter per slave)."""
         if slave == F.BROADCAST_ID:
             used = set(self._sync.values())
-            if 6 in self._variants.values():  # Ver6 drives hear it too: no type of theirs
-                used |= _V6_TYPES
             s = (max(self._sync.values()) + 1) & 0xFF if self._sync else SYNC_SEED
+            if 6 in self._variants.values():  # Ver6 drives hear it too: no type of theirs
+                r = MIXED_BROADCAST_SYNCS
+                if s not in r:
+                    s = r[0]
+                while s in used:
+                    s = s + 1 if s + 1 in r else r[0]
             while s in used:
                 s = (s + 1) & 0xFF
             for k in self._sync:
@@ -510,11 +514,12 @@ class Master:
             if len(b) >= h + 3 and b[:h] == sent_body[:h]:
                 return self._frame(b, fr.t, sync >= 0)
 
-    def request(self, slave, ftype, data=b"", timeout=None, retries=None, check=True):
+    def request(self, slave, ftype, data=b"", timeout=None, retries=None, check=True, ver8=None):
         """Send one request and return its reply Frame (``data[0]`` is the status).
 
         With ``check`` (default) a non-zero status raises its StatusError and the
-        reply length is checked against the frame type.
+        reply length is checked against the frame type. ``ver8`` None frames it in the
+        slave's variant (detected first if not known); True/False force the framing.
         """
         if slave != F.BROADCAST_ID:
             _check_slave(slave)
@@ -523,7 +528,8 @@ class Master:
         if retries is None:
             retries = self.retries
         attempts = 1 + retries if ftype in IDEMPOTENT else 1
-        ver8 = self._broadcast_ver8() if slave == F.BROADCAST_ID else self.variant(slave) == 8
+        if ver8 is None:
+            ver8 = self._broadcast_ver8() if slave == F.BROADCAST_ID else self.variant(slave) == 8
         last = None
         for attempt in range(attempts):
             sync = self.next_sync(slave) if ver8 else -1
@@ -582,9 +588,13 @@ class Master:
 
     # --- info / parameters -------------------------------------------------------
     def is_slave_exist(self, slave, timeout=None):
-        """True when slave answers GetSlaveInfo (any status) within the timeout; one try."""
+        """True when slave answers GetSlaveInfo (any status) within the timeout; one try
+        (after the variant probe, with the same timeout, when the variant is not known)."""
+        ver8 = self._known_ver8(slave)
+        if ver8 is None:
+            ver8 = self.detect_variant(slave, timeout=timeout, retries=0) == 8
         try:
-            self.request(slave, F.GET_SLAVE_INFO, timeout=timeout, retries=0, check=False)
+            self.request(slave, F.GET_SLAVE_INFO, timeout=timeout, retries=0, check=False, ver8=ver8)
             return True
         except (NoReplyError, ReplyCRCError):
             return False
