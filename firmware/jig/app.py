@@ -186,12 +186,13 @@ class App:
         if it is due."""
         # Driver bus first: a reply already in must be relayed before a new PC
         # request aborts its wait.
+        # Ask for no more than is waiting: a UART read asked for more waits for it.
         if down_waiting:
-            n = self._down_read(self.down_rx, RX_CHUNK)
+            n = self._down_read(self.down_rx, down_waiting if down_waiting < RX_CHUNK else RX_CHUNK)
             if n:
                 self._down_bytes(self.down_parser, self.down_rx, n, self._ticks())
         if up_waiting:
-            n = self._up_read(self.up_rx, RX_CHUNK)
+            n = self._up_read(self.up_rx, up_waiting if up_waiting < RX_CHUNK else RX_CHUNK)
             if n:
                 self._up_bytes(self.up_parser, self.up_rx, n, self._ticks())
         now = self._ticks()
