@@ -486,12 +486,6 @@ def test_app_bridges_on_the_board_hal(fakes, tmp_path):
 
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="jig.app asks readinto for RX_CHUNK bytes whatever any() said; on stm32 such a read "
-    "waits one character timeout (>= 2 ms) after the last byte. The HAL contract (docs/hal.md) is "
-    "n <= any(); remove this marker when the app keeps it.",
-)
 def test_app_reads_only_the_bytes_waiting(fakes, tmp_path):
     from jig import frame
     from jig.app import App
