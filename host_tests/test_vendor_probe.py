@@ -22,6 +22,7 @@ import struct
 import pytest
 
 import capture_format as cf
+from jig import params as P
 from motorjig.sim import SimBench
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -130,16 +131,19 @@ COMBOS = [(jig, drv) for jig in (False, True) for drv in ((), (2,), (3,), (2, 3)
 
 @pytest.mark.parametrize("jig_ver8,ver8_drivers", COMBOS,
                          ids=["jig%d-v8drivers%s" % (8 if j else 6, "".join(map(str, d)) or "none") for j, d in COMBOS])
-def test_vendor_detection_finds_every_slave_with_its_variant(jig_ver8, ver8_drivers):
-    bench = SimBench(driver_ids=(2, 3), jig_ver8=jig_ver8, ver8_drivers=ver8_drivers)
+@pytest.mark.parametrize("mode", [P.CUT_THROUGH, P.STORE_AND_FORWARD], ids=["cut", "saf"])
+def test_vendor_detection_finds_every_slave_with_its_variant(jig_ver8, ver8_drivers, mode):
+    bench = SimBench(driver_ids=(2, 3), jig_ver8=jig_ver8, ver8_drivers=ver8_drivers,
+                     jig_params={P.P_FORWARD_MODE: mode})
     m = VendorStyleMaster(bench)
     assert m.connect() == {1: 8 if jig_ver8 else 6, 2: 8 if 2 in ver8_drivers else 6,
                            3: 8 if 3 in ver8_drivers else 6}
 
 
+@pytest.mark.parametrize("mode", [P.CUT_THROUGH, P.STORE_AND_FORWARD], ids=["cut", "saf"])
 @pytest.mark.parametrize("jig_ver8", [False, True], ids=["jig-ver6", "jig-ver8"])
-def test_vendor_style_session_on_a_mixed_bus(jig_ver8):
-    bench = SimBench(driver_ids=(2, 3), jig_ver8=jig_ver8, ver8_drivers=(3,))
+def test_vendor_style_session_on_a_mixed_bus(jig_ver8, mode):
+    bench = SimBench(driver_ids=(2, 3), jig_ver8=jig_ver8, ver8_drivers=(3,), jig_params={P.P_FORWARD_MODE: mode})
     m = VendorStyleMaster(bench)
     assert m.connect() == {1: 8 if jig_ver8 else 6, 2: 6, 3: 8}
     assert m.sync[3] == 0xF1 and (not jig_ver8 or m.sync[1] == 0xF1)  # the Ver8 probe used 0xF1
