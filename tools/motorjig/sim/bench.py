@@ -110,6 +110,7 @@ class JigRunner:
             return  # the running poll reschedules when it returns
         self.in_poll = True
         try:
+            self.hal.begin_pass()
             self.app.poll()
             self.polls += 1
         finally:
@@ -124,11 +125,19 @@ class JigRunner:
 
 
 class SimBench:
-    """PC + jig + drivers on a virtual clock (``realtime=True``: on the wall clock)."""
+    """PC + jig + drivers on a virtual clock (``realtime=True``: on the wall clock).
+
+    ``direct=True``: no jig; the PC's adapter is on the driver bus with the same
+    drivers (to measure what the jig costs). ``stream_chunk``: bytes per delivery
+    to the jig's ports while a frame arrives (see ``link``). ``cpu_model`` =
+    (µs per main-loop pass that read input, µs per byte read): the jig's CPU time
+    on the virtual timeline (see ``hal``); default (0, 0).
+    """
 
     def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
-                 echo_down=False, record=True, servo_on=False, start_us=None):
+                 echo_down=False, record=True, servo_on=False, start_us=None, direct=False,
+                 stream_chunk=1, cpu_model=(0.0, 0.0)):
         if realtime:
             self.clock = PacedClock()
         else:
@@ -143,16 +152,23 @@ class SimBench:
             settings.setdefault(P.P_PROTOCOL, 1)
         baud = baud or 115200
         down_baud = down_baud or baud
-        self.up_bus = Bus(self.clock, baud, "up")
-        self.down_bus = Bus(self.clock, down_baud, "down")
+        self.direct = direct
+        self.down_bus = Bus(self.clock, down_baud, "down", stream_chunk)
+        # direct: the PC's adapter sits on the driver bus itself, no jig in the line.
+        self.up_bus = self.down_bus if direct else Bus(self.clock, baud, "up", stream_chunk)
         self.ver8 = ver8
         self.pc = PcPort(self, self.up_bus, ver8)
         self.drivers = {}
         for i in driver_ids:
             self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, ver8, servo_on=servo_on)
+        self._sync = 0
+        if direct:
+            self.fs = fs
+            self.hal = self.runner = self.app = None
+            return
         self.fs = fs if fs is not None else SimFS()
         self.hal = SimHAL(self.clock, self.up_bus, self.down_bus, self.fs, rxsize=rxsize,
-                          echo_up=echo_up, echo_down=echo_down, record=record)
+                          echo_up=echo_up, echo_down=echo_down, record=record, cpu_model=cpu_model)
         if settings or fresh:
             self.write_params(settings)
         self.runner = JigRunner(self.clock, self.hal)
@@ -182,7 +198,8 @@ class SimBench:
         """Switch off every injected fault: the drives' switches, corruption to the PC."""
         for d in self.drivers.values():
             d.clear_faults()
-        self.hal.up.node.corrupt(0)
+        if self.hal is not None:
+            self.hal.up.node.corrupt(0)
 
     def corrupt_to_pc(self, frames=1):
         """Flip a bit in each of the next ``frames`` transmissions of the jig to the PC
