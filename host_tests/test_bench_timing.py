@@ -86,6 +86,31 @@ def test_cpu_slower_than_the_bytes_batches_them_and_still_answers():
     assert cpu < 8 * 200.0  # bytes that arrived during a pass were read together
 
 
-def test_bad_cpu_model_is_refused():
+def test_bad_options_are_refused():
     with pytest.raises(ValueError):
         SimBench(cpu_model=(-1.0, 0.0))
+    with pytest.raises(ValueError):
+        SimBench(direct=True, cpu_model=(10.0, 0.0))  # no jig to be slow
+    with pytest.raises(ValueError):
+        SimBench(direct=True, jig_params={12: 1})
+    with pytest.raises(ValueError):
+        SimBench(stream_chunk=0)
+
+
+def test_jig_port_can_send_a_frame_in_pieces_with_de_held():
+    """What a cut-through jig does: DE up, the frame written as it arrives, DE down."""
+    b = SimBench(driver_ids=(2,), baud=115200)
+    b.run_for(1000.0)
+    port = b.hal.down
+    frame = F.encode(2, F.GET_SLAVE_INFO)
+    port.de(1)
+    t0 = b.clock.now
+    for i in range(len(frame)):
+        port.write(frame[i:i + 1], 1)  # blocks until its stop bit has left
+        assert b.clock.now == pytest.approx(t0 + (i + 1) * b.down_bus.bt + i * 30.0)
+        b.run_for(30.0)  # the next byte is late: the line idles, DE stays high
+    port.de(0)
+    b.run_for(20000.0)
+    d = b.drivers[2]
+    assert d.requests == 1 and d.replies == 1 and b.down_bus.lost == 0
+    assert [v for _t, v in port.node.de_log[-2:]] == [1, 0]

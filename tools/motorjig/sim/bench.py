@@ -163,6 +163,8 @@ class SimBench:
             self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, ver8, servo_on=servo_on)
         self._sync = 0
         if direct:
+            if jig_params or any(cpu_model):
+                raise ValueError("direct=True has no jig: jig_params and cpu_model do not apply")
             self.fs = fs
             self.hal = self.runner = self.app = None
             return
