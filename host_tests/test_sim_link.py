@@ -247,3 +247,32 @@ def test_one_event_per_segment_when_no_streaming_node_hears_it():
     assert len(clock._heap) == 2
     clock.run_until(1e6)
     assert len(got["s"]) == 0 and bus.lost == 20  # nobody raised DE
+
+
+def test_corrupt_counts_frames_not_pieces():
+    """corrupt(2) on a frame sent byte by byte flips one bit in it and one in the next frame."""
+    from jig import frame as F
+    from jig.parser import FrameParser
+
+    clock, bus, a, s, w, got = make_stream(baud=115200)
+    frames = [F.encode(2, 0x51, bytes([i, 0xAA, 0xAA])) for i in range(3)]
+    a.corrupt(2)
+    a.set_de(1)
+    for fr in frames:
+        for i in range(len(fr)):
+            clock.run_until(a.transmit(fr[i:i + 1]))
+    a.set_de(0)
+    clock.run_until(clock.now + 1000.0)
+    p = FrameParser()
+    p.feed(b"".join(d for _t, d in got["s"]))
+    assert (p.crc_errors, p.stuff_errors, p.good) == (2, 0, 1) and bus.corrupted == 2
+    # whole frames, one segment each: one bit in each of the next n
+    a.corrupt(1)
+    a.set_de(1)
+    for fr in frames[:2]:
+        clock.run_until(a.transmit(fr))
+    a.set_de(0)
+    clock.run_until(clock.now + 1000.0)
+    q = FrameParser()
+    q.feed(b"".join(d for _t, d in got["w"][-2:]))
+    assert (q.crc_errors, q.good) == (1, 1) and bus.corrupted == 3

@@ -60,13 +60,27 @@ def flip_for_crc(data):
 def flip_in_piece(data, prev=-1):
     """Like ``flip_for_crc`` for a piece of a frame: flip the last byte that is
     neither 0xAA, 0xAB nor preceded by 0xAA (``prev``: the byte sent before the
-    piece, -1 if none). Returns (data, flipped?)."""
+    piece, -1 if none). Returns (data, index of the flipped byte or -1)."""
     for i in range(len(data) - 1, -1, -1):
         if _flippable(data, i, prev):
             out = bytearray(data)
             out[i] ^= 0x01
-            return bytes(out), True
-    return data, False
+            return bytes(out), i
+    return data, -1
+
+
+def _tail_end(data, start, esc):
+    """Index after the first frame tail (AA EE, not a stuffed AA AA) in data[start:],
+    or -1; esc: the byte before start was an unpaired 0xAA. Returns (index, esc)."""
+    for i in range(start, len(data)):
+        b = data[i]
+        if esc:
+            esc = False
+            if b == 0xEE:
+                return i + 1, False
+        else:
+            esc = b == 0xAA
+    return -1, esc
 
 
 class Node:
@@ -88,6 +102,8 @@ class Node:
         self.hw_de = False
         self.corrupt_next = 0  # fault: transmissions left whose bytes get one bit flipped
         self.last_byte = -1  # the last byte we queued (corruption looks across pieces)
+        self.corrupt_hold = False  # a frame of ours was corrupted and its tail is not sent yet
+        self.corrupt_esc = False  # while holding: the last byte was an unpaired 0xAA
 
     def corrupt(self, n=1):
         """Flip a bit (see ``flip_for_crc``) in each of our next n transmissions."""
@@ -195,11 +211,8 @@ class Bus:
         elif t0 < node.tx_until:
             t0 = node.tx_until
         data = bytes(data)
-        if node.corrupt_next > 0 and data:
-            data, flipped = flip_in_piece(data, node.last_byte)
-            if flipped:
-                node.corrupt_next -= 1
-                self.corrupted += 1
+        if (node.corrupt_next > 0 or node.corrupt_hold) and data:
+            data = self._corrupt(node, data)
         if data:
             node.last_byte = data[-1]
         seg = Segment(node, t0, self.bt, data)
@@ -234,6 +247,33 @@ class Bus:
                 lo = s.t0
         while recent and recent[0].end <= lo:
             recent.popleft()
+
+    def _corrupt(self, node, data):
+        """Node.corrupt: one flipped bit per frame, also when the frame is sent in
+        pieces (after a flip, none until that frame's tail has been sent)."""
+        start = 0
+        esc = node.corrupt_esc
+        while True:
+            if node.corrupt_hold:
+                end, esc = _tail_end(data, start, esc)
+                if end < 0:
+                    break
+                node.corrupt_hold = False
+                start = end
+            if node.corrupt_next <= 0 or start >= len(data):
+                break
+            prev = data[start - 1] if start else node.last_byte
+            piece, i = flip_in_piece(data[start:], prev)
+            if i < 0:
+                break
+            data = data[:start] + piece
+            node.corrupt_next -= 1
+            self.corrupted += 1
+            node.corrupt_hold = True
+            start += i + 1
+            esc = False  # the flipped byte is not 0xAA
+        node.corrupt_esc = esc
+        return data
 
     def _on_line(self, seg, a, b):
         """seg's bytes [a, b) as they are on the line now: bytes sent with DE low
