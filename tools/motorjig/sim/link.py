@@ -20,7 +20,7 @@ chunk, so both kinds of receiver see the same bytes:
   ``n`` transmissions (a frame byte that is not part of a stuffing pair, so the
   receiver sees a CRC error rather than a framing error); the choice is made when
   the segment is queued, and looks at the byte the node sent before it, so a frame
-  written in several pieces (cut-through) is corrupted the same way.
+  written in several pieces (cut-through) is corrupted the same way, once.
 
 Per-chunk events are only scheduled for a segment that a streaming node hears;
 everything else costs one event per segment, as before.
