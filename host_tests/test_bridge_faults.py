@@ -218,7 +218,9 @@ def test_unsolicited_driver_bus_frame_never_reaches_pc():
 
 
 def test_rx_overflow_counted_and_recovered():
-    b = make(rxsize=64)
+    # The jig's ring gets the whole burst at once (stream_chunk larger than the
+    # burst), as if the main loop were stalled while it arrived: more than it holds.
+    b = make(rxsize=64, stream_chunk=256)
     burst = F.encode(2, F.SET_PARAMETER, b"\x03" + bytes(4)) * 10  # 130 bytes in one go
     b.send(burst)
     b.run_for(50000.0)

@@ -8,7 +8,12 @@
    with the collector disabled (goal: 0).
 3. On the virtual bench's timeline, for every baud rate: the latency the jig adds
    over a direct PC<->driver connection beyond store-and-forward (goal: <= one
-   byte time + the DE pre-delay per hop).
+   byte time + the DE pre-delay per hop), measured in store-and-forward mode.
+4. On the virtual bench's timeline, for every baud rate and both forwarding modes
+   (jig parameter 12): how often a pyserial-style PC master can poll GetAllStatus
+   from driver 2 through the jig and wired directly to the same driver, the ratio,
+   and the latency the jig adds per hop, with the jig's CPU time on the M7 modelled
+   from the instruction counts below (``JIG_CPU_MODEL``).
 """
 
 import argparse
@@ -80,9 +85,107 @@ def micropython_heap(n):
 
 DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 
+# The jig's CPU time on the STM32H7's Cortex-M7, for the polling-rate table: instruction
+# counts from `make test-qemu` (emulated M7, MicroPython's qemu port), turned into time
+# ASSUMING 400 MHz and one instruction per cycle (the M7 is dual-issue but waits on
+# flash and memory; the real ratio is not measured). Placeholders from issue 8's
+# figures for the store-and-forward firmware: an idle main-loop pass 25 900, a
+# forwarded transaction (8-byte request + 13-byte reply, two passes) 175 000, i.e.
+# (175 000 - 2 * 25 900) / 21 per received byte. Update both after `make test-qemu`.
+M7_HZ = 400e6
+PASS_INSTR = 25900  # one main-loop pass that read input, without the bytes
+FORWARD_INSTR_PER_BYTE = 5870  # each byte read (parse + forward/relay share)
+JIG_CPU_MODEL = (PASS_INSTR / M7_HZ * 1e6, FORWARD_INSTR_PER_BYTE / M7_HZ * 1e6)  # (us/pass, us/byte)
+
+POLL_SLAVE = 2
+
+
+def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model=JIG_CPU_MODEL,
+                 stream_chunk=1, warmup=3):
+    """A pyserial-style master polls GetAllStatus from driver 2 on the virtual timeline.
+
+    The PC sends, waits for the complete reply frame and sends the next request at
+    once. Returns a dict: rate (polls/s over n polls after ``warmup``), period_us,
+    req_bytes/rep_bytes (wire bytes), and, through the jig, req_hop_us (PC's last
+    stop bit -> jig's last stop bit of the forwarded request on the driver bus) and
+    rep_hop_us (driver's last stop bit -> jig's last stop bit of the relayed reply),
+    each the mean over the n polls (min and max in *_hop_min/max_us).
+    Raises RuntimeError if a poll gets no good reply.
+    """
+    kw = dict(driver_ids=(POLL_SLAVE,), baud=baud, turnaround_us=DRIVER_TURNAROUND_US, record=False,
+              stream_chunk=stream_chunk)
+    if direct:
+        b = SimBench(direct=True, **kw)
+    else:
+        b = SimBench(jig_params={P.P_FORWARD_MODE: forward_mode}, cpu_model=cpu_model, **kw)
+    ends = {}  # node name -> end of its last segment on the wire
+
+    def seen(seg, data):
+        if data:
+            ends[seg.node.name] = seg.end
+
+    b.up_bus.monitor = seen
+    b.down_bus.monitor = seen
+    req_hops, rep_hops = [], []
+    t_start = None
+    wire = b""
+    for i in range(warmup + n):
+        if i == warmup:
+            t_start = b.clock.now
+        ends.clear()
+        wire, data = b.request(POLL_SLAVE, F.GET_ALL_STATUS, timeout_us=1e6)
+        if data is None or data[0] != 0:
+            raise RuntimeError("%d baud%s: poll %d got no good GetAllStatus reply"
+                               % (baud, " direct" if direct else "", i))
+        if i >= warmup and not direct:
+            req_hops.append(ends["jig-down"] - ends["pc"])
+            rep_hops.append(ends["jig-up"] - ends["driver-%d" % POLL_SLAVE])
+    period = (b.clock.now - t_start) / n
+    out = dict(baud=baud, direct=direct, rate=1e6 / period, period_us=period,
+               req_bytes=len(F.encode(POLL_SLAVE, F.GET_ALL_STATUS)), rep_bytes=len(wire), byte_us=10e6 / baud)
+    if not direct:
+        out.update(forward_mode=forward_mode,
+                   req_hop_us=sum(req_hops) / n, rep_hop_us=sum(rep_hops) / n,
+                   req_hop_min_us=min(req_hops), req_hop_max_us=max(req_hops),
+                   rep_hop_min_us=min(rep_hops), rep_hop_max_us=max(rep_hops),
+                   jig_cpu_us=b.hal.cpu_us)
+    return out
+
+
+def direct_period_us(req_bytes, rep_bytes, baud, turnaround_us=DRIVER_TURNAROUND_US):
+    """Wire-time model of one direct poll: both frames at 10 bits a byte, plus the drive's turnaround."""
+    return (req_bytes + rep_bytes) * 10e6 / baud + turnaround_us
+
+
+def print_polling_table(cpu_model, n):
+    print("  GetAllStatus polling rate of a pyserial-style master, driver %d, virtual timeline" % POLL_SLAVE)
+    print("  (drive turnaround %.0f us; jig CPU model %.1f us per pass + %.2f us per byte read ="
+          % (DRIVER_TURNAROUND_US, cpu_model[0], cpu_model[1]))
+    print("   %d + %d instructions at %.0f MHz, 1 instruction per cycle: an assumption)"
+          % (round(cpu_model[0] * M7_HZ / 1e6), round(cpu_model[1] * M7_HZ / 1e6), M7_HZ / 1e6))
+    names = {P.CUT_THROUGH: "cut-through (param 12 = 0)", P.STORE_AND_FORWARD: "store-and-forward (param 12 = 1)"}
+    direct = {baud: polling_rate(baud, direct=True, n=n) for baud in P.BAUD_RATES}
+    for mode in (P.CUT_THROUGH, P.STORE_AND_FORWARD):
+        print("    %s:" % names[mode])
+        print("    %7s %10s %10s %7s %13s %13s %8s" % ("baud", "direct /s", "jig /s", "ratio",
+                                                   "req hop us", "reply hop us", "byte us"))
+        for baud in P.BAUD_RATES:
+            d = direct[baud]
+            try:
+                j = polling_rate(baud, forward_mode=mode, n=n, cpu_model=cpu_model)
+            except RuntimeError as exc:  # a firmware that loses replies: say so, measure the rest
+                print("    %7d %10.1f  FAILED: %s" % (baud, d["rate"], exc))
+                continue
+            print("    %7d %10.1f %10.1f %6.1f%% %13.1f %13.1f %8.1f"
+                  % (baud, d["rate"], j["rate"], 100.0 * j["rate"] / d["rate"], j["req_hop_us"],
+                     j["rep_hop_us"], j["byte_us"]))
+    print("    (hop = last stop bit of the frame on one bus -> last stop bit of the same frame")
+    print("     leaving the jig on the other; a wire would add 0, cut-through about 1-2 byte times)")
+
 
 def timeline(baud):
-    b = SimBench(driver_ids=(2,), baud=baud, turnaround_us=DRIVER_TURNAROUND_US)
+    b = SimBench(driver_ids=(2,), baud=baud, turnaround_us=DRIVER_TURNAROUND_US,
+                 jig_params={P.P_FORWARD_MODE: P.STORE_AND_FORWARD})
     segs = []
     for bus in (b.up_bus, b.down_bus):
         bus.monitor = lambda seg, data: segs.append((seg.node.name, seg.t0, seg.end))
@@ -91,7 +194,9 @@ def timeline(baud):
     for _ in range(20):
         segs.clear()
         wire, r = b.request(2, F.GET_ALL_STATUS, timeout_us=1e6)
-        s = {name: (t0, t1) for name, t0, t1 in segs}
+        s = {}  # node name -> (start of its first segment, end of its last)
+        for name, t0, t1 in segs:
+            s[name] = (s[name][0] if name in s else t0, t1)
         added_fwd.append(s["jig-down"][0] - s["pc"][1])
         added_rel.append(s["jig-up"][0] - s["driver-2"][1])
         rt.append(s["jig-up"][1] - s["pc"][0])
@@ -108,10 +213,21 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description="Bridge benchmark: CPU time, heap use and added latency per transaction.")
     ap.add_argument("-n", type=int, default=20000, help="transactions for the CPU/heap figures (default 20000)")
     ap.add_argument("--no-vm", action="store_true", help="skip the MicroPython (WebAssembly) heap measurement")
+    ap.add_argument("--polls", type=int, default=40, help="polls per cell of the polling-rate table (default 40)")
+    ap.add_argument("--no-cpu-model", action="store_true",
+                    help="polling-rate table with an infinitely fast jig CPU (wire time only)")
+    ap.add_argument("--polling-only", action="store_true", help="print only the polling-rate table")
     args = ap.parse_args(argv)
     if args.n < 100:
         print("error: -n must be at least 100", file=sys.stderr)
         return 2
+    if args.polls < 1:
+        print("error: --polls must be at least 1", file=sys.stderr)
+        return 2
+    cpu_model = (0.0, 0.0) if args.no_cpu_model else JIG_CPU_MODEL
+    if args.polling_only:
+        print_polling_table(cpu_model, args.polls)
+        return 0
     print("bridge benchmark (%s %s)" % (sys.implementation.name, sys.version.split()[0]))
     fwd, loc, idle = cpu_per_transaction(args.n)
     print("  CPU per forwarded transaction (request forwarded + reply relayed): %7.1f us" % (fwd * 1e6))
@@ -126,7 +242,8 @@ def main(argv=None):
         else:
             print("  MicroPython heap bytes per transaction (gc off): forwarded %.1f, local %.1f, ReadCounters %.1f"
                   % tuple(mp))
-    print("  added latency on the virtual timeline (goal per hop: <= 1 byte time + DE pre-delay):")
+    print("  added latency on the virtual timeline, store-and-forward mode, no CPU model")
+    print("  (goal per hop: <= 1 byte time + DE pre-delay):")
     print("    %7s %8s %8s %12s %12s %11s %11s" % ("baud", "byte us", "pre us", "fwd hop us", "relay hop us", "round trip", "S&F bound"))
     for baud in P.BAUD_RATES:
         t = timeline(baud)
@@ -135,6 +252,7 @@ def main(argv=None):
               % (baud, t["byte_us"], t["pre"], t["fwd"], t["rel"], t["rt"], t["sf"], "ok" if ok else "OVER"))
     print("    (round trip = PC request start to relayed reply end; S&F bound = direct")
     print("     connection + both frames sent twice, i.e. pure store-and-forward)")
+    print_polling_table(cpu_model, args.polls)
     return 0
 
 

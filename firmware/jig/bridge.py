@@ -190,9 +190,9 @@ class Bridge:
         self._ticks = hal.ticks_us
         self._turnaround = counters.turnaround
         # Cut through, the raw bytes go straight to the port's write (Rs485.part adds
-        # nothing to it for a port whose write returns after the last stop bit).
-        self.fwd_part = down.part if not down.tx_blocks else down.port.write
-        self.rel_part = up.part if not up.tx_blocks else up.port.write
+        # nothing to it for an echo-free port whose write returns after the last stop bit).
+        self.fwd_part = down.port.write if down.tx_blocks and not down.track_echo else down.part
+        self.rel_part = up.port.write if up.tx_blocks and not up.track_echo else up.part
         self.up_timeout_us = 5000  # inter-byte timeouts (the app keeps them current)
         self.down_timeout_us = 5000
 
@@ -516,7 +516,9 @@ class Bridge:
 
     def poll(self, now):
         """Time out the pending wait."""
-        if self.state != IDLE and self.rel is None and ticks_diff(now, self.deadline) >= 0:
+        # (the wait starts when the request has gone, and no timeout cuts a frame
+        # being passed on short: cut through, either is still in progress)
+        if self.state != IDLE and self.rel is None and self.fwd is None and ticks_diff(now, self.deadline) >= 0:
             self._event(E_TIMEOUT)
             client = self.client
             if client is None:
@@ -527,9 +529,9 @@ class Bridge:
                 client.on_timeout()
 
     def wait_us(self, now):
-        """µs until the pending wait times out (-1: nothing pending, or a reply is
-        being relayed, which no timeout cuts short)."""
-        if self.state == IDLE or self.rel is not None:
+        """µs until the pending wait times out (-1: nothing pending, or a frame is
+        being passed on, which no timeout cuts short)."""
+        if self.state == IDLE or self.rel is not None or self.fwd is not None:
             return -1
         d = ticks_diff(self.deadline, now)
         return d if d > 0 else 0

@@ -38,7 +38,7 @@ class Rs485:
         self.t_tx_start = 0  # tick when DE last went up (or the write started)
         self._keep = 0  # bytes still to deliver before the echo to skip
         self._skip = 0  # echo bytes still to skip
-        self._keep_at_begin = 0  # bytes waiting when the transmission began
+        self._expect = 0  # bytes in the receive buffer, as last seen (echo bookkeeping)
         self.re = getattr(port, "re", None)  # separate /RE pin, if any
         # A port whose receiver is off while it drives the bus (/RE tied to DE, as on
         # the jig) hears no echo: nothing to count or skip, reads go straight through.
@@ -76,7 +76,7 @@ class Rs485:
         """Take the bus (/RE off, DE up, pre-delay: software DE) and transmit the
         first part, buf[off:off + n]."""
         if self.track_echo:
-            self._keep_at_begin = self._any()
+            self._expect = self._any()  # what is waiting now arrived before we talked
         if not self.hw:
             if self.re is not None:
                 self.re(1)
@@ -84,18 +84,18 @@ class Rs485:
         self.t_tx_start = self._ticks()
         if self.pre_us and not self.hw:
             self._sleep(self.pre_us)
-        self._write(buf, off, n)
-        if not self.tx_blocks:
-            self._sleep(wire_time_us(n, self.port.baud))
+        self.part(buf, off, n)
 
     def part(self, buf, off, n):
         """Transmit buf[off:off + n] while the bus is ours; returns after its last stop bit."""
         self._write(buf, off, n)
         if not self.tx_blocks:
             self._sleep(wire_time_us(n, self.port.baud))
+        if self.track_echo:
+            self._note_echo()
 
     def finish(self):
-        """Release the bus after the last part: post-delay, DE down, /RE on; count echo."""
+        """Release the bus after the last part: post-delay, DE down, /RE on."""
         if not self.hw:
             if self.post_us:
                 self._sleep(self.post_us)
@@ -104,13 +104,20 @@ class Rs485:
                 self.re(0)
         self.tx_frames += 1
         if self.track_echo:
-            keep = self._keep_at_begin
-            echo = self._any() - keep
-            if echo > 0:
-                if self._skip == 0:
-                    self._keep = keep
-                self._skip += echo
-                self.echo_bytes += echo
+            self._note_echo()
+
+    def _note_echo(self):
+        """Bytes that came in while we talked are our own echo: skip them when read.
+        (A frame sent in pieces may be read from between the pieces: ``_expect``
+        follows what is in the receive buffer.)"""
+        waiting = self._any()
+        echo = waiting - self._expect
+        if echo > 0:
+            if self._skip == 0:
+                self._keep = self._expect
+            self._skip += echo
+            self.echo_bytes += echo
+        self._expect = waiting
 
     def send(self, buf, n):
         """Transmit buf[0:n] with DE framing; returns when the line is released."""
@@ -123,6 +130,9 @@ class Rs485:
     def _read_skipping_echo(self, buf, n):
         """Received bytes (echo removed) into buf[0:]; returns the count."""
         got = self.port.readinto(buf, n)
+        self._expect -= got
+        if self._expect < 0:
+            self._expect = 0
         if self._skip == 0 or got == 0:
             return got
         k = self._keep

@@ -98,6 +98,8 @@ class JigRunner:
         self.in_poll = False
         self.t_next = None
         self.polls = 0
+        self.t_last_run = None
+        self.same_instant = 0
         self._reschedule()
 
     def wake(self):
@@ -117,6 +119,7 @@ class JigRunner:
             return  # the running poll reschedules when it returns
         self.in_poll = True
         try:
+            self.hal.begin_pass()
             self.app.poll()
             self.polls += 1
         finally:
@@ -127,16 +130,33 @@ class JigRunner:
         w = self.app.wait_us()
         if w < 0:
             return
-        self._schedule(self.clock.now + max(w, 1))
+        # Bytes that came in while the poll was blocked in a write are handled at once
+        # (as the board's loop would); a 1 µs step only guards against a poll that
+        # makes no progress at the same instant again and again.
+        if w == 0 and self.clock.now == self.t_last_run:
+            self.same_instant += 1
+            if self.same_instant > 100:
+                w = 1
+        else:
+            self.same_instant = 0
+        self.t_last_run = self.clock.now
+        self._schedule(self.clock.now + w)
 
 
 class SimBench:
-    """PC + jig + drivers on a virtual clock (``realtime=True``: on the wall clock)."""
+    """PC + jig + drivers on a virtual clock (``realtime=True``: on the wall clock).
+
+    ``direct=True``: no jig; the PC's adapter is on the driver bus with the same
+    drivers (to measure what the jig costs). ``stream_chunk``: bytes per delivery
+    to the jig's ports while a frame arrives (see ``link``). ``cpu_model`` =
+    (µs per main-loop pass that read input, µs per byte read): the jig's CPU time
+    on the virtual timeline (see ``hal``); default (0, 0).
+    """
 
     def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
                  echo_down=False, record=True, servo_on=False, start_us=None, jig_ver8=None,
-                 ver8_drivers=None):
+                 ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0)):
         """``ver8``: the default variant of the jig and every driver. ``jig_ver8``
         (None: ``ver8``) sets the jig's protocol parameter; ``ver8_drivers`` (None:
         every driver follows ``ver8``) lists the ids of the Ver8 drivers, all others
@@ -163,8 +183,10 @@ class SimBench:
             raise ValueError("ver8_drivers %s are not among the driver ids" % sorted(unknown))
         baud = baud or 115200
         down_baud = down_baud or baud
-        self.up_bus = Bus(self.clock, baud, "up")
-        self.down_bus = Bus(self.clock, down_baud, "down")
+        self.direct = direct
+        self.down_bus = Bus(self.clock, down_baud, "down", stream_chunk)
+        # direct: the PC's adapter sits on the driver bus itself, no jig in the line.
+        self.up_bus = self.down_bus if direct else Bus(self.clock, baud, "up", stream_chunk)
         self.ver8 = ver8
         self.jig_ver8 = bool(jig_ver8)
         self.pc = PcPort(self, self.up_bus, ver8)
@@ -172,9 +194,16 @@ class SimBench:
         for i in driver_ids:
             self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, i in ver8_drivers,
                                         servo_on=servo_on)
+        self._sync = 0
+        if direct:
+            if jig_params or any(cpu_model):
+                raise ValueError("direct=True has no jig: jig_params and cpu_model do not apply")
+            self.fs = fs
+            self.hal = self.runner = self.app = None
+            return
         self.fs = fs if fs is not None else SimFS()
         self.hal = SimHAL(self.clock, self.up_bus, self.down_bus, self.fs, rxsize=rxsize,
-                          echo_up=echo_up, echo_down=echo_down, record=record)
+                          echo_up=echo_up, echo_down=echo_down, record=record, cpu_model=cpu_model)
         if settings or fresh:
             self.write_params(settings)
         self.runner = JigRunner(self.clock, self.hal)
@@ -204,7 +233,8 @@ class SimBench:
         """Switch off every injected fault: the drives' switches, corruption to the PC."""
         for d in self.drivers.values():
             d.clear_faults()
-        self.hal.up.node.corrupt(0)
+        if self.hal is not None:
+            self.hal.up.node.corrupt(0)
 
     def corrupt_to_pc(self, frames=1):
         """Flip a bit in each of the next ``frames`` transmissions of the jig to the PC
@@ -218,7 +248,7 @@ class SimBench:
     def variant_ver8(self, slave):
         """True if slave speaks Ver8 on this bench: the jig's protocol for the jig's
         id, the driver's own variant, else the bench default ``ver8``."""
-        if slave == self.jig_id:
+        if self.app is not None and slave == self.jig_id:  # (a direct bench has no jig)
             return self.jig_ver8
         d = self.drivers.get(slave)
         return self.ver8 if d is None else d.ver8

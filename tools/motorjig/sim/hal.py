@@ -5,6 +5,15 @@ buffers filled as bytes arrive, ``write`` that blocks on the virtual timeline un
 the last stop bit has left), DE pins that record every transition with its time
 stamp, LEDs/relays/buttons as integers, a watchdog counter and an in-memory
 filesystem that can lose power in the middle of a write.
+
+The ports are streaming receivers on their buses (see ``link``): bytes reach the
+ring buffer one chunk at a time while a frame is still arriving, as the UART
+interrupt would put them there. ``SimHAL.cpu_model`` = (µs per pass, µs per byte)
+charges the jig's CPU time on the virtual timeline: the first read that returns
+bytes in a main-loop pass advances the clock by the per-pass cost, and every read
+by the per-byte cost times the bytes it returned, so whatever the pass does with
+them (forwarding, answering) happens that much later. Bytes keep arriving
+meanwhile. Default (0, 0): the CPU is infinitely fast.
 """
 
 from jig.ringbuf import RingBuffer
@@ -63,7 +72,7 @@ class SimPort:
     def __init__(self, hal, bus, name, rxsize=4096, echo=False):
         self.hal = hal
         self.bus = bus
-        self.node = bus.add_node(name, self._rx, echo=echo, record=hal.record)
+        self.node = bus.add_node(name, self._rx, echo=echo, record=hal.record, stream=True)
         self.ring = RingBuffer(rxsize)
         self.baud = bus.baud
         self.tx_blocks = True
@@ -79,7 +88,10 @@ class SimPort:
         return self.ring.any()
 
     def readinto(self, buf, n):
-        return self.ring.read_into(buf, n)
+        got = self.ring.read_into(buf, n)
+        if got:
+            self.hal.charge_cpu(got)
+        return got
 
     def write(self, buf, off, n):
         clock = self.hal.clock
@@ -108,7 +120,7 @@ class SimPort:
 
 class SimHAL:
     def __init__(self, clock, up_bus, down_bus, fs=None, param_path="/flash/jigparams.bin",
-                 rxsize=4096, echo_up=False, echo_down=False, record=True):
+                 rxsize=4096, echo_up=False, echo_down=False, record=True, cpu_model=(0.0, 0.0)):
         self.clock = clock
         self.up_bus = up_bus
         self.down_bus = down_bus
@@ -125,6 +137,11 @@ class SimHAL:
         self.up = None
         self.down = None
         self.rx_callback = None  # the bench's "wake the main loop"
+        self.us_per_pass, self.us_per_byte = (float(x) for x in cpu_model)
+        if self.us_per_pass < 0 or self.us_per_byte < 0:
+            raise ValueError("cpu_model: times must not be negative")
+        self.pass_charged = True  # set False by the bench at the start of each pass
+        self.cpu_us = 0.0  # CPU time charged so far
 
     def open(self, up_baud, down_baud):
         self.up_bus.set_baud(up_baud)
@@ -152,6 +169,20 @@ class SimHAL:
 
     def wdt_feed(self):
         self.wdt_feeds += 1
+
+    def begin_pass(self):
+        """Called by the bench before each main-loop pass (for ``cpu_model``)."""
+        self.pass_charged = False
+
+    def charge_cpu(self, nbytes):
+        """The CPU time of handling nbytes just read: the virtual clock moves on."""
+        dt = nbytes * self.us_per_byte
+        if not self.pass_charged:
+            self.pass_charged = True
+            dt += self.us_per_pass
+        if dt > 0:
+            self.cpu_us += dt
+            self.clock.run_until(self.clock.now + dt)
 
     def on_rx(self):
         if self.rx_callback is not None:

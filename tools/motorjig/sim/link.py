@@ -4,7 +4,11 @@ A ``Bus`` carries bytes between its ``Node``s at the configured baud, 10 bit
 times per byte (8N1). A transmission is one ``Segment``: byte i occupies
 ``[t0 + i*bt, t0 + (i+1)*bt)``. When a segment has left the wire its bytes are
 delivered, all at once, to every other node (and to the sender too if its
-receiver hears its own transmission: ``echo``), with these rules:
+receiver hears its own transmission: ``echo``). A node added with
+``stream=True`` (a UART receiver, like the jig's ports) instead gets the bytes
+while the segment is still arriving: each chunk of ``Bus.chunk`` bytes (default
+1) when the stop bit of its last byte ends. The rules below are applied per
+chunk, so both kinds of receiver see the same bytes:
 
 * a byte is only on the line if the sender's DE was high for its whole span --
   bytes sent while DE is low are lost (DE transitions are recorded with their
@@ -13,8 +17,13 @@ receiver hears its own transmission: ``echo``), with these rules:
 * nodes with ``auto_de`` (USB adapters with automatic direction control, the
   simulated drivers) drive DE exactly around their own segments;
 * fault injection: ``Node.corrupt(n)`` flips one bit in each of the node's next
-  ``n`` frames (transmissions ending in a tail) (a frame byte that is not part of a stuffing pair, so the
-  receiver sees a CRC error rather than a framing error).
+  ``n`` transmissions (a frame byte that is not part of a stuffing pair, so the
+  receiver sees a CRC error rather than a framing error); the choice is made when
+  the segment is queued, and looks at the byte the node sent before it, so a frame
+  written in several pieces (cut-through) is corrupted the same way, once.
+
+Per-chunk events are only scheduled for a segment that a streaming node hears;
+everything else costs one event per segment, as before.
 """
 
 from collections import deque
@@ -24,6 +33,13 @@ BITS_PER_BYTE = 10
 
 def _garbage(b):
     return (b ^ 0x5A ^ 0xFF) & 0xFF
+
+
+def _flippable(data, i, prev):
+    """Can data[i] get a bit flipped without changing the frame's framing?"""
+    b = data[i]
+    before = data[i - 1] if i > 0 else prev
+    return b != 0xAA and b != 0xAB and before != 0xAA
 
 
 def flip_for_crc(data):
@@ -41,12 +57,39 @@ def flip_for_crc(data):
     return bytes(out)
 
 
+def flip_in_piece(data, prev=-1):
+    """Like ``flip_for_crc`` for a piece of a frame: flip the last byte that is
+    neither 0xAA, 0xAB nor preceded by 0xAA (``prev``: the byte sent before the
+    piece, -1 if none). Returns (data, index of the flipped byte or -1)."""
+    for i in range(len(data) - 1, -1, -1):
+        if _flippable(data, i, prev):
+            out = bytearray(data)
+            out[i] ^= 0x01
+            return bytes(out), i
+    return data, -1
+
+
+def _tail_end(data, start, esc):
+    """Index after the first frame tail (AA EE, not a stuffed AA AA) in data[start:],
+    or -1; esc: the byte before start was an unpaired 0xAA. Returns (index, esc)."""
+    for i in range(start, len(data)):
+        b = data[i]
+        if esc:
+            esc = False
+            if b == 0xEE:
+                return i + 1, False
+        else:
+            esc = b == 0xAA
+    return -1, esc
+
+
 class Node:
-    def __init__(self, bus, name, on_rx=None, echo=False, auto_de=False, record=True):
+    def __init__(self, bus, name, on_rx=None, echo=False, auto_de=False, record=True, stream=False):
         self.bus = bus
         self.name = name
         self.on_rx = on_rx
         self.echo = echo
+        self.stream = stream  # True: get each chunk as its last stop bit ends
         self.auto_de = auto_de
         self.record = record
         self.de = False
@@ -58,6 +101,9 @@ class Node:
         self.hw_post_us = 0.0
         self.hw_de = False
         self.corrupt_next = 0  # fault: transmissions left whose bytes get one bit flipped
+        self.last_byte = -1  # the last byte we queued (corruption looks across pieces)
+        self.corrupt_hold = False  # a frame of ours was corrupted and its tail is not sent yet
+        self.corrupt_esc = False  # while holding: the last byte was an unpaired 0xAA
 
     def corrupt(self, n=1):
         """Flip a bit (see ``flip_for_crc``) in each of our next n transmissions."""
@@ -106,7 +152,7 @@ class Node:
 
 
 class Segment:
-    __slots__ = ("node", "t0", "bt", "data", "end")
+    __slots__ = ("node", "t0", "bt", "data", "end", "got", "lost")
 
     def __init__(self, node, t0, bt, data):
         self.node = node
@@ -114,12 +160,17 @@ class Segment:
         self.bt = bt
         self.data = data
         self.end = t0 + bt * len(data)
+        self.got = None  # bytes delivered so far (streamed segments)
+        self.lost = 0
 
 
 class Bus:
-    def __init__(self, clock, baud, name="bus"):
+    def __init__(self, clock, baud, name="bus", chunk=1):
+        if chunk < 1:
+            raise ValueError("chunk must be at least 1 byte")
         self.clock = clock
         self.name = name
+        self.chunk = chunk  # bytes per delivery to streaming nodes
         self.nodes = []
         self.in_flight = []  # segments still on the wire
         self.recent = deque()  # delivered segments that may still overlap one in flight
@@ -133,10 +184,17 @@ class Bus:
         self.baud = baud
         self.bt = BITS_PER_BYTE * 1e6 / baud
 
-    def add_node(self, name, on_rx=None, echo=False, auto_de=False, record=True):
-        node = Node(self, name, on_rx, echo, auto_de, record)
+    def add_node(self, name, on_rx=None, echo=False, auto_de=False, record=True, stream=False):
+        node = Node(self, name, on_rx, echo, auto_de, record, stream)
         self.nodes.append(node)
         return node
+
+    def _streamed(self, sender):
+        """Does a streaming receiver hear sender's transmissions?"""
+        for nd in self.nodes:
+            if nd.stream and nd.on_rx is not None and (nd is not sender or nd.echo):
+                return True
+        return False
 
     def transmit(self, node, data, t0=None):
         """Queue data from node (after its previous segment); returns the end time."""
@@ -152,12 +210,23 @@ class Bus:
             t0 += node.hw_pre_us
         elif t0 < node.tx_until:
             t0 = node.tx_until
-        seg = Segment(node, t0, self.bt, bytes(data))
+        data = bytes(data)
+        if (node.corrupt_next > 0 or node.corrupt_hold) and data:
+            data = self._corrupt(node, data)
+        if data:
+            node.last_byte = data[-1]
+        seg = Segment(node, t0, self.bt, data)
         node.tx_until = seg.end
         self.in_flight.append(seg)
         if node.auto_de:
             node.set_de(1, t0)
-        clock.at(seg.end, self._deliver, seg)
+        n = len(data)
+        if n > 1 and self._streamed(node):
+            seg.got = bytearray()
+            b = self.chunk if self.chunk < n else n
+            clock.at(t0 + b * seg.bt, self._deliver_chunk, seg, 0, b)
+        else:
+            clock.at(seg.end, self._deliver, seg)
         return seg.end
 
     def _overlapping(self, seg):
@@ -179,51 +248,104 @@ class Bus:
         while recent and recent[0].end <= lo:
             recent.popleft()
 
-    def _deliver(self, seg):
+    def _corrupt(self, node, data):
+        """Node.corrupt: one flipped bit per frame, also when the frame is sent in
+        pieces (after a flip, none until that frame's tail has been sent)."""
+        start = 0
+        esc = node.corrupt_esc
+        while True:
+            if node.corrupt_hold:
+                end, esc = _tail_end(data, start, esc)
+                if end < 0:
+                    break
+                node.corrupt_hold = False
+                start = end
+            if node.corrupt_next <= 0 or start >= len(data):
+                break
+            prev = data[start - 1] if start else node.last_byte
+            piece, i = flip_in_piece(data[start:], prev)
+            if i < 0:
+                break
+            data = data[:start] + piece
+            node.corrupt_next -= 1
+            self.corrupted += 1
+            node.corrupt_hold = True
+            start += i + 1
+            esc = False  # the flipped byte is not 0xAA
+        node.corrupt_esc = esc
+        return data
+
+    def _on_line(self, seg, a, b):
+        """seg's bytes [a, b) as they are on the line now: bytes sent with DE low
+        left out, bytes that overlap another talker's segment garbled."""
+        i0, i1 = seg.node.driven_range(seg)
+        if i0 < a:
+            i0 = a
+        if i1 > b:
+            i1 = b
+        seg.lost += (b - a) - (i1 - i0 if i1 > i0 else 0)
+        if i0 >= i1:
+            return b""
+        data = seg.data
+        out = None
+        bt = seg.bt
+        if len(self.in_flight) > 1 or self.recent:
+            for other in self._overlapping(seg):
+                # our bytes overlapping [other.t0, other.end)
+                x = max(i0, int((other.t0 - seg.t0) / bt))
+                y = min(i1, int((other.end - seg.t0) / bt + 0.999999))
+                for i in range(x, y):
+                    if out is None:
+                        out = bytearray(data)
+                    out[i] = _garbage(out[i])
+                    self.collisions += 1
+        if out is not None:
+            data = bytes(out)
+        if i0 or i1 != len(data):
+            data = data[i0:i1]
+        return data
+
+    def _finish(self, seg):
         node = seg.node
-        n = len(seg.data)
-        i0, i1 = node.driven_range(seg)
         if node.auto_de:
             node.set_de(0, seg.end)
         elif node.hw_de:
             node.set_de(0, seg.end + node.hw_post_us)
-        self.lost += n - (i1 - i0)
-        others = list(self._overlapping(seg)) if len(self.in_flight) > 1 or self.recent else ()
+        self.lost += seg.lost
         self._retire(seg)
-        if i0 >= i1:
-            self._hand_out(seg, b"")
-            return
-        data = seg.data
-        out = None
-        bt = seg.bt
-        for other in others:
-            if out is None:
-                out = bytearray(data)
-            # our bytes overlapping [other.t0, other.end)
-            a = max(i0, int((other.t0 - seg.t0) / bt))
-            b = min(i1, int((other.end - seg.t0) / bt + 0.999999))
-            for i in range(a, b):
-                out[i] = _garbage(out[i])
-                self.collisions += 1
-        if out is not None:
-            data = bytes(out)
-        if i0 or i1 != n:
-            data = data[i0:i1]
-        if node.corrupt_next > 0 and data.endswith(b"\xaa\xee"):
-            # (the last piece of a frame: a jig cutting a frame through sends pieces)
-            node.corrupt_next -= 1
-            data = flip_for_crc(data)
-            self.corrupted += 1
+
+    def _deliver(self, seg):
+        data = self._on_line(seg, 0, len(seg.data))
+        self._finish(seg)
         self._hand_out(seg, data)
 
-    def _hand_out(self, seg, data):
+    def _deliver_chunk(self, seg, a, b):
+        """Bytes [a, b) of a streamed segment, at the end of byte b-1's stop bit."""
+        data = self._on_line(seg, a, b)
+        n = len(seg.data)
+        if data:
+            seg.got += data
+            t = self.clock.now
+            for nd in self.nodes:
+                if nd.stream and nd.on_rx is not None and (nd is not seg.node or nd.echo):
+                    nd.on_rx(data, t)
+        if b < n:
+            c = b + self.chunk
+            if c > n:
+                c = n
+            self.clock.at(seg.t0 + c * seg.bt, self._deliver_chunk, seg, b, c)
+            return
+        self._finish(seg)
+        self._hand_out(seg, bytes(seg.got), streamed=True)
+
+    def _hand_out(self, seg, data, streamed=False):
         if self.monitor is not None:
             self.monitor(seg, data)
         if not data:
             return
         t = seg.end
         for nd in self.nodes:
-            if nd.on_rx is None:
+            if nd.on_rx is None or (streamed and nd.stream):
                 continue
             if nd is seg.node and not nd.echo:
                 continue
