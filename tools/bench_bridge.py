@@ -86,15 +86,18 @@ def micropython_heap(n):
 DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 
 # The jig's CPU time on the STM32H7's Cortex-M7, for the polling-rate table: instruction
-# counts from `make test-qemu` (emulated M7, MicroPython's qemu port), turned into time
-# ASSUMING 400 MHz and one instruction per cycle (the M7 is dual-issue but waits on
-# flash and memory; the real ratio is not measured). Placeholders from issue 8's
-# figures for the store-and-forward firmware: an idle main-loop pass 25 900, a
-# forwarded transaction (8-byte request + 13-byte reply, two passes) 175 000, i.e.
-# (175 000 - 2 * 25 900) / 21 per received byte. Update both after `make test-qemu`.
+# counts from `make test-qemu` (emulated M7, MicroPython v1.28 qemu port with the stm32
+# VM settings), turned into time ASSUMING 400 MHz and one instruction per cycle (the M7
+# is dual-issue but waits on flash and memory; the real ratio is not measured yet).
+# Fitted to the cut-through figures of 2026-11-25 as a pass cost plus a per-byte cost:
+#   a byte on its own, one byte per pass:   9 970 + 4 HAL calls      = PASS + BYTE
+#   8 + 13 bytes in two bursts (two passes): 66 600 + 16 HAL calls   = 2 PASS + 21 BYTE
+# with a HAL call (machine.UART / Pin C method) at ~400 instructions (the board check's
+# C stand-in: any 296, readinto 470, write 514). The per-byte share carries the frame
+# events (routing, the reply wait) spread over the bytes. Update after `make test-qemu`.
 M7_HZ = 400e6
-PASS_INSTR = 25900  # one main-loop pass that read input, without the bytes
-FORWARD_INSTR_PER_BYTE = 5870  # each byte read (parse + forward/relay share)
+PASS_INSTR = 9000  # one main-loop pass that read input, without the bytes
+FORWARD_INSTR_PER_BYTE = 2600  # each byte read (parse + forward/relay share)
 JIG_CPU_MODEL = (PASS_INSTR / M7_HZ * 1e6, FORWARD_INSTR_PER_BYTE / M7_HZ * 1e6)  # (us/pass, us/byte)
 
 POLL_SLAVE = 2
