@@ -421,28 +421,8 @@ class FrameParser:
 
     # --- read-only views of st and body (host code, tests, local handlers) ---------
     @property
-    def event(self):
-        return self.st[S_EVENT]
-
-    @property
     def ready(self):
         return self.st[S_EVENT] == EV_FRAME
-
-    @property
-    def state(self):
-        return self.st[S_STATE]
-
-    @property
-    def body_len(self):
-        return self.st[S_N]
-
-    @property
-    def t_last(self):
-        return self.st[S_T_LAST]
-
-    @property
-    def head(self):
-        return self.st[S_HEAD]
 
     @property
     def max_body(self):
@@ -483,19 +463,19 @@ class FrameParser:
         self.st[S_TIMEOUT] = us
 
     @property
-    def byte_us(self):
-        return self.st[S_BYTE_US]
-
-    @property
     def errors(self):
         st = self.st
         return (st[S_STUFF_ERRORS] + st[S_CRC_ERRORS] + st[S_SHORT] + st[S_OVERLONG]
                 + st[S_TIMEOUTS] + st[S_RESYNCS])
 
 
-def _counter_property(index):
+def _field(index):
+    """A read-only property for st[index]."""
     return property(lambda self: self.st[index])
 
 
+for _name, _index in (("event", S_EVENT), ("state", S_STATE), ("body_len", S_N), ("t_last", S_T_LAST),
+                      ("head", S_HEAD), ("byte_us", S_BYTE_US)):
+    setattr(FrameParser, _name, _field(_index))
 for _i, _name in enumerate(COUNTER_NAMES):
-    setattr(FrameParser, _name, _counter_property(S_GOOD + _i))
+    setattr(FrameParser, _name, _field(S_GOOD + _i))
