@@ -96,8 +96,8 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 # C stand-in: any 296, readinto 470, write 514). The per-byte share carries the frame
 # events (routing, the reply wait) spread over the bytes. Update after `make test-qemu`.
 M7_HZ = 400e6
-PASS_INSTR = 9000  # one main-loop pass that read input, without the bytes
-FORWARD_INSTR_PER_BYTE = 2600  # each byte read (parse + forward/relay share)
+PASS_INSTR = 8900  # one main-loop pass that read input, without the bytes
+FORWARD_INSTR_PER_BYTE = 2700  # each byte read (parse + forward/relay share)
 JIG_CPU_MODEL = (PASS_INSTR / M7_HZ * 1e6, FORWARD_INSTR_PER_BYTE / M7_HZ * 1e6)  # (us/pass, us/byte)
 
 POLL_SLAVE = 2
