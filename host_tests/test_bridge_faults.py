@@ -261,3 +261,20 @@ def test_absent_ids_are_silent_and_slow_types_wait_longer():
     assert b.request(2, GCP, timeout_us=100000.0) == (None, None)
     c = b.counters
     assert c["replies"] == 1 and c["timeouts"] == 1
+
+
+def test_no_request_of_the_jig_while_a_broadcast_is_cut_through():
+    """A broadcast leaves the bridge IDLE while its bytes are still being passed on:
+    the jig's own requests (bus scan, safety stop) must not go out in the middle of it."""
+    b = make(stream_chunk=1)
+    wire = F.encode(F.BROADCAST_ID, F.ALL_MOVE_STOP)
+    t = b.send(wire[:4])
+    b.clock.run_until(t + 500.0)
+    bridge = b.app.bridge
+    assert bridge.state == 0 and bridge.fwd is not None  # IDLE, and passing the broadcast on
+    assert bridge.busy()
+    assert bridge.request(b.app.scanner, 2, F.GET_SLAVE_INFO, bytearray(1), 0, 20) is False
+    b.send(wire[4:])
+    b.run_for(10000.0)
+    assert not bridge.busy() and b.drivers[2].requests == 1 and b.drivers[3].requests == 1
+    assert b.counters["int_requests"] == 0 and b.down_bus.collisions == 0

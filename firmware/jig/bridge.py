@@ -232,13 +232,11 @@ class Bridge:
 
     def _pc_head(self, slave, now):
         """Cut-through: the id of a PC frame is known; route it now."""
+        # (No frame is being passed on here: every frame the parser ends raises
+        # EV_FRAME or EV_DROP first, and both finish the transmission.)
         if self.rel is not None:  # the PC talks over a reply in progress: stop relaying
             self._end_relay(True)
-        fwd = self.fwd
         if slave == self.params.ram[P_SLAVE_ID]:
-            if fwd is not None:  # a frame cut through was overrun by a new header
-                self.fwd = None
-                fwd.finish()
             return  # answered when complete
         # Header and id (the bytes that carried them may have come in an earlier
         # read); everything after them is passed on raw.
@@ -248,19 +246,16 @@ class Bridge:
         if slave == _STUFF:
             hdr[3] = slave
             k = 4
-        if fwd is None:
-            fwd = self.down
-            fwd.begin(hdr, 0, k)
-            self.fwd = fwd
-            # The slow pass must look at the line within the inter-byte timeout (and
-            # keeps doing so while the frame lasts) to end the transmission cleanly
-            # if the PC falls silent.
-            t = (now + self.up_timeout_us + 1) & _TICKS_MASK
-            due = self.due
-            if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
-                due[0] = t
-        else:
-            fwd.part(hdr, 0, k)
+        fwd = self.down
+        fwd.begin(hdr, 0, k)
+        self.fwd = fwd
+        # The slow pass must look at the line within the inter-byte timeout (and keeps
+        # doing so while the frame lasts) to end the transmission cleanly if the PC
+        # falls silent.
+        t = (now + self.up_timeout_us + 1) & _TICKS_MASK
+        due = self.due
+        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
+            due[0] = t
         v = self.v
         v[C_DOWN_OUT] += 1
         if slave == _BROADCAST_ID:
@@ -385,6 +380,8 @@ class Bridge:
     def request(self, client, slave, ftype, data, n, timeout_ms, framing=-1):
         """Send a request of our own downstream; False if the bridge is busy.
         ``framing``: -1 the jig's protocol, 0 Ver6, 1 Ver8 (a mixed bus)."""
+        if self.fwd is not None:  # a broadcast is being cut through (the state is IDLE)
+            return False
         flags = self._event(E_INTERNAL)
         if not flags & F_SEND:
             return False
@@ -402,7 +399,7 @@ class Bridge:
         return True
 
     def busy(self):
-        return self.state != IDLE
+        return self.state != IDLE or self.fwd is not None
 
     # --- bytes from the drivers ------------------------------------------------
     def down_bytes(self, p, buf, n, now):
