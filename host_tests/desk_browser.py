@@ -201,5 +201,8 @@ class Browser:
     def js(self, script, *args):
         return self.driver.execute_script(script, *args)
 
-    def screenshot(self, path):
-        self.driver.save_screenshot(path)
+    def screenshot(self, path, clean=True):
+        if clean:  # pop-up notifications would cover the view
+            self.js("document.querySelectorAll('.q-notification').forEach(n => n.remove());")
+        if not self.driver.save_screenshot(path):
+            raise OSError("could not write the screenshot %s" % path)

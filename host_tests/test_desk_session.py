@@ -287,7 +287,7 @@ def test_raw_frames_are_logged_decoded_and_a_bad_crc_as_such(s, bench):
     s.clear_log()
     wire = F.encode(2, F.GET_AXIS_STATUS, b"")
     s.send_raw("", "", wire_hex=wire.hex(" "))
-    assert "[%s]" % wire.hex(" ") in s.log_text()
+    assert "[wire %s]" % wire.hex(" ") in s.log_text()
 
 
 def test_the_log_keeps_order_and_can_be_read_incrementally(s):
@@ -326,3 +326,23 @@ def test_frame_parser_agrees_with_wire_frame():
     p.feed(wire)
     assert why is None and fr.slave == 2 and fr.ftype == F.MOVE_INC_POS and fr.data == bytes(p.body[p.data_start:p.data_end])
     assert wire_frame(wire[:-2]) == (None, "not a complete frame")
+
+
+def test_a_jog_released_before_it_reached_the_bus_never_starts(s):
+    s.select_axis(2)
+    s.servo(True)
+    with s._lock:  # the press waits for the bus; the release comes first
+        gen_before = s._jog_gen
+        t = threading.Thread(target=s.jog, args=(1, "3000"))
+        t.start()
+        time.sleep(0.1)
+        s._jog_gen += 1  # what jog_release does before it queues its stop
+    t.join(5)
+    assert s._jog_gen == gen_before + 1
+    time.sleep(0.2)
+    st = poll_until(s, lambda st: True)
+    assert not st.axis >> 27 & 1  # not moving
+    s.jog(1, "3000")
+    poll_until(s, lambda st: st.axis >> 27 & 1)
+    s.jog_release()
+    poll_until(s, lambda st: not st.axis >> 27 & 1)

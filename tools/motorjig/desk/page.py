@@ -67,6 +67,7 @@ class DeskPage:
         self.lamps = {}
         self.plot_paused = False
         self.plot_window = 30
+        self.jogging = False
 
     # --- running actions -----------------------------------------------------------------
     async def act(self, fn, *args, quiet=False):
@@ -171,7 +172,7 @@ class DeskPage:
                 {"name": "type_name", "label": "name", "field": "type_name", "align": "left"},
                 {"name": "version", "label": "version", "field": "version", "align": "left"},
                 {"name": "role", "label": "role", "field": "role", "align": "left"}]
-        self.slave_table = tid(ui.table(columns=cols, rows=[], row_key="id"), "slave-table").classes("w-full")
+        self.slave_table = tid(ui.table(columns=cols, rows=[], row_key="id"), "slave-table").classes("w-full").props("dense")
         with ui.row().classes("items-center"):
             ui.label("Axis to work with:")
             self.axis_pick = tid(ui.toggle({}, on_change=self._pick_axis), "axis-pick")
@@ -250,8 +251,8 @@ class DeskPage:
                     ui.label("hold to jog:")
                     for sign, text in ((-1, "Jog −"), (1, "Jog +")):
                         b = tid(ui.button(text), "btn-jog-%s" % ("minus" if sign < 0 else "plus")).props("outline")
-                        b.on("mousedown", lambda _, d=sign: self.act(s.jog, d, self.speed.value, quiet=True))
-                        b.on("touchstart", lambda _, d=sign: self.act(s.jog, d, self.speed.value, quiet=True))
+                        b.on("mousedown", lambda _, d=sign: self._jog_press(d))
+                        b.on("touchstart", lambda _, d=sign: self._jog_press(d))
                         for ev in ("mouseup", "mouseleave", "touchend"):
                             b.on(ev, lambda _: self._jog_release())
                     tid(ui.button("Home", on_click=lambda: self.act(s.home)), "btn-home").props("outline")
@@ -260,7 +261,7 @@ class DeskPage:
                     tid(ui.button("Limit +", on_click=lambda: self.act(s.to_limit, 1, self.speed.value)),
                         "btn-limit-plus").props("outline")
                 ui.label("Leave accel/decel blank to use the drive's parameters 3 and 4; filled in, the move is "
-                         "sent as MoveSingleAxisAbsPosEx / IncPosEx with its own times.").classes(
+                         "sent as MoveAbsPosEx / MoveIncPosEx with its own times.").classes(
                     "text-caption text-grey-7")
         with ui.card().classes("w-full"):
             with ui.row().classes("items-center"):
@@ -272,18 +273,19 @@ class DeskPage:
                 self.plot_points = tid(ui.label("0 points"), "plot-points").classes("text-caption")
             self.chart = tid(ui.echart({
                 "animation": False,
-                "legend": {"data": ["command position", "actual position", "velocity"]},
+                "legend": {"top": 0},
                 "tooltip": {"trigger": "axis"},
-                "grid": {"left": 70, "right": 70, "top": 40, "bottom": 30},
-                "xAxis": {"type": "value", "name": "s", "min": -self.plot_window, "max": 0},
-                "yAxis": [{"type": "value", "name": "position (pulses)", "position": "left", "scale": True},
-                          {"type": "value", "name": "velocity (pps)", "position": "right", "scale": True,
-                           "splitLine": {"show": False}}],
+                "grid": {"left": 70, "right": 70, "top": 36, "bottom": 28},
+                "xAxis": {"type": "value", "min": -self.plot_window, "max": 0,
+                          "axisLabel": {"formatter": "{value} s"}},
+                "yAxis": [{"type": "value", "position": "left", "scale": True},
+                          {"type": "value", "position": "right", "scale": True, "splitLine": {"show": False}}],
                 "series": [
-                    {"name": "command position", "type": "line", "showSymbol": False, "data": []},
-                    {"name": "actual position", "type": "line", "showSymbol": False, "data": [],
+                    {"name": "command position (pulses)", "type": "line", "showSymbol": False, "data": []},
+                    {"name": "actual position (pulses)", "type": "line", "showSymbol": False, "data": [],
                      "lineStyle": {"type": "dashed"}},
-                    {"name": "velocity", "type": "line", "showSymbol": False, "data": [], "yAxisIndex": 1},
+                    {"name": "velocity (pps, right axis)", "type": "line", "showSymbol": False, "data": [],
+                     "yAxisIndex": 1},
                 ],
             }), "plot").classes("w-full h-72")
 
@@ -297,8 +299,14 @@ class DeskPage:
                 return None
         return self.act(self.s.move, kind, target, self.speed.value, self.acc.value, self.dec.value)
 
+    async def _jog_press(self, direction):
+        self.jogging = True
+        if await self.act(self.s.jog, direction, self.speed.value, quiet=True) is None:
+            self.jogging = False
+
     async def _jog_release(self):
-        if self.s.status is not None and "motioning" in set(self.s.status_view()["flags"]):
+        if self.jogging:  # mouseleave fires without a press too
+            self.jogging = False
             await self.act(self.s.jog_release, quiet=True)
 
     def _export_csv(self):
@@ -332,14 +340,14 @@ class DeskPage:
             tid(ui.button("Read table", icon="download", on_click=self._read_params), "btn-param-read")
             self.par_title = tid(ui.label(""), "param-title")
         with ui.row().classes("items-end"):
-            self.par_key = tid(ui.input("parameter (number or name)"), "param-key")
+            self.par_key = tid(ui.input("parameter (number or name)"), "param-key").classes("w-56")
             self.par_value = tid(ui.input("new value"), "param-value").classes("w-32")
             tid(ui.button("Write to RAM", on_click=self._write_param), "btn-param-write")
             tid(ui.button("Save all to ROM…", on_click=self._confirm_save), "btn-param-save").props("outline color=red")
         cols = [{"name": k, "label": k.upper() if k in ("ram", "rom") else k, "field": k, "align": "left"}
-                for k in ("number", "name", "unit", "range", "ram", "rom", "effect")]
+                for k in ("number", "name", "unit", "range", "ram", "rom", "effect", "meaning")]
         self.par_table = tid(ui.table(columns=cols, rows=[], row_key="number",
-                                      pagination={"rowsPerPage": 0}), "param-table").classes("w-full")
+                                      pagination={"rowsPerPage": 0}), "param-table").classes("w-full").props("dense")
         self.par_table.on("rowClick", lambda e: self._param_clicked(e.args))
         with ui.dialog() as self.save_dialog, ui.card():
             self.save_text = ui.label("")
@@ -501,7 +509,7 @@ class DeskPage:
             tid(ui.button("Send", icon="send", on_click=self._send_raw), "btn-raw-send")
         with ui.row().classes("items-end"):
             self.raw_wire = tid(ui.input("or wire bytes as typed (AA CC ... AA EE, nothing added)"),
-                                "raw-wire").classes("w-96")
+                                "raw-wire").classes("w-2/3")
         with ui.row().classes("items-center"):
             tid(ui.switch("log polling frames", value=s.log_polls,
                           on_change=lambda e: setattr(s, "log_polls", e.value)), "log-polls")
@@ -580,7 +588,12 @@ class DeskPage:
             self.inputs_label.text = ins
         if ch("outs", outs):
             self.outputs_label.text = outs
-        poll = s.status_error if s.connected else ""
+        if not s.connected:
+            poll = ""
+        elif s.status_error:
+            poll = s.status_error
+        else:
+            poll = "status read %.0f times a second" % s.poll_rate() if s.status is not None else ""
         if ch("poll", poll):
             self.poll_label.text = poll
 
@@ -607,7 +620,8 @@ class DeskPage:
         step = max(1, len(rows) // 600)
         rows = rows[::step]
         opts = self.chart.options
-        opts["xAxis"]["min"] = -self.plot_window
+        span = t_end - rows[0].t if rows else 0
+        opts["xAxis"]["min"] = -min(self.plot_window, max(1, int(span + 0.999)))  # fit until the window fills
         for i, field in enumerate(("command_pos", "actual_pos", "actual_vel")):
             opts["series"][i]["data"] = [[round(r.t - t_end, 3), getattr(r, field)] for r in rows]
         self.chart.update()

@@ -95,6 +95,7 @@ class BusSession:
         self._log_lock = threading.Lock()
         self._abort = threading.Event()
         self._polling = False
+        self._jog_gen = 0  # bumped by every jog release
         self._seen_errors = {}
         self._decoder = Decoder()
         self._stop = threading.Event()
@@ -126,9 +127,9 @@ class BusSession:
         if direction == "tx":
             fr, why = wire_frame(item)
             text = self._decoder.describe(fr, _kind(fr)) if fr is not None else "(%s)" % why
-            self.log("tx", "%s   [%s]" % (text, bytes(item).hex(" ")))
+            self.log("tx", "%s   [wire %s]" % (text, bytes(item).hex(" ")))
         else:
-            self.log("rx", "%s   [%s]" % (self._decoder.describe(item), item.body.hex(" ")))
+            self.log("rx", "%s   [body %s]" % (self._decoder.describe(item), item.body.hex(" ")))
 
     def _note_line_errors(self):
         p = self.master.parser if self.master is not None else None
@@ -371,6 +372,15 @@ class BusSession:
             "age": time.time() - self.status_time,
         }
 
+    def poll_rate(self):
+        """Status reads per second over the last two seconds (what the axis panel refreshes at)."""
+        rows = list(self.history)
+        if len(rows) < 2:
+            return 0.0
+        recent = [r.t for r in rows if r.t >= rows[-1].t - 2.0]
+        span = recent[-1] - recent[0]
+        return (len(recent) - 1) / span if span > 0 else 0.0
+
     def history_rows(self, seconds=None):
         rows = list(self.history)
         if seconds and rows:
@@ -438,12 +448,20 @@ class BusSession:
         return "slave %d: move %s %d at %d pps" % (a, kind, target, speed)
 
     def jog(self, direction, speed):
+        """Start jogging (press); a release that reaches the bus first cancels it."""
         a = self._need_driver()
         speed = forms.speed(speed, "jog speed")
-        self._bus(lambda m: m.move_velocity(a, speed, 1 if direction > 0 else 0))
+        gen = self._jog_gen
+
+        def start(m):
+            if self._jog_gen == gen:
+                m.move_velocity(a, speed, 1 if direction > 0 else 0)
+
+        self._bus(start)
         return "slave %d: jog %s" % (a, "+" if direction > 0 else "-")
 
     def jog_release(self):
+        self._jog_gen += 1
         a = self._need_driver()
         self._bus(lambda m: m.move_stop(a))
         return "slave %d: jog released" % a
@@ -510,7 +528,7 @@ class BusSession:
             rows.append({"number": p.number, "name": p.name, "unit": p.unit,
                          "range": "unconfirmed" if full else "%s..%s" % (p.min, p.max),
                          "ram": "-" if ram is None else ram, "rom": "-" if rom is None else rom,
-                         "effect": p.effect or ""})
+                         "effect": p.effect or "", "meaning": p.meaning or ""})
         return which, rows
 
     def _optional(self, fn):
@@ -607,7 +625,7 @@ class BusSession:
                 wire = forms.corrupt_crc(wire)
             fr, why = wire_frame(wire)
             if fr is None:
-                self.log("tx", "(%s: the receiver will drop it)   [%s]" % (why, wire.hex(" ")))
+                self.log("tx", "(%s: the receiver will drop it)   [wire %s]" % (why, wire.hex(" ")))
             m.discard_input()
             saved, m.trace = m.trace, None
             try:
@@ -615,7 +633,7 @@ class BusSession:
             finally:
                 m.trace = saved
             if fr is not None:
-                self.log("tx", "%s   [%s]" % (self._decoder.describe(fr, _kind(fr)), wire.hex(" ")))
+                self.log("tx", "%s   [wire %s]" % (self._decoder.describe(fr, _kind(fr)), wire.hex(" ")))
             end = time.monotonic() + timeout
             got = 0
             while True:
