@@ -60,7 +60,7 @@ def test_bench_mode_serves_a_page_connected_to_the_bench():
     try:
         early = "".join(proc.early)
         assert "virtual bench: jig = slave 1, drivers 2,3; other programs can use socket://127.0.0.1:" in early
-        assert "connected to socket://127.0.0.1:" in early
+        assert "; found 1 (jig), 2 (Ezi-STEP Plus-R ST), 3 (Ezi-STEP Plus-R ST); working with slave 2" in early
         assert url.startswith("http://127.0.0.1:")
         html = B.wait_http(url, 10)
         assert "<title>MotorJig Desk</title>" in html

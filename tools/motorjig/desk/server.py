@@ -140,9 +140,13 @@ def serve(args, out=None):
     session = BusSession(timeout=max(1, args.timeout) / 1000.0).start()
     if port:
         try:
-            out.write(session.connect(port, args.baud, args.ver8) + "\n")
-            if bench is not None:
-                session.scan(0, max(args.drivers))
+            msg = session.connect(port, args.baud, args.ver8)
+            if bench is not None:  # the bench's ids are known: scan them now, the page opens ready
+                rows = session.scan(1, max(args.drivers))
+                msg = "connected to %s; found %s; working with slave %s" % (
+                    port, ", ".join("%d (%s)" % (r["id"], "jig" if r["jig"] else r["type_name"]) for r in rows),
+                    session.axis)
+            out.write(msg + "\n")
         except UserError as exc:
             out.write("could not connect yet: %s (the page offers Connect)\n" % exc)
     page.build(session)
