@@ -205,6 +205,25 @@ def test_raw_frame_with_a_bad_crc_shows_as_such_in_the_log(desk):
     b.wait_for(lambda: "'zz' is not a whole number" in log_text(b), 5, "bad input logged")
 
 
+def test_jig_diagnostics_refresh(desk):
+    b = desk.b
+    b.tab("tab-diag")
+    b.click("btn-counters")
+
+    def counter(name):
+        for cells in table_rows(b, "counter-table"):
+            if cells[0] == name:
+                return int(cells[1])
+        return None
+
+    first = b.wait_for(lambda: counter("up_frames_in"), 5, "counters")
+    b.el("diag-auto").click()  # refresh every second: the reads and the poller keep counting
+    b.wait_for(lambda: counter("up_frames_in") > first, 5, "a refreshed counter")
+    b.el("diag-auto").click()
+    b.click("btn-crash")
+    b.wait_for(lambda: b.text("diag-text").startswith("crash log: "), 5, "crash log")
+
+
 def test_a_second_tab_shares_the_connection(desk):
     b = desk.b
     first = b.driver.current_window_handle

@@ -346,3 +346,20 @@ def test_a_jog_released_before_it_reached_the_bus_never_starts(s):
     poll_until(s, lambda st: st.axis >> 27 & 1)
     s.jog_release()
     poll_until(s, lambda st: not st.axis >> 27 & 1)
+
+
+def test_the_poller_runs_only_while_a_page_is_open(s):
+    s.select_axis(2)
+    s.start()
+    time.sleep(0.3)
+    assert s.viewers == 0 and s.polls == 0
+    s.viewers = 1
+    end = time.monotonic() + 5
+    while s.polls < 5 and time.monotonic() < end:
+        time.sleep(0.05)
+    assert s.polls >= 5 and s.status is not None
+    s.viewers = 0
+    time.sleep(0.2)
+    polls = s.polls
+    time.sleep(0.3)
+    assert s.polls == polls

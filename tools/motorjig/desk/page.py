@@ -91,7 +91,8 @@ class DeskPage:
     def build(self):
         ui.add_css(CSS)
         s = self.s
-        s.viewers += 1
+        # Both fire again when a tab's websocket reconnects, so the count stays right.
+        ui.context.client.on_connect(self._seen)
         ui.context.client.on_disconnect(self._gone)
         with ui.header().classes("items-center bg-blue-grey-9 q-py-xs"):
             ui.label("MotorJig Desk").classes("text-h6")
@@ -134,6 +135,9 @@ class DeskPage:
                 self._raw_panel()
         ui.timer(0.1, self._refresh)
         ui.timer(0.25, self._refresh_plot)
+
+    def _seen(self):
+        self.s.viewers += 1
 
     def _gone(self):
         self.s.viewers = max(0, self.s.viewers - 1)
