@@ -363,3 +363,18 @@ def test_the_poller_runs_only_while_a_page_is_open(s):
     polls = s.polls
     time.sleep(0.3)
     assert s.polls == polls
+
+
+def test_one_motion_test_at_a_time_and_stop_ends_it(s):
+    s.select_axis(3)
+    s.servo(True)
+    t = threading.Thread(target=s.run_motion_test, args=(50, 20000, 5000))
+    t.start()
+    end = time.monotonic() + 5
+    while not s.motion_test["running"] and time.monotonic() < end:
+        time.sleep(0.01)
+    with pytest.raises(UserError, match="a motion test is already running"):
+        s.run_motion_test(1, 100, 1000)
+    s.stop_axis()
+    t.join(15)
+    assert not t.is_alive() and s.motion_test["summary"].endswith("(stopped)")

@@ -27,7 +27,6 @@ CSS = """
 .estop {font-weight:800; letter-spacing:.05em}
 """
 
-FLAG_NAMES = [name for _, name, _ in N.AXIS_FLAGS]
 PLOT_WINDOWS = {10: "10 s", 30: "30 s", 60: "60 s", 120: "120 s"}
 
 

@@ -25,7 +25,7 @@ from jig import frame as F
 from jig.parser import FrameParser
 
 from motorjig import names as N
-from motorjig.commands import _motion_cycles
+from motorjig.commands import _motion_cycles  # the very moves and checks of `jigctl motion-test`
 from motorjig.decode import Decoder
 from motorjig.errors import JigError, PortError
 from motorjig.master import BAUD_RATES, AxisStatus, Frame, Master, MotionTimeoutError
@@ -490,10 +490,11 @@ class BusSession:
                                distance=forms.position(distance, "distance"),
                                speed=forms.speed(speed), move_timeout=move_timeout, json=True,
                                stop_on_fail=False)
-        if self.motion_test["running"]:
-            raise UserError("a motion test is already running")
         moves = []
-        self.motion_test = {"running": True, "moves": moves, "summary": "running"}
+        with self._log_lock:  # two tabs pressing Start at once: one test runs
+            if self.motion_test["running"]:
+                raise UserError("a motion test is already running")
+            self.motion_test = {"running": True, "moves": moves, "summary": "running"}
         self._abort.clear()
         self.log("info", "motion test: %d cycles of +/-%d at %d pps on slave %d" % (
             args.cycles, args.distance, args.speed, a))
