@@ -59,6 +59,19 @@ def test_page_comes_up_connected_to_the_bench(desk):
     assert not b.el("lost-banner").is_displayed()
 
 
+def test_disconnect_and_connect_from_the_page(desk):
+    b = desk.b
+    b.click("btn-disconnect")
+    b.wait_for(lambda: b.text("conn-state") == "not connected", 5, "disconnected")
+    b.type("port", "/dev/ttyMOTORJIG-MISSING")
+    b.click("btn-connect")
+    b.wait_for(lambda: "port /dev/ttyMOTORJIG-MISSING does not exist" in b.driver.page_source, 5, "missing port")
+    assert b.text("conn-state") == "not connected"
+    b.type("port", desk.bench_url)
+    b.click("btn-connect")
+    b.wait_for(lambda: b.text("conn-state") == "connected: %s @ 115200" % desk.bench_url, 5, "connected again")
+
+
 def test_scan_finds_the_jig_and_both_drivers(desk):
     b = desk.b
     b.click("btn-scan")

@@ -11,6 +11,7 @@ from jig import frame as F
 from jig.parser import FrameParser
 from motorjig.desk import forms
 from motorjig.desk.session import BusSession, UserError, wire_frame
+from motorjig.master import Master
 from motorjig.sim import Bench
 
 TIMEOUT = 0.5  # generous: the bench runs in real time on a shared machine
@@ -93,6 +94,19 @@ def test_connect_errors_are_sentences(bench):
     assert s.state == "disconnected"
     with pytest.raises(UserError, match="not connected"):
         s.scan()
+
+
+def test_a_busy_port_is_reported():
+    with Bench(driver_ids=(2,), baud=115200, pty=True) as b:
+        other = Master(b.pty_path)  # another program holds the port
+        s = BusSession(timeout=TIMEOUT)
+        try:
+            with pytest.raises(UserError, match=r"port /dev/\S+ is busy \(another program has it open\)"):
+                s.connect(b.pty_path)
+        finally:
+            other.close()
+        assert s.connect(b.pty_path).startswith("connected to /dev/")
+        s.stop()
 
 
 def test_a_silent_port_is_reported():
