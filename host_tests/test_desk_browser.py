@@ -75,7 +75,9 @@ def test_disconnect_and_connect_from_the_page(desk):
 def test_scan_finds_the_jig_and_both_drivers(desk):
     b = desk.b
     b.click("btn-scan")
-    b.wait_for(lambda: "ids 1, 2, 3" in b.text("scan-progress"), 20, "scan result")
+    # 13 absent ids x the 300 ms timeout: the progress is seen while the scan runs
+    b.wait_for(lambda: b.text("scan-progress").startswith("scanning id "), 5, "scan progress")
+    b.wait_for(lambda: b.text("scan-progress") == "3 slave(s): ids 1, 2, 3", 20, "scan result")
     rows = [r for r in b.text("slave-table").splitlines()[1:]]
     assert rows[0].startswith("1 200 MotorJig bridge") and rows[0].endswith("jig (slave 1)")
     assert rows[1].startswith("2 20 Ezi-STEP Plus-R ST") and rows[1].endswith("driver")

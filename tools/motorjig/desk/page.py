@@ -547,16 +547,21 @@ class DeskPage:
         if ch("axis", axis):
             self.axis_label.text = axis
         prog = s.scan_progress
-        if ch("scan", prog):
+        rows = [dict(r, role="jig (slave %d)" % r["id"] if r["jig"] else "driver") for r in s.slaves.values()]
+        if prog is not None:
+            scan_text = "scanning id %d of %d ..." % prog
+        elif rows:
+            scan_text = "%d slave(s): ids %s" % (len(rows), ", ".join(str(r["id"]) for r in rows))
+        else:
+            scan_text = ""
+        if ch("scan", (prog, scan_text)):
             self.scan_bar.set_visibility(prog is not None)
             if prog is not None:
-                self.scan_label.text = "scanning id %d of %d ..." % prog
                 self.scan_bar.value = (prog[0] + 1) / (prog[1] + 1)
-        rows = [dict(r, role="jig (slave %d)" % r["id"] if r["jig"] else "driver") for r in s.slaves.values()]
+            self.scan_label.text = scan_text
         if ch("slaves", repr(rows)):
             self.slave_table.rows = rows
             self.slave_table.update()
-            self.scan_label.text = "%d slave(s): ids %s" % (len(rows), ", ".join(str(r["id"]) for r in rows))
             self.axis_pick.set_options({r["id"]: "%d %s" % (r["id"], "jig" if r["jig"] else r["type_name"])
                                         for r in rows}, value=s.axis if s.axis in s.slaves else None)
         if ch("axis_pick", s.axis) and s.axis in s.slaves:
