@@ -186,6 +186,13 @@ def test_parameter_round_trip(desk):
         return None
 
     assert b.wait_for(lambda: row3() and row3()["ram"] == "250" and row3(), 10, "row 3 with RAM 250")["rom"] == "100"
+    # Save to ROM asks first; confirmed, the table is read again and ROM shows 250 too.
+    b.click("btn-param-save")
+    b.wait_for(lambda: "Save every RAM parameter of slave 2 to ROM?" in b.driver.page_source, 5, "confirmation")
+    b.wait_for(lambda: b.find("btn-param-save-yes") is not None and b.el("btn-param-save-yes").is_displayed(),
+               5, "confirm button")
+    b.click("btn-param-save-yes")
+    b.wait_for(lambda: row3() and row3()["rom"] == "250", 10, "row 3 with ROM 250")
     b.type("param-value", "10000")  # beyond 9999 ms: refused before sending
     b.click("btn-param-write")
     b.wait_for(lambda: "must be between 1 and 9999 ms, not 10000" in b.driver.page_source, 5, "range message")
