@@ -67,3 +67,13 @@ def test_bench_mode_serves_a_page_connected_to_the_bench():
     finally:
         B.stop(proc)
     assert proc.returncode is not None
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["--baud", "12345"], "baud rate must be one of 9600"),
+    (["--bench", "--tcp-port", "70000"], "must be 1..65535"),
+])
+def test_module_options_are_checked(capsys, argv, needle):
+    with pytest.raises(SystemExit) as exc:
+        server.main(argv)
+    assert exc.value.code == 2 and needle in capsys.readouterr().err

@@ -72,6 +72,22 @@ def http_port(text):
     return v
 
 
+def tcp_port(text):
+    return 0 if str(text).strip() == "0" else http_port(text)
+
+
+def baud(text):
+    from motorjig.master import BAUD_RATES
+
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("%r is not a baud rate" % text) from None
+    if v not in BAUD_RATES:
+        raise argparse.ArgumentTypeError("baud rate must be one of %s" % ", ".join(map(str, BAUD_RATES)))
+    return v
+
+
 def add_gui_arguments(p):
     """The options of `jigctl gui` that are not jigctl's global ones."""
     p.add_argument("--http-port", type=http_port, default=DEFAULT_HTTP_PORT,
@@ -83,7 +99,7 @@ def add_gui_arguments(p):
     p.add_argument("--bench", action="store_true",
                    help="start the virtual bench in this process and connect to it (ignores --port)")
     p.add_argument("--drivers", type=_ids, default=(2, 3), help="with --bench: simulated driver ids (default 2,3)")
-    p.add_argument("--tcp-port", type=int, default=0,
+    p.add_argument("--tcp-port", type=tcp_port, default=0,
                    help="with --bench: the bench's TCP port for other programs (default: a free one)")
 
 
@@ -92,7 +108,7 @@ def build_parser():
         prog="python -m motorjig.desk",
         description="MotorJig Desk: the jig's PC program as a local web page (the same as `jigctl gui`).")
     p.add_argument("--port", "-p", help="serial port or pyserial URL to connect to at start")
-    p.add_argument("--baud", "-b", type=int, default=115200, help="baud rate (default 115200)")
+    p.add_argument("--baud", "-b", type=baud, default=115200, help="baud rate (default 115200)")
     p.add_argument("--ver8", action="store_true", help="Ver8 framing (sync number)")
     p.add_argument("--timeout", "-t", type=int, default=100, help="reply timeout in ms (default 100)")
     add_gui_arguments(p)
