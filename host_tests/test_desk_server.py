@@ -71,7 +71,7 @@ def test_bench_mode_serves_a_page_connected_to_the_bench():
 
 @pytest.mark.parametrize("argv,needle", [
     (["--baud", "12345"], "baud rate must be one of 9600"),
-    (["--bench", "--tcp-port", "70000"], "must be 1..65535"),
+    (["--bench", "--tcp-port", "70000"], "the bench's TCP port must be 1..65535"),
 ])
 def test_module_options_are_checked(capsys, argv, needle):
     with pytest.raises(SystemExit) as exc:

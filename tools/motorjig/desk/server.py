@@ -62,18 +62,23 @@ def _ids(text):
     return ids
 
 
-def http_port(text):
+def _port_number(text, what):
     try:
         v = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError("%r is not a port number" % text) from None
     if not 1 <= v <= 65535:
-        raise argparse.ArgumentTypeError("the HTTP port must be 1..65535, not %d" % v)
+        raise argparse.ArgumentTypeError("%s must be 1..65535, not %d" % (what, v))
     return v
 
 
+def http_port(text):
+    return _port_number(text, "the HTTP port")
+
+
 def tcp_port(text):
-    return 0 if str(text).strip() == "0" else http_port(text)
+    """The bench's TCP port; 0 picks a free one."""
+    return 0 if str(text).strip() == "0" else _port_number(text, "the bench's TCP port")
 
 
 def baud(text):
