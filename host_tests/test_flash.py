@@ -324,7 +324,7 @@ def test_auto_starts_the_bench_without_a_jig(env, monkeypatch, tmp_path):
     monkeypatch.setattr(flash, "micropython_boards", lambda: [])
     rc, out, err = run(["--build", str(tmp_path / "nothing-built"), "auto", "--drivers", "2,3"])
     assert rc == 0, err
-    assert calls == [[sys.executable, "-m", "motorjig.sim", "--drivers", "2,3"]]
+    assert calls == [[sys.executable, "-m", "motorjig.desk", "--bench", "--drivers", "2,3"]]
 
 
 def test_auto_flashes_a_jig_waiting_in_dfu_mode(env, monkeypatch):

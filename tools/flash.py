@@ -4,7 +4,7 @@
     python tools/flash.py flash  [--tool auto|dfu|stlink|pyocd] [--image FILE]
     python tools/flash.py deploy [--port PORT]                 firmware/ as .mpy onto a stock board
     python tools/flash.py info   --port PORT [--baud B] [--slave N]
-    python tools/flash.py auto                                 flash an attached jig, else the bench
+    python tools/flash.py auto                                 flash an attached jig, else the bench + GUI
 
 ``--dry-run`` (before the command) prints the exact commands instead of running
 them. Every failure is one sentence with the fix and a non-zero exit status.
@@ -423,7 +423,8 @@ def micropython_boards():
 
 
 def bench_command():
-    return [sys.executable, "-m", "motorjig.sim"]
+    """The virtual bench with MotorJig Desk connected to it (prints the page's URL)."""
+    return [sys.executable, "-m", "motorjig.desk", "--bench"]
 
 
 def cmd_auto(args, runner):
@@ -456,11 +457,11 @@ def cmd_auto(args, runner):
     try:
         import importlib.util
 
-        if importlib.util.find_spec("motorjig.sim") is None:
+        if importlib.util.find_spec("motorjig.sim") is None or importlib.util.find_spec("nicegui") is None:
             raise ImportError
     except ImportError:
-        raise FlashError("the virtual bench (motorjig.sim) is not installed: run 'make setup'.")
-    runner.say("auto: no jig to flash; starting the virtual bench: " + runner.show(cmd))
+        raise FlashError("the virtual bench and its GUI (motorjig.sim, nicegui) are not installed: run 'make setup'.")
+    runner.say("auto: no jig to flash; starting the virtual bench and MotorJig Desk on it: " + runner.show(cmd))
     sys.stdout.flush()
     os.execv(cmd[0], cmd)
     return 0  # not reached
@@ -489,7 +490,7 @@ def build_parser():
     i.add_argument("--baud", type=int, default=115200, help="baud rate (default: %(default)s)")
     i.add_argument("--slave", type=int, default=1, help="the jig's slave id (default: %(default)s)")
     a = sub.add_parser("auto", help="flash an attached jig if an image is built, else start the virtual bench "
-                       "(further options go to 'python -m motorjig.sim')")
+                       "with MotorJig Desk on it (further options go to 'python -m motorjig.desk --bench')")
     a.set_defaults(bench_args=[])
     # Sub-commands see the global options too (flash.py flash --dry-run works).
     for p in (b, f, d, i, a):

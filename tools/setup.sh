@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sets up everything the host side needs, once: a virtual environment in .venv with
-# the project installed (editable) plus its test, bench and board extras, and the
-# WebAssembly MicroPython used to replay captures on a real MicroPython VM.
+# the project installed (editable) plus its test, bench, board and gui extras, the
+# WebAssembly MicroPython used to replay captures on a real MicroPython VM, and
+# (under CI, or where apt can) Debian's chromium + chromedriver for the GUI's browser tests.
 # Safe to run again: it only redoes a step whose inputs changed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -31,9 +32,9 @@ fi
 
 stamp=.venv/.motorjig-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-    say "installing the project and its test/bench/board extras into .venv"
+    say "installing the project and its test/bench/board/gui extras into .venv"
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e '.[test,bench,board]'
+    .venv/bin/python -m pip install -q -e '.[test,bench,board,gui]'
     touch "$stamp"
 fi
 
@@ -51,5 +52,15 @@ if [ ! -d "$wasm/node_modules/@micropython" ] || [ "$wasm/package.json" -nt "$wa
         say "installing the WebAssembly MicroPython VM (npm)"
         (cd "$wasm" && npm install --no-audit --no-fund --loglevel=error >/dev/null)
         touch "$wasm/node_modules"
+    fi
+fi
+
+# Debian's headless Chromium and its chromedriver run the GUI's browser tests
+# (host_tests/test_desk_browser.py); nothing is downloaded by selenium itself.
+if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then
+    if [ "${CI:-}" = true ]; then
+        apt_install chromium chromium-driver || { say "chromium/chromedriver are required in CI and could not be installed"; exit 1; }
+    else
+        say "chromium/chromedriver not found: the GUI's browser tests will be skipped (Debian: apt-get install chromium chromium-driver)"
     fi
 fi

@@ -221,7 +221,18 @@ def build_parser():
     sp = add("stats", cmd_stats, "the jig's own counters (frames, errors, turnaround)")
     sp.add_argument("--reset", action="store_true", help="reset the counters after reading them")
     add("crashlog", cmd_crashlog, "the jig's crash summary (crash counts and the last exception)")
+    sp = add("gui", cmd_gui, "MotorJig Desk: the bench program as a local web page (prints its URL)")
+    from motorjig.desk.server import add_gui_arguments
+
+    add_gui_arguments(sp)
     return p
+
+
+def cmd_gui(args):
+    """Serve the page until Ctrl-C (the web parts are imported only here)."""
+    from motorjig.desk.server import serve
+
+    return serve(args)
 
 
 def _validate(args):

@@ -1,0 +1,394 @@
+"""MotorJig Desk's logic without a browser: BusSession and the input checks, against the
+real-time virtual bench in this process (the page only shows what these return)."""
+
+import socket
+import threading
+import time
+
+import pytest
+
+from jig import frame as F
+from jig.parser import FrameParser
+from motorjig.desk import forms
+from motorjig.desk.session import BusSession, UserError, wire_frame
+from motorjig.master import Master
+from motorjig.sim import Bench
+
+TIMEOUT = 0.5  # generous: the bench runs in real time on a shared machine
+
+
+@pytest.fixture(scope="module")
+def bench():
+    with Bench(driver_ids=(2, 3), baud=115200, pty=False) as b:
+        yield b
+
+
+@pytest.fixture
+def s(bench):
+    session = BusSession(timeout=TIMEOUT)
+    session.connect(bench.tcp_url)
+    session.scan(1, 3)
+    yield session
+    session.stop()
+
+
+def poll_until(s, pred, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        s.poll_once()
+        if s.status is not None and pred(s.status):
+            return s.status
+        time.sleep(0.02)
+    raise AssertionError("the polled status never got there: %r" % (s.status,))
+
+
+# --- input checks ---------------------------------------------------------------------------------
+def test_numbers_from_fields():
+    assert forms.number("1_000", "x") == 1000 and forms.number("0x10", "x") == 16 and forms.number(7.0, "x") == 7
+    assert forms.number("", "x", blank=5) == 5
+    for bad, msg in (("", "x is empty"), ("1.5", "not a whole number"), ("abc", "not a whole number"),
+                     (7.5, "whole number")):
+        with pytest.raises(forms.InputError, match=msg):
+            forms.number(bad, "x")
+    with pytest.raises(forms.InputError, match="speed must be 1..2500000, not 0"):
+        forms.speed("0")
+    with pytest.raises(forms.InputError, match="position must be -2147483648..2147483647"):
+        forms.position(str(2 ** 31))
+    assert forms.accel("", "accel") is None and forms.accel("250", "accel") == 250
+    with pytest.raises(forms.InputError):
+        forms.accel("10000", "accel")
+    assert forms.hex_bytes("0x1, 40 aa", "d") == b"\x01\x40\xaa" and forms.hex_bytes("", "d") == b""
+    with pytest.raises(forms.InputError, match="not hex bytes"):
+        forms.hex_bytes("0g", "d")
+
+
+def test_corrupt_crc_breaks_exactly_the_crc_of_every_frame():
+    """All ids x frame types x a few payloads, including CRCs whose high byte is stuffed (0xAA)."""
+    stuffed = 0
+    for slave in range(16):
+        for ftype in range(256):
+            for data in (b"", bytes((ftype,)), b"\xaa\x00\x55"):
+                wire = F.encode(slave, ftype, data)
+                stuffed += wire[-4:-2] == b"\xaa\xaa"
+                assert wire_frame(wire)[0] is not None
+                fr, why = wire_frame(forms.corrupt_crc(wire))
+                assert fr is None and why == "frame with a bad CRC", (slave, ftype, data, why)
+    assert stuffed > 0  # the stuffed case was really exercised
+
+
+# --- connection ----------------------------------------------------------------------------------------
+def test_connect_errors_are_sentences(bench):
+    s = BusSession(timeout=TIMEOUT)
+    with pytest.raises(UserError, match="choose a serial port"):
+        s.connect("  ")
+    with pytest.raises(UserError, match="baud rate 12345 is not one the drives support"):
+        s.connect(bench.tcp_url, 12345)
+    free = socket.socket()
+    free.bind(("127.0.0.1", 0))
+    port = free.getsockname()[1]
+    free.close()
+    with pytest.raises(UserError, match="connection refused"):
+        s.connect("socket://127.0.0.1:%d" % port)
+    with pytest.raises(UserError, match="does not exist"):
+        s.connect("/dev/ttyDOES-NOT-EXIST")
+    assert s.state == "disconnected"
+    with pytest.raises(UserError, match="not connected"):
+        s.scan()
+
+
+def test_a_busy_port_is_reported():
+    with Bench(driver_ids=(2,), baud=115200, pty=True) as b:
+        other = Master(b.pty_path)  # another program holds the port
+        s = BusSession(timeout=TIMEOUT)
+        try:
+            with pytest.raises(UserError, match=r"port /dev/\S+ is busy \(another program has it open\)"):
+                s.connect(b.pty_path)
+        finally:
+            other.close()
+        assert s.connect(b.pty_path).startswith("connected to /dev/")
+        s.stop()
+
+
+def test_a_silent_port_is_reported():
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    try:
+        s = BusSession(timeout=0.05)
+        msg = s.connect("socket://127.0.0.1:%d" % server.getsockname()[1])
+        assert "nothing answers on the bus" in msg and s.connected
+        assert "silent port" in s.log_text()
+        s.stop()
+    finally:
+        server.close()
+
+
+def test_scan_finds_the_jig_and_both_drivers_and_picks_the_first_driver(s):
+    assert sorted(s.slaves) == [1, 2, 3]
+    assert s.slaves[1]["jig"] and s.slaves[1]["type"] == 200
+    assert not s.slaves[2]["jig"] and s.slaves[2]["type_name"] == "Ezi-STEP Plus-R ST"
+    assert s.axis == 2 and s.jig_id() == 1
+    assert s.scan_progress is None
+    assert "scan: 3 slave(s) found: 1 MotorJig bridge, 2 Ezi-STEP Plus-R ST, 3 Ezi-STEP Plus-R ST" in s.log_text()
+
+
+def test_scan_via_jig(s):
+    rows = s.scan_via_jig()
+    assert sorted(r["id"] for r in rows) == [1, 2, 3]
+    assert "scan via jig: ids 2, 3 answered" in s.log_text()
+
+
+# --- axis, motion, plot history -------------------------------------------------------------------------
+def test_move_inc_is_polled_into_status_and_history(s):
+    s.select_axis(3)
+    s.servo(True)
+    s.clear_position()
+    s.history.clear()
+    assert s.move("inc", "10000", "40000") == "slave 3: move inc 10000 at 40000 pps"
+    st = poll_until(s, lambda st: st.actual_pos == 10000 and not st.axis >> 27 & 1)
+    view = s.status_view()
+    assert view["command_pos"] == 10000 and "servo_on" in view["flags"] and not view["errors"]
+    rows = s.history_rows()
+    assert rows[-1].actual_pos == 10000 and any(0 < r.actual_pos < 10000 for r in rows)
+    assert any(r.actual_vel > 0 for r in rows)
+    csv = s.history_csv().splitlines()
+    assert csv[0] == "time_s,command_pos,actual_pos,actual_vel_pps" and csv[-1].endswith(",10000,10000,0")
+    assert len(csv) == len(rows) + 1
+
+
+def test_move_with_accel_uses_the_ex_frame(s):
+    s.select_axis(2)
+    s.servo(True)
+    s.clear_position()
+    s.clear_log()
+    s.move("abs", "-500", "40000", accel="20", decel="")
+    poll_until(s, lambda st: st.command_pos == -500)
+    assert "MoveAbsPosEx(0x%02X)" % F.MOVE_ABS_POS_EX in s.log_text()
+
+
+def test_bad_input_sends_nothing(s):
+    s.clear_log()
+    for call, msg in ((lambda: s.move("inc", "10", "0"), "speed must be"),
+                      (lambda: s.move("abs", "x", "100"), "not a whole number"),
+                      (lambda: s.jog(1, "-5"), "jog speed must be"),
+                      (lambda: s.write_param(2, "axis_acc_time", "10000"), "between 1 and 9999"),
+                      (lambda: s.write_param(2, "no_such", "1"), "no parameter 'no_such'"),
+                      (lambda: s.send_raw("16", "0x40"), "slave id must be 0..15")):
+        with pytest.raises((UserError, forms.InputError), match=msg):
+            call()
+    assert "TX" not in s.log_text()
+
+
+def test_the_jig_is_not_an_axis(s):
+    s.select_axis(1)
+    with pytest.raises(UserError, match="slave 1 is the jig, not a motor driver"):
+        s.move("inc", "10", "100")
+    assert s.param_table()[0] == "jig"
+    s.select_axis(2)
+    assert s.param_table()[0] == "drive"
+
+
+def test_emergency_stop_ends_a_running_motion_test(s):
+    s.select_axis(2)
+    s.servo(True)
+    result = {}
+    t = threading.Thread(target=lambda: result.setdefault("summary", s.run_motion_test(50, 20000, 5000)))
+    t.start()
+    poll_until(s, lambda st: st.axis >> 27 & 1)  # moving
+    s.emergency_stop()
+    t.join(10)
+    assert not t.is_alive()
+    assert result["summary"].startswith("FAIL") and result["summary"].endswith("(stopped)")
+    assert len(s.motion_test["moves"]) < 100
+    st = poll_until(s, lambda st: not st.axis >> 27 & 1)
+    assert st.axis >> 16 & 1  # emergency_stop flag
+    s.alarm_reset()
+
+
+def test_motion_test_passes(s):
+    s.select_axis(2)
+    s.servo(True)
+    assert s.run_motion_test(2, 3000, 40000) == "PASS: 4 of 4 moves passed"
+    assert [m["distance"] for m in s.motion_test["moves"]] == [3000, -3000, 3000, -3000]
+
+
+def test_polling_waits_while_a_command_holds_the_bus(s):
+    """The poller never interleaves with a command: it skips while the lock is held."""
+    polls = s.polls
+    with s._lock:
+        done = []
+        t = threading.Thread(target=lambda: done.append(s.poll_once()))
+        t.start()
+        t.join(2)
+        assert done == [False]
+    assert s.poll_once() and s.polls == polls + 1
+
+
+def test_many_threads_share_one_connection(s):
+    """Commands from several 'tabs' and the poller at once: every reply matches its request."""
+    s.select_axis(2)
+    errors = []
+
+    def tab(n):
+        try:
+            for _ in range(15):
+                assert s.param_table(2)[0] == "drive"
+                s._bus(lambda m: m.get_parameter(2, 3))
+                s.poll_once()
+        except Exception as exc:  # collected, asserted below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=tab, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert errors == []
+    assert s.master.parser.crc_errors == 0
+
+
+# --- parameters, I/O, diagnostics, raw ---------------------------------------------------------------------
+def test_parameter_round_trip_and_rom(s):
+    which, rows = s.read_params(2)
+    assert which == "drive" and len(rows) == 29
+    row3 = rows[3]
+    assert row3["name"] == "axis_acc_time" and row3["range"] == "1..9999"
+    assert s.write_param(2, "3", "321") == 321
+    assert dict((r["number"], r) for r in s.read_params(2)[1])[3]["ram"] == 321
+    which, jig_rows = s.read_params(1)
+    assert which == "jig" and jig_rows[3]["name"] == "reply_timeout_ms"
+    s.write_param(2, "axis_acc_time", 5)
+
+
+def test_outputs_and_inputs(s):
+    ins, outs = s.io_bits(2)
+    assert [n for _, n, _ in ins][:3] == ["limit_plus", "limit_minus", "origin"]
+    s.set_output(2, 15, True)  # user_out0
+    assert dict((n, on) for _, n, on in s.io_bits(2)[1])["user_out0"]
+    s.set_output(2, 15, False)
+    assert not dict((n, on) for _, n, on in s.io_bits(2)[1])["user_out0"]
+    jig_in, jig_out = s.io_bits(1)
+    assert [n for _, n, _ in jig_out][:2] == ["out0", "out1"]
+
+
+def test_jig_diagnostics(s):
+    c = s.counters()
+    assert c["up_frames_in"] > 0 and "up_crc_errors" in c
+    s.reset_counters()
+    assert s.counters()["local_errors"] == 0
+    assert "no crash recorded" in s.crash_log()
+    s.scan_via_jig()
+    assert s.bus_scan_result().startswith("done: id 2 type 20, id 3 type 20")
+
+
+def test_raw_frames_are_logged_decoded_and_a_bad_crc_as_such(s, bench):
+    s.clear_log()
+    assert s.send_raw("2", "0x40") == "sent; 1 frame(s) received"
+    log = s.log_text()
+    assert "TX    request   id 2  GetAxisStatus(0x40)" in log and "RX    reply     id 2  GetAxisStatus(0x40)" in log
+    crc_before = s.counters()["up_crc_errors"]
+    s.clear_log()
+    assert s.send_raw("1", "0x01", corrupt=True) == "sent; no frame came back"
+    log = s.log_text()
+    assert "(frame with a bad CRC: the receiver will drop it)" in log and "no frame came back within 500 ms" in log
+    assert s.counters()["up_crc_errors"] == crc_before + 1  # and the jig counted it
+    # A reply that arrives broken is logged as a line error.
+    s.clear_log()
+    bench.sim.corrupt_to_pc(1)
+    s.send_raw("1", "0x01")
+    assert "received 1 frame with a bad CRC" in s.log_text()
+    # Wire bytes as typed go out unchanged.
+    s.clear_log()
+    wire = F.encode(2, F.GET_AXIS_STATUS, b"")
+    s.send_raw("", "", wire_hex=wire.hex(" "))
+    assert "[wire %s]" % wire.hex(" ") in s.log_text()
+
+
+def test_the_log_keeps_order_and_can_be_read_incrementally(s):
+    s.clear_log()
+    s.log("info", "one")
+    first = s.log_since(0)
+    s.log("info", "two")
+    assert [e.text for e in s.log_since(first[-1].seq)] == ["two"]
+    assert s.log_text().splitlines()[-1].endswith("INFO  two")
+
+
+def test_bench_gone_means_connection_lost(bench):
+    with Bench(driver_ids=(2,), baud=115200, pty=False) as b2:
+        s = BusSession(timeout=TIMEOUT)
+        s.connect(b2.tcp_url)
+        s.select_axis(2)
+        assert s.poll_once()
+    # b2 is stopped: its socket is closed
+    end = time.monotonic() + 5
+    while s.state != "lost" and time.monotonic() < end:
+        s.poll_once()
+        time.sleep(0.05)
+    assert s.state == "lost"
+    assert s.lost_message().startswith("connection lost: ") and "Reconnect" in s.lost_message()
+    with pytest.raises(UserError, match="connection lost"):
+        s.servo(True)
+    with pytest.raises(UserError, match="connection refused"):
+        s.reconnect()
+    s.stop()
+
+
+def test_frame_parser_agrees_with_wire_frame():
+    wire = F.encode(2, F.MOVE_INC_POS, b"\x10\x27\x00\x00\x88\x13\x00\x00")
+    fr, why = wire_frame(wire)
+    p = FrameParser()
+    p.feed(wire)
+    assert why is None and fr.slave == 2 and fr.ftype == F.MOVE_INC_POS and fr.data == bytes(p.body[p.data_start:p.data_end])
+    assert wire_frame(wire[:-2]) == (None, "not a complete frame")
+
+
+def test_a_jog_released_before_it_reached_the_bus_never_starts(s):
+    s.select_axis(2)
+    s.servo(True)
+    with s._lock:  # the press waits for the bus; the release comes first
+        gen_before = s._jog_gen
+        t = threading.Thread(target=s.jog, args=(1, "3000"))
+        t.start()
+        time.sleep(0.1)
+        s._jog_gen += 1  # what jog_release does before it queues its stop
+    t.join(5)
+    assert s._jog_gen == gen_before + 1
+    time.sleep(0.2)
+    st = poll_until(s, lambda st: True)
+    assert not st.axis >> 27 & 1  # not moving
+    s.jog(1, "3000")
+    poll_until(s, lambda st: st.axis >> 27 & 1)
+    s.jog_release()
+    poll_until(s, lambda st: not st.axis >> 27 & 1)
+
+
+def test_the_poller_runs_only_while_a_page_is_open(s):
+    s.select_axis(2)
+    s.start()
+    time.sleep(0.3)
+    assert s.viewers == 0 and s.polls == 0
+    s.viewers = 1
+    end = time.monotonic() + 5
+    while s.polls < 5 and time.monotonic() < end:
+        time.sleep(0.05)
+    assert s.polls >= 5 and s.status is not None
+    s.viewers = 0
+    time.sleep(0.2)
+    polls = s.polls
+    time.sleep(0.3)
+    assert s.polls == polls
+
+
+def test_one_motion_test_at_a_time_and_stop_ends_it(s):
+    s.select_axis(3)
+    s.servo(True)
+    t = threading.Thread(target=s.run_motion_test, args=(50, 20000, 5000))
+    t.start()
+    end = time.monotonic() + 5
+    while not s.motion_test["running"] and time.monotonic() < end:
+        time.sleep(0.01)
+    with pytest.raises(UserError, match="a motion test is already running"):
+        s.run_motion_test(1, 100, 1000)
+    s.stop_axis()
+    t.join(15)
+    assert not t.is_alive() and s.motion_test["summary"].endswith("(stopped)")

@@ -1,0 +1,636 @@
+"""The MotorJig Desk page (NiceGUI): layout only; state and bus work live in ``session``.
+
+Every browser tab gets its own copy of the page, all showing the one shared
+``BusSession``. Clicks run the session's methods in a worker thread
+(``run.io_bound``) so a slow bus never freezes the page; a per-tab timer copies
+the session's state into the widgets ten times a second, touching only what
+changed. Elements that tests and people look for carry a ``data-testid``.
+"""
+
+import time
+
+from nicegui import run, ui
+from serial.tools import list_ports
+
+from motorjig import names as N
+from motorjig.master import BAUD_RATES
+
+from motorjig.desk import forms
+from motorjig.desk.session import UserError, stamp
+
+CSS = """
+.lamp {display:inline-block; padding:1px 7px; margin:2px; border-radius:9px; font-size:11px;
+       background:#e6e6e6; color:#666; font-family:monospace}
+.lamp.on {background:#2e7d32; color:#fff}
+.lamp.err {background:#c62828; color:#fff}
+.big-num {font-family:monospace; font-size:1.6rem; text-align:right; min-width:9rem}
+.estop {font-weight:800; letter-spacing:.05em}
+"""
+
+PLOT_WINDOWS = {10: "10 s", 30: "30 s", 60: "60 s", 120: "120 s"}
+
+
+def tid(element, name):
+    """Give an element a stable data-testid (for tests and for people reading the DOM)."""
+    return element.props('data-testid="%s"' % name)
+
+
+class Changed:
+    """Remembers what was last pushed to each widget, so unchanged values are not resent."""
+
+    def __init__(self):
+        self.last = {}
+
+    def __call__(self, key, value):
+        if self.last.get(key, object()) == value:
+            return False
+        self.last[key] = value
+        return True
+
+
+def build(session):
+    """Register the page for one BusSession."""
+
+    @ui.page("/")
+    async def index():
+        DeskPage(session).build()
+
+
+class DeskPage:
+    """One browser tab's widgets and the callbacks that feed them."""
+
+    def __init__(self, session):
+        self.s = session
+        self.changed = Changed()
+        self.log_seq = 0
+        self.lamps = {}
+        self.plot_paused = False
+        self.plot_window = 30
+        self.jogging = False
+
+    # --- running actions -----------------------------------------------------------------
+    async def act(self, fn, *args, quiet=False):
+        """Run a session method off the event loop; show its sentence or its error."""
+        try:
+            msg = await run.io_bound(fn, *args)
+        except (UserError, forms.InputError) as exc:
+            if str(exc) != self.s.lost_message():  # losing the line is logged once, by the session
+                self.s.log("error", str(exc))
+            ui.notify(str(exc), type="negative", position="bottom-right", multi_line=True, timeout=8000)
+            return None
+        except Exception as exc:  # a bug: one sentence on the page, never a traceback
+            self.s.log("error", "internal error (%s: %s)" % (type(exc).__name__, exc))
+            ui.notify("internal error (%s: %s)" % (type(exc).__name__, exc), type="negative")
+            return None
+        if isinstance(msg, str) and not quiet:
+            ui.notify(msg, position="bottom-right")
+        return msg
+
+    # --- layout ----------------------------------------------------------------------------
+    def build(self):
+        ui.add_css(CSS)
+        s = self.s
+        # Both fire again when a tab's websocket reconnects, so the count stays right.
+        ui.context.client.on_connect(self._seen)
+        ui.context.client.on_disconnect(self._gone)
+        with ui.header().classes("items-center bg-blue-grey-9 q-py-xs"):
+            ui.label("MotorJig Desk").classes("text-h6")
+            self.conn_label = tid(ui.label(""), "conn-state").classes("q-ml-md")
+            self.axis_label = tid(ui.label(""), "axis-label").classes("q-ml-md")
+            ui.space()
+            tid(ui.button("STOP", on_click=lambda: self.act(s.stop_axis)), "btn-stop").props("color=orange")
+            tid(ui.button("EMERGENCY STOP (Esc)", on_click=lambda: self.act(s.emergency_stop)),
+                "btn-estop").props("color=red size=lg").classes("estop")
+        ui.keyboard(on_key=self._key, ignore=[])
+        with tid(ui.card(), "lost-banner").classes("w-full bg-red-1") as self.lost_banner:
+            with ui.row().classes("items-center"):
+                ui.icon("link_off", color="red", size="md")
+                self.lost_text = tid(ui.label(""), "lost-text").classes("text-red-9")
+                tid(ui.button("Reconnect", on_click=self._reconnect), "btn-reconnect")
+        self.lost_banner.set_visibility(False)
+        with ui.tabs().classes("w-full") as tabs:
+            t_conn = tid(ui.tab("Connect & bus"), "tab-connect")
+            t_axis = tid(ui.tab("Axis"), "tab-axis")
+            t_test = tid(ui.tab("Motion test"), "tab-test")
+            t_par = tid(ui.tab("Parameters"), "tab-params")
+            t_io = tid(ui.tab("I/O"), "tab-io")
+            t_diag = tid(ui.tab("Jig diagnostics"), "tab-diag")
+            t_raw = tid(ui.tab("Raw frames & log"), "tab-raw")
+        self.tabs = tabs
+        with ui.tab_panels(tabs, value=t_conn if not s.connected or s.axis is None else t_axis).classes("w-full"):
+            with ui.tab_panel(t_conn):
+                self._connect_panel()
+            with ui.tab_panel(t_axis):
+                self._axis_panel()
+            with ui.tab_panel(t_test):
+                self._test_panel()
+            with ui.tab_panel(t_par):
+                self._param_panel()
+            with ui.tab_panel(t_io):
+                self._io_panel()
+            with ui.tab_panel(t_diag):
+                self._diag_panel()
+            with ui.tab_panel(t_raw):
+                self._raw_panel()
+        ui.timer(0.1, self._refresh)
+        ui.timer(0.25, self._refresh_plot)
+
+    def _seen(self):
+        self.s.viewers += 1
+
+    def _gone(self):
+        self.s.viewers = max(0, self.s.viewers - 1)
+
+    async def _key(self, e):
+        if e.key == "Escape" and e.action.keydown and not e.action.repeat:
+            await self.act(self.s.emergency_stop)
+
+    async def _reconnect(self):
+        await self.act(self.s.reconnect)
+
+    # --- connect & bus ------------------------------------------------------------------------
+    def _connect_panel(self):
+        s = self.s
+        with ui.row().classes("items-end"):
+            self.port = tid(ui.input("Port or pyserial URL", value=s.url,
+                                     placeholder="/dev/ttyUSB0, COM7, socket://127.0.0.1:5000"),
+                            "port").classes("w-80")
+            self.port_pick = tid(ui.select([], label="serial ports", on_change=self._pick_port), "port-list") \
+                .classes("w-56")
+            ui.button(icon="refresh", on_click=self._refresh_ports).props("flat").tooltip("refresh the port list")
+            self.baud = tid(ui.select(list(BAUD_RATES), value=s.baud, label="baud"), "baud").classes("w-32")
+            self.ver8 = tid(ui.switch("Ver8 framing", value=s.ver8), "ver8")
+            tid(ui.button("Connect", on_click=self._connect), "btn-connect")
+            tid(ui.button("Disconnect", on_click=lambda: self.act(s.disconnect)), "btn-disconnect").props("outline")
+        self._refresh_ports()
+        ui.separator()
+        with ui.row().classes("items-center"):
+            tid(ui.button("Scan", icon="search", on_click=self._scan), "btn-scan")
+            tid(ui.button("Scan via jig", on_click=self._scan_via_jig), "btn-scan-jig").props("outline")
+            self.scan_label = tid(ui.label(""), "scan-progress")
+            self.scan_bar = ui.linear_progress(value=0, show_value=False).classes("w-48")
+            self.scan_bar.set_visibility(False)
+        cols = [{"name": "id", "label": "id", "field": "id", "align": "left"},
+                {"name": "type", "label": "slave type", "field": "type", "align": "left"},
+                {"name": "type_name", "label": "name", "field": "type_name", "align": "left"},
+                {"name": "version", "label": "version", "field": "version", "align": "left"},
+                {"name": "role", "label": "role", "field": "role", "align": "left"}]
+        self.slave_table = tid(ui.table(columns=cols, rows=[], row_key="id"), "slave-table").classes("w-full").props("dense")
+        with ui.row().classes("items-center"):
+            ui.label("Axis to work with:")
+            self.axis_pick = tid(ui.toggle({}, on_change=self._pick_axis), "axis-pick")
+
+    def _refresh_ports(self):
+        ports = sorted(p.device for p in list_ports.comports())
+        self.port_pick.set_options(ports)
+        if not ports:
+            self.port_pick.props('hint="no serial ports found"')
+
+    def _pick_port(self, e):
+        if e.value:
+            self.port.value = e.value
+
+    async def _connect(self):
+        await self.act(self.s.connect, self.port.value, self.baud.value, self.ver8.value)
+
+    async def _scan(self):
+        rows = await self.act(self.s.scan, quiet=True)
+        if rows is not None:
+            ui.notify("scan: %d slave(s) found" % len(rows), position="bottom-right")
+
+    async def _scan_via_jig(self):
+        rows = await self.act(self.s.scan_via_jig, quiet=True)
+        if rows is not None:
+            ui.notify("scan via jig: %d slave(s)" % len(rows), position="bottom-right")
+
+    async def _pick_axis(self, e):
+        if e.value is not None and e.value != self.s.axis:
+            await self.act(self.s.select_axis, e.value, quiet=True)
+
+    # --- axis panel, motion and plot -------------------------------------------------------------
+    def _axis_panel(self):
+        s = self.s
+        with ui.row().classes("w-full no-wrap items-start"):
+            with ui.card().classes("w-1/2"):
+                with ui.grid(columns=4).classes("items-center"):
+                    for label, key in (("command position", "cmd-pos"), ("actual position", "act-pos"),
+                                       ("position error", "pos-err"), ("velocity (pps)", "vel")):
+                        with ui.column().classes("gap-0"):
+                            ui.label(label).classes("text-caption")
+                            setattr(self, key.replace("-", "_"), tid(ui.label("-"), key).classes("big-num"))
+                ui.label("axis status").classes("text-caption q-mt-sm")
+                with tid(ui.element("div"), "lamps"):
+                    for bit, name, meaning in N.AXIS_FLAGS:
+                        lamp = ui.label(name).classes("lamp").props('data-flag="%s"' % name).tooltip(
+                            "bit %d: %s" % (bit, meaning))
+                        self.lamps[name] = lamp
+                with ui.row().classes("text-caption"):
+                    ui.label("inputs:")
+                    self.inputs_label = tid(ui.label("-"), "inputs")
+                with ui.row().classes("text-caption"):
+                    ui.label("outputs:")
+                    self.outputs_label = tid(ui.label("-"), "outputs")
+                self.poll_label = tid(ui.label(""), "poll-state").classes("text-caption text-grey-7")
+                with ui.row():
+                    tid(ui.button("Servo ON", on_click=lambda: self.act(s.servo, True)), "btn-servo-on")
+                    tid(ui.button("Servo OFF", on_click=lambda: self.act(s.servo, False)), "btn-servo-off") \
+                        .props("outline")
+                    tid(ui.button("Alarm reset", on_click=lambda: self.act(s.alarm_reset)), "btn-alarm-reset") \
+                        .props("outline")
+                    tid(ui.button("Clear position", on_click=lambda: self.act(s.clear_position)), "btn-clear-pos") \
+                        .props("outline")
+            with ui.card().classes("w-1/2"):
+                ui.label("Motion").classes("text-subtitle1")
+                with ui.row():
+                    self.target = tid(ui.input("position / distance (pulses)", value="10000"), "move-target")
+                    self.speed = tid(ui.input("speed (pps)", value="5000"), "move-speed").classes("w-28")
+                    self.acc = tid(ui.input("accel (ms)", placeholder="drive's"), "move-acc").classes("w-24")
+                    self.dec = tid(ui.input("decel (ms)", placeholder="drive's"), "move-dec").classes("w-24")
+                with ui.row():
+                    tid(ui.button("Move ABS", on_click=lambda: self._move("abs", 1)), "btn-move-abs")
+                    tid(ui.button("Move INC", on_click=lambda: self._move("inc", 1)), "btn-move-inc")
+                    tid(ui.button("Move DEC", on_click=lambda: self._move("inc", -1)), "btn-move-dec")
+                with ui.row().classes("items-center"):
+                    ui.label("hold to jog:")
+                    for sign, text in ((-1, "Jog −"), (1, "Jog +")):
+                        b = tid(ui.button(text), "btn-jog-%s" % ("minus" if sign < 0 else "plus")).props("outline")
+                        b.on("mousedown", lambda _, d=sign: self._jog_press(d))
+                        b.on("touchstart", lambda _, d=sign: self._jog_press(d))
+                        for ev in ("mouseup", "mouseleave", "touchend"):
+                            b.on(ev, lambda _: self._jog_release())
+                    tid(ui.button("Home", on_click=lambda: self.act(s.home)), "btn-home").props("outline")
+                    tid(ui.button("Limit −", on_click=lambda: self.act(s.to_limit, -1, self.speed.value)),
+                        "btn-limit-minus").props("outline")
+                    tid(ui.button("Limit +", on_click=lambda: self.act(s.to_limit, 1, self.speed.value)),
+                        "btn-limit-plus").props("outline")
+                ui.label("Leave accel/decel blank to use the drive's parameters 3 and 4; filled in, the move is "
+                         "sent as MoveAbsPosEx / MoveIncPosEx with its own times.").classes(
+                    "text-caption text-grey-7")
+        with ui.card().classes("w-full"):
+            with ui.row().classes("items-center"):
+                ui.label("Live plot").classes("text-subtitle1")
+                tid(ui.switch("pause", on_change=lambda e: setattr(self, "plot_paused", e.value)), "plot-pause")
+                ui.select(PLOT_WINDOWS, value=self.plot_window, label="window",
+                          on_change=lambda e: setattr(self, "plot_window", e.value)).classes("w-24")
+                tid(ui.button("Export CSV", icon="download", on_click=self._export_csv), "btn-csv").props("outline")
+                self.plot_points = tid(ui.label("0 points"), "plot-points").classes("text-caption")
+            self.chart = tid(ui.echart({
+                "animation": False,
+                "legend": {"top": 0},
+                "tooltip": {"trigger": "axis"},
+                "grid": {"left": 70, "right": 70, "top": 36, "bottom": 28},
+                "xAxis": {"type": "value", "min": -self.plot_window, "max": 0,
+                          "axisLabel": {"formatter": "{value} s"}},
+                "yAxis": [{"type": "value", "position": "left", "scale": True},
+                          {"type": "value", "position": "right", "scale": True, "splitLine": {"show": False}}],
+                "series": [
+                    {"name": "command position (pulses)", "type": "line", "showSymbol": False, "data": []},
+                    {"name": "actual position (pulses)", "type": "line", "showSymbol": False, "data": [],
+                     "lineStyle": {"type": "dashed"}},
+                    {"name": "velocity (pps, right axis)", "type": "line", "showSymbol": False, "data": [],
+                     "yAxisIndex": 1},
+                ],
+            }), "plot").classes("w-full h-72")
+
+    def _move(self, kind, sign):
+        target = self.target.value
+        if sign < 0:  # Move DEC: the same distance the other way
+            try:
+                target = -forms.position(target, "distance")
+            except forms.InputError as exc:
+                ui.notify(str(exc), type="negative")
+                return None
+        return self.act(self.s.move, kind, target, self.speed.value, self.acc.value, self.dec.value)
+
+    async def _jog_press(self, direction):
+        self.jogging = True
+        if await self.act(self.s.jog, direction, self.speed.value, quiet=True) is None:
+            self.jogging = False
+
+    async def _jog_release(self):
+        if self.jogging:  # mouseleave fires without a press too
+            self.jogging = False
+            await self.act(self.s.jog_release, quiet=True)
+
+    def _export_csv(self):
+        ui.download.content(self.s.history_csv(), time.strftime("motorjig-plot-%Y%m%d-%H%M%S.csv"),
+                            "text/csv")
+
+    # --- motion test ---------------------------------------------------------------------------------
+    def _test_panel(self):
+        s = self.s
+        with ui.row().classes("items-end"):
+            self.mt_cycles = tid(ui.input("cycles", value="3"), "mt-cycles").classes("w-24")
+            self.mt_dist = tid(ui.input("distance (pulses)", value="10000"), "mt-distance")
+            self.mt_speed = tid(ui.input("speed (pps)", value="20000"), "mt-speed")
+            tid(ui.button("Start motion test", on_click=self._motion_test), "btn-mt-start")
+            ui.button("Stop", on_click=lambda: self.act(s.stop_axis)).props("outline color=orange")
+        ui.label("Each cycle moves +distance then -distance; a move passes when the command position changed "
+                 "by exactly the distance and no error flag is set (the checks of jigctl motion-test).") \
+            .classes("text-caption text-grey-7")
+        self.mt_summary = tid(ui.label(""), "mt-summary").classes("text-h6")
+        cols = [{"name": k, "label": k, "field": k, "align": "left"}
+                for k in ("cycle", "distance", "start", "end", "seconds", "result", "problem")]
+        self.mt_table = tid(ui.table(columns=cols, rows=[], row_key="n"), "mt-table").classes("w-full")
+
+    async def _motion_test(self):
+        await self.act(self.s.run_motion_test, self.mt_cycles.value, self.mt_dist.value, self.mt_speed.value)
+
+    # --- parameters ------------------------------------------------------------------------------------
+    def _param_panel(self):
+        with ui.row().classes("items-end"):
+            self.par_slave = tid(ui.input("slave id", placeholder="selected axis"), "param-slave").classes("w-28")
+            tid(ui.button("Read table", icon="download", on_click=self._read_params), "btn-param-read")
+            self.par_title = tid(ui.label(""), "param-title")
+        with ui.row().classes("items-end"):
+            self.par_key = tid(ui.input("parameter (number or name)"), "param-key").classes("w-56")
+            self.par_value = tid(ui.input("new value"), "param-value").classes("w-32")
+            tid(ui.button("Write to RAM", on_click=self._write_param), "btn-param-write")
+            tid(ui.button("Save all to ROM…", on_click=self._confirm_save), "btn-param-save").props("outline color=red")
+        cols = [{"name": k, "label": k.upper() if k in ("ram", "rom") else k, "field": k, "align": "left"}
+                for k in ("number", "name", "unit", "range", "ram", "rom", "effect", "meaning")]
+        self.par_table = tid(ui.table(columns=cols, rows=[], row_key="number",
+                                      pagination={"rowsPerPage": 0}), "param-table").classes("w-full").props("dense")
+        self.par_table.on("rowClick", lambda e: self._param_clicked(e.args))
+        with ui.dialog() as self.save_dialog, ui.card():
+            self.save_text = ui.label("")
+            with ui.row():
+                tid(ui.button("Save to ROM", on_click=self._save_params), "btn-param-save-yes").props("color=red")
+                ui.button("Cancel", on_click=self.save_dialog.close).props("flat")
+
+    def _param_slave(self):
+        text = (self.par_slave.value or "").strip()
+        if text:
+            return forms.slave_id(text)
+        if self.s.axis is None:
+            raise forms.InputError("no axis selected: scan the bus, or type a slave id")
+        return self.s.axis
+
+    def _param_clicked(self, args):
+        try:
+            row = args[1]
+            self.par_key.value = str(row["number"])
+            self.par_value.value = str(row["ram"])
+        except (IndexError, KeyError, TypeError):
+            pass
+
+    async def _read_params(self):
+        try:
+            slave = self._param_slave()
+        except forms.InputError as exc:
+            ui.notify(str(exc), type="negative")
+            return
+        self.par_title.text = "reading slave %d ..." % slave
+        res = await self.act(self.s.read_params, slave, quiet=True)
+        if res is None:
+            self.par_title.text = ""
+            return
+        which, rows = res
+        self.par_title.text = "%s parameters of slave %d" % (which, slave)
+        self.par_table.rows = rows
+        self.par_table.update()
+
+    async def _write_param(self):
+        try:
+            slave = self._param_slave()
+        except forms.InputError as exc:
+            ui.notify(str(exc), type="negative")
+            return
+        value = await self.act(self.s.write_param, slave, self.par_key.value, self.par_value.value, quiet=True)
+        if value is None:
+            return
+        ui.notify("slave %d parameter %s = %d (RAM)" % (slave, self.par_key.value, value), position="bottom-right")
+        for row in self.par_table.rows:
+            if str(row["number"]) == str(self.par_key.value).strip() or row["name"] == str(self.par_key.value).strip():
+                row["ram"] = value
+        self.par_table.update()
+
+    def _confirm_save(self):
+        try:
+            slave = self._param_slave()
+        except forms.InputError as exc:
+            ui.notify(str(exc), type="negative")
+            return
+        self.save_text.text = ("Save every RAM parameter of slave %d to ROM? The drive keeps them after "
+                               "power-off." % slave)
+        self.save_dialog.open()
+
+    async def _save_params(self):
+        self.save_dialog.close()
+        await self.act(self.s.save_params, self._param_slave())
+        await self._read_params()
+
+    # --- I/O -----------------------------------------------------------------------------------------------
+    def _io_panel(self):
+        with ui.row().classes("items-end"):
+            self.io_slave = tid(ui.input("slave id", placeholder="selected axis"), "io-slave").classes("w-28")
+            tid(ui.button("Read I/O", on_click=self._read_io), "btn-io-read")
+            self.io_auto = tid(ui.switch("refresh every second"), "io-auto")
+        self.io_title = ui.label("")
+        ui.label("inputs").classes("text-caption")
+        self.io_inputs = tid(ui.element("div"), "io-inputs")
+        ui.label("outputs (click to switch)").classes("text-caption")
+        self.io_outputs = tid(ui.row(), "io-outputs")
+        ui.timer(1.0, lambda: self._read_io() if self.io_auto.value else None)
+
+    async def _read_io(self):
+        try:
+            text = (self.io_slave.value or "").strip()
+            slave = forms.slave_id(text) if text else self.s.axis
+        except forms.InputError as exc:
+            ui.notify(str(exc), type="negative")
+            return
+        if slave is None:
+            ui.notify("no axis selected: scan the bus, or type a slave id", type="negative")
+            return
+        res = await self.act(self.s.io_bits, slave, quiet=True)
+        if res is None:
+            return
+        inputs, outputs = res
+        self.io_title.text = "slave %d (%s)" % (slave, self.s.param_table(slave)[0])
+        key = ("io", slave, tuple(inputs), tuple(outputs))
+        if not self.changed("io", key):
+            return
+        self.io_inputs.clear()
+        with self.io_inputs:
+            for bit, name, on in inputs:
+                ui.label(name).classes("lamp on" if on else "lamp").tooltip("bit %d" % bit)
+        self.io_outputs.clear()
+        with self.io_outputs:
+            for bit, name, on in outputs:
+                tid(ui.switch(name, value=on,
+                              on_change=lambda e, b=bit, sl=slave: self._set_output(sl, b, e.value)),
+                    "out-%s" % name)
+
+    async def _set_output(self, slave, bit, on):
+        await self.act(self.s.set_output, slave, bit, on, quiet=True)
+        self.changed.last.pop("io", None)
+
+    # --- jig diagnostics -------------------------------------------------------------------------------------
+    def _diag_panel(self):
+        with ui.row().classes("items-center"):
+            tid(ui.button("Read counters", on_click=self._read_counters), "btn-counters")
+            self.diag_auto = tid(ui.switch("refresh every second"), "diag-auto")
+            tid(ui.button("Reset counters", on_click=self._reset_counters), "btn-counters-reset").props("outline")
+            tid(ui.button("Crash log", on_click=self._crash_log), "btn-crash").props("outline")
+            tid(ui.button("Bus-scan result", on_click=self._scan_result), "btn-scan-result").props("outline")
+        self.diag_text = tid(ui.label(""), "diag-text").classes("font-mono")
+        cols = [{"name": "name", "label": "counter", "field": "name", "align": "left"},
+                {"name": "value", "label": "value", "field": "value", "align": "right"}]
+        self.counter_table = tid(ui.table(columns=cols, rows=[], row_key="name", pagination={"rowsPerPage": 0}),
+                                 "counter-table").classes("w-96")
+        ui.timer(1.0, lambda: self._read_counters() if self.diag_auto.value else None)
+
+    async def _read_counters(self):
+        res = await self.act(self.s.counters, quiet=True)
+        if res is not None:
+            self.counter_table.rows = [{"name": k, "value": v} for k, v in res.items()]
+            self.counter_table.update()
+
+    async def _reset_counters(self):
+        await self.act(self.s.reset_counters)
+        await self._read_counters()
+
+    async def _crash_log(self):
+        res = await self.act(self.s.crash_log, quiet=True)
+        if res is not None:
+            self.diag_text.text = "crash log: " + res
+
+    async def _scan_result(self):
+        res = await self.act(self.s.bus_scan_result, quiet=True)
+        if res is not None:
+            self.diag_text.text = "jig bus scan: " + res
+
+    # --- raw frames and log -------------------------------------------------------------------------------
+    def _raw_panel(self):
+        s = self.s
+        with ui.row().classes("items-end"):
+            self.raw_id = tid(ui.input("slave id", value="2"), "raw-id").classes("w-20")
+            self.raw_type = tid(ui.input("frame type (hex)", value="0x40"), "raw-type").classes("w-32")
+            self.raw_data = tid(ui.input("data (hex)", placeholder="e.g. 10 27 00 00"), "raw-data")
+            self.raw_corrupt = tid(ui.checkbox("break the CRC"), "raw-corrupt")
+            tid(ui.button("Send", icon="send", on_click=self._send_raw), "btn-raw-send")
+        with ui.row().classes("items-end"):
+            self.raw_wire = tid(ui.input("or wire bytes as typed (AA CC ... AA EE, nothing added)"),
+                                "raw-wire").classes("w-2/3")
+        with ui.row().classes("items-center"):
+            tid(ui.switch("log polling frames", value=s.log_polls,
+                          on_change=lambda e: setattr(s, "log_polls", e.value)), "log-polls")
+            tid(ui.button("Clear", on_click=self._clear_log), "btn-log-clear").props("outline")
+            tid(ui.button("Save log", icon="download", on_click=self._save_log), "btn-log-save").props("outline")
+        self.log_view = tid(ui.log(max_lines=1000), "log").classes("w-full h-96 text-xs")
+
+    async def _send_raw(self):
+        await self.act(self.s.send_raw, self.raw_id.value, self.raw_type.value, self.raw_data.value,
+                       self.raw_corrupt.value, self.raw_wire.value, quiet=True)
+
+    def _clear_log(self):
+        self.s.clear_log()
+        self.log_view.clear()
+
+    def _save_log(self):
+        ui.download.content(self.s.log_text(), time.strftime("motorjig-desk-%Y%m%d-%H%M%S.log"), "text/plain")
+
+    # --- the 10 Hz refresh ------------------------------------------------------------------------------------
+    def _refresh(self):
+        s = self.s
+        ch = self.changed
+        state = s.state
+        conn = {"connected": "connected: %s @ %d" % (s.url, s.baud), "lost": "CONNECTION LOST",
+                "disconnected": "not connected"}[state]
+        if ch("conn", conn):
+            self.conn_label.text = conn
+        if ch("lost", (state, s.lost_reason)):
+            self.lost_banner.set_visibility(state == "lost")
+            self.lost_text.text = s.lost_message() if state == "lost" else ""
+        axis = "axis: slave %d" % s.axis if s.axis is not None else "no axis selected"
+        if ch("axis", axis):
+            self.axis_label.text = axis
+        prog = s.scan_progress
+        rows = [dict(r, role="jig (slave %d)" % r["id"] if r["jig"] else "driver") for r in s.slaves.values()]
+        if prog is not None:
+            scan_text = "scanning id %d of %d ..." % prog
+        elif rows:
+            scan_text = "%d slave(s): ids %s" % (len(rows), ", ".join(str(r["id"]) for r in rows))
+        else:
+            scan_text = ""
+        if ch("scan", (prog, scan_text)):
+            self.scan_bar.set_visibility(prog is not None)
+            if prog is not None:
+                self.scan_bar.value = (prog[0] + 1) / (prog[1] + 1)
+            self.scan_label.text = scan_text
+        if ch("slaves", repr(rows)):
+            self.slave_table.rows = rows
+            self.slave_table.update()
+            self.axis_pick.set_options({r["id"]: "%d %s" % (r["id"], "jig" if r["jig"] else r["type_name"])
+                                        for r in rows}, value=s.axis if s.axis in s.slaves else None)
+        if ch("axis_pick", s.axis) and s.axis in s.slaves:
+            self.axis_pick.value = s.axis
+        self._refresh_axis()
+        self._refresh_test()
+        new = s.log_since(self.log_seq)
+        for e in new:
+            self.log_view.push("%s  %-5s %s" % (stamp(e.t), e.kind.upper(), e.text))
+        if new:
+            self.log_seq = new[-1].seq
+
+    def _refresh_axis(self):
+        s, ch = self.s, self.changed
+        v = s.status_view()
+        if v is None:
+            values = ("-", "-", "-", "-")
+            flags, errors, ins, outs = set(), set(), "-", "-"
+        else:
+            values = tuple("%d" % v[k] for k in ("command_pos", "actual_pos", "pos_error", "actual_vel"))
+            flags, errors = v["flags"], v["errors"]
+            ins, outs = ", ".join(v["inputs"]) or "-", ", ".join(v["outputs"]) or "-"
+        for label, key, value in zip((self.cmd_pos, self.act_pos, self.pos_err, self.vel),
+                                     ("cmd", "act", "err", "vel"), values):
+            if ch(key, value):
+                label.text = value
+        for name, lamp in self.lamps.items():
+            cls = "lamp err" if name in errors else "lamp on" if name in flags else "lamp"
+            if ch("lamp-" + name, cls):
+                lamp.classes(replace=cls)
+        if ch("ins", ins):
+            self.inputs_label.text = ins
+        if ch("outs", outs):
+            self.outputs_label.text = outs
+        if not s.connected:
+            poll = ""
+        elif s.status_error:
+            poll = s.status_error
+        else:
+            poll = "status read %.0f times a second" % s.poll_rate() if s.status is not None else ""
+        if ch("poll", poll):
+            self.poll_label.text = poll
+
+    def _refresh_test(self):
+        mt = self.s.motion_test
+        key = (mt["running"], len(mt["moves"]), mt["summary"])
+        if not self.changed("mt", key):
+            return
+        self.mt_summary.text = mt["summary"]
+        self.mt_table.rows = [{"n": i, "cycle": r["cycle"], "distance": r["distance"], "start": r.get("start", ""),
+                               "end": r.get("end", ""), "seconds": r.get("seconds", ""),
+                               "result": "PASS" if r["ok"] else "FAIL", "problem": r.get("problem", "")}
+                              for i, r in enumerate(mt["moves"])]
+        self.mt_table.update()
+
+    def _refresh_plot(self):
+        if self.plot_paused:
+            return
+        rows = self.s.history_rows(self.plot_window)
+        key = (len(rows), rows[-1].t if rows else 0, self.plot_window)
+        if not self.changed("plot", key):
+            return
+        t_end = rows[-1].t if rows else 0
+        step = max(1, len(rows) // 600)
+        rows = rows[::step]
+        opts = self.chart.options
+        span = t_end - rows[0].t if rows else 0
+        opts["xAxis"]["min"] = -min(self.plot_window, max(1, int(span + 0.999)))  # fit until the window fills
+        for i, field in enumerate(("command_pos", "actual_pos", "actual_vel")):
+            opts["series"][i]["data"] = [[round(r.t - t_end, 3), getattr(r, field)] for r in rows]
+        self.chart.update()
+        self.plot_points.text = "%d points" % len(rows)
