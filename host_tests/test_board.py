@@ -542,8 +542,10 @@ def test_main_logs_a_crash_and_resets(fakes, monkeypatch, tmp_path):
     mod = load_main(fakes, monkeypatch, tmp_path)
     FakePin.levels = {"BTN_SAFE": 1}
 
-    def run(self):
-        self.poll()
+    real_run = App.run
+
+    def run(self, passes=-1):
+        real_run(self, 1)  # one real pass, then the failure
         raise RuntimeError("bridge fell over")
 
     monkeypatch.setattr(App, "run", run)
@@ -561,8 +563,10 @@ def test_main_ctrl_c_keeps_the_watchdog_fed(fakes, monkeypatch, tmp_path):
     mod = load_main(fakes, monkeypatch, tmp_path)
     FakePin.levels = {"BTN_SAFE": 1}
 
-    def run(self):
-        self.poll()
+    real_run = App.run
+
+    def run(self, passes=-1):
+        real_run(self, 1)  # one real pass, then the failure
         raise KeyboardInterrupt
 
     monkeypatch.setattr(App, "run", run)

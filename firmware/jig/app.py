@@ -102,7 +102,6 @@ class App:
         self._down_read = self.down.read_into
         self._up_bytes = self.bridge.up_bytes
         self._down_bytes = self.bridge.down_bytes
-        self._work = self.work  # noqa (bound once for run())
         self.base_echo = 0
         self.base_up_ovf = hal.up.overflows
         self.base_down_ovf = hal.down.overflows
@@ -159,45 +158,43 @@ class App:
 
     # --- main loop -----------------------------------------------------------------
     def poll(self):
-        """One pass of the main loop: nothing but two ``any()`` calls, a tick and a
-        compare unless bytes are waiting or the slow pass is due (``work``)."""
-        d = self._down_any()
-        u = self._up_any()
-        if d or u or (self._ticks() - self.due[0]) & TICKS_MASK < TICKS_HALF:
-            self.work(d, u)
+        """One pass of the main loop (``run`` is the loop)."""
+        self.run(1)
 
     def run(self, passes=-1):
-        """The main loop: ``poll`` forever (or ``passes`` times), with its names in
-        locals so an idle pass costs only what it must."""
+        """The main loop, forever (or ``passes`` passes). Every name it uses is a local,
+        bound once: an idle pass is two ``any()`` calls, a tick and a compare, and a
+        pass with bytes calls only the port's read and the bridge."""
         down_any = self._down_any
         up_any = self._up_any
+        down_read = self._down_read
+        up_read = self._up_read
+        down_bytes = self._down_bytes
+        up_bytes = self._up_bytes
+        down_parser = self.down_parser
+        up_parser = self.up_parser
+        down_rx = self.down_rx
+        up_rx = self.up_rx
         ticks = self._ticks
         due = self.due
-        work = self._work
         while passes != 0:
             passes -= 1
+            # Driver bus first: a reply already in must be relayed before a new PC
+            # request aborts its wait. Ask for no more than is waiting: a UART read
+            # asked for more waits for it.
             d = down_any()
+            if d:
+                n = down_read(down_rx, d if d < RX_CHUNK else RX_CHUNK)
+                if n:
+                    down_bytes(down_parser, down_rx, n, ticks())
             u = up_any()
-            if d or u or (ticks() - due[0]) & TICKS_MASK < TICKS_HALF:
-                work(d, u)
-
-    def work(self, down_waiting, up_waiting):
-        """Drain the ports that have bytes waiting into the bridge, then the slow pass
-        if it is due."""
-        # Driver bus first: a reply already in must be relayed before a new PC
-        # request aborts its wait.
-        # Ask for no more than is waiting: a UART read asked for more waits for it.
-        if down_waiting:
-            n = self._down_read(self.down_rx, down_waiting if down_waiting < RX_CHUNK else RX_CHUNK)
-            if n:
-                self._down_bytes(self.down_parser, self.down_rx, n, self._ticks())
-        if up_waiting:
-            n = self._up_read(self.up_rx, up_waiting if up_waiting < RX_CHUNK else RX_CHUNK)
-            if n:
-                self._up_bytes(self.up_parser, self.up_rx, n, self._ticks())
-        now = self._ticks()
-        if (now - self.due[0]) & TICKS_MASK < TICKS_HALF:
-            self._slow(now)
+            if u:
+                n = up_read(up_rx, u if u < RX_CHUNK else RX_CHUNK)
+                if n:
+                    up_bytes(up_parser, up_rx, n, ticks())
+            now = ticks()
+            if (now - due[0]) & TICKS_MASK < TICKS_HALF:
+                self._slow(now)
 
     def _slow(self, now):
         """Everything with a time in it; sets the next due tick."""
