@@ -28,7 +28,7 @@ from motorjig import names as N
 from motorjig.commands import _motion_cycles  # the very moves and checks of `jigctl motion-test`
 from motorjig.decode import Decoder
 from motorjig.errors import JigError, PortError
-from motorjig.master import BAUD_RATES, AxisStatus, Frame, Master, MotionTimeoutError
+from motorjig.master import BAUD_RATES, AxisStatus, Frame, Master
 
 from motorjig.desk import forms
 
@@ -676,14 +676,8 @@ class _JobMaster:
         return call
 
     def wait_motion_done(self, slave, timeout=10.0, poll=0.02):
-        end = time.monotonic() + timeout
-        while True:
-            st = self.get_axis_status(slave)
-            if not st.motioning:
-                return st
-            if time.monotonic() > end:
-                raise MotionTimeoutError("slave %d still moving after %.1f s" % (slave, timeout))
-            time.sleep(poll)
+        # Master's own loop, with each status read going through the lock (above).
+        return Master.wait_motion_done(self, slave, timeout, poll)
 
 
 def _kind(sent):
