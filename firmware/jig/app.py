@@ -10,8 +10,7 @@ the heartbeat -- runs in the *slow pass*, only when the tick reaches ``due[0]``:
 the earliest time any of them needs attention (at least every ``SLOW_US``; the
 bridge moves it earlier for a reply deadline and for the inter-byte timeout of a
 frame it is cutting through). An idle pass is two ``any()`` calls, a tick and a
-compare. ``run()`` loops forever
-(the board's main.py calls it).
+compare. ``run()`` loops forever (the board's main.py calls it).
 
 The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
 
@@ -88,7 +87,6 @@ class App:
         self.t_beat = hal.ticks_us()
         self.due = [self.t_beat]  # the tick at which the slow pass must next run
         self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due)
-        self.bridge.up_timeout_us = self.bridge.down_timeout_us = pr[P.P_INTERBYTE_US]
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
         self.up_rx = bytearray(RX_CHUNK)
@@ -115,7 +113,6 @@ class App:
         self.up.post_us = self.down.post_us = pr[P.P_DE_POST_US]
         self.up_parser.interbyte_timeout_us = pr[P.P_INTERBYTE_US]
         self.down_parser.interbyte_timeout_us = pr[P.P_INTERBYTE_US]
-        self.bridge.up_timeout_us = self.bridge.down_timeout_us = pr[P.P_INTERBYTE_US]
 
     def save_params(self):
         ok = self.params.save()
@@ -236,7 +233,6 @@ class App:
             return 0
         d = ticks_diff(self.due[0], hal.ticks_us())
         return d if d > 0 else 0
-
 
 
 def _earlier(due, now, wait):

@@ -45,7 +45,7 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
                           C_UP_OUT)
 from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
 from jig.compat import const, ticks_diff
-from jig.params import P_REPLY_TIMEOUT_MS, P_SLAVE_ID
+from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
 IDLE = const(0)
 AWAIT_PC = const(1)  # a PC request was forwarded; its reply goes to the PC
@@ -193,8 +193,6 @@ class Bridge:
         # nothing to it for an echo-free port whose write returns after the last stop bit).
         self.fwd_part = down.port.write if down.tx_blocks and not down.track_echo else down.part
         self.rel_part = up.port.write if up.tx_blocks and not up.track_echo else up.part
-        self.up_timeout_us = 5000  # inter-byte timeouts (the app keeps them current)
-        self.down_timeout_us = 5000
 
     def _event(self, ev):
         k = self.state * N_EVENTS + ev
@@ -249,13 +247,7 @@ class Bridge:
         fwd = self.down
         fwd.begin(hdr, 0, k)
         self.fwd = fwd
-        # The slow pass must look at the line within the inter-byte timeout (and keeps
-        # doing so while the frame lasts) to end the transmission cleanly if the PC
-        # falls silent.
-        t = (now + self.up_timeout_us + 1) & _TICKS_MASK
-        due = self.due
-        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
-            due[0] = t
+        self._watch_line(now)
         v = self.v
         v[C_DOWN_OUT] += 1
         if slave == _BROADCAST_ID:
@@ -355,6 +347,15 @@ class Bridge:
         if (d - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # d comes before due[0]
             due[0] = d
 
+    def _watch_line(self, now):
+        """A frame is being cut through: the slow pass must look at the line within the
+        inter-byte timeout (and keeps doing so while the frame lasts) to end the
+        transmission cleanly if the sender falls silent."""
+        t = (now + self.params.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
+        due = self.due
+        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
+            due[0] = t
+
     def _local(self, p, t_in):
         self.v[C_LOCAL] += 1
         n = self.handlers.handle(p, self.reply)
@@ -451,10 +452,10 @@ class Bridge:
     def _down_head(self, body, now):
         """Cut-through, a PC request awaited: the first two body bytes of a driver
         frame are in. A match goes on to the PC from here."""
+        if not self._matches(body):
+            return
         b0 = body[0]
         b1 = body[1]
-        if b0 != self.p_b0 or b1 != self.p_b1:
-            return
         # AA CC and the two bytes, re-stuffed (an id is never 0xAA; a sync may be)
         hdr = self.hdr
         hdr[2] = b0
@@ -466,10 +467,7 @@ class Bridge:
         rel = self.up
         rel.begin(hdr, 0, k)
         self.rel = rel
-        t = (now + self.down_timeout_us + 1) & _TICKS_MASK  # as in _pc_head
-        due = self.due
-        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:
-            due[0] = t
+        self._watch_line(now)
 
     def _end_relay(self, count_abort):
         rel = self.rel

@@ -242,8 +242,8 @@ def scan_py(st, data, start, end, body, tables, now):
                     if n == head_at:
                         ev = EV_HEAD
                         break
-                    if i >= end or data[i] != 0xAA:
-                        continue
+                    if i >= end:  # else the run stopped at a 0xAA
+                        break
                 state = ESCAPE  # TRANSITIONS[BODY][0xAA]
                 i += 1
                 if i >= end:
