@@ -14,6 +14,7 @@ firmware's own.
 import gc
 
 from jig import frame, mem
+from jig.counters import C_INT_REQUESTS
 from jig.app import App
 from jig.ringbuf import RingBuffer
 
@@ -201,4 +202,4 @@ def scan_all_absent():
     used = gc.mem_alloc() - a0 if has_mem else -1
     if has_mem:
         gc.enable()
-    return hal.down.writes, r.app.scanner.state, used
+    return r.app.counters.v[C_INT_REQUESTS], r.app.scanner.state, used

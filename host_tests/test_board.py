@@ -472,12 +472,15 @@ def test_app_bridges_on_the_board_hal(fakes, tmp_path):
     p.feed(pc.sent[0])
     assert p.ready and p.slave == 1 and p.ftype == frame.GET_SLAVE_INFO and p.body[p.data_start] == 0
     assert de_up.writes[-2:] == [1, 0]  # software DE around the reply
+    # cut through, its header went on before the id was known: ended as a stub
+    assert b"".join(drv.sent) == bytes((0xAA, 0xCC, 1, 0xAA, 0xEE))
+    drv.sent.clear()
 
     request = frame.encode(2, frame.GET_AXIS_STATUS)
     reply = frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08")
     pc.receive(request)
     app.poll()
-    assert b"".join(drv.sent) == request  # cut through: header+id first, the rest as it came
+    assert b"".join(drv.sent) == request  # cut through: the header first, the rest as it came
     n_pc = len(pc.sent)
     drv.receive(reply)
     app.poll()

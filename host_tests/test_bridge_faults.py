@@ -99,12 +99,26 @@ def test_driver_garbage_mid_relay_reaches_the_pc_as_a_broken_frame():
     assert b.request(2, GCP)[1] == b"\x00" + bytes(4)
 
 
-def test_wrong_id_reply_dropped():
-    b = make()
+def test_wrong_id_reply_dropped_store_and_forward():
+    b = make(jig_params={P.P_FORWARD_MODE: P.STORE_AND_FORWARD})
     b.drivers[2].wrong_id = 5
     assert b.request(2, GCP) == (None, None)
     c = b.counters
     assert c["stale_drops"] == 1 and c["timeouts"] == 1 and b.pc.raw == b""
+
+
+def test_wrong_id_reply_reaches_the_pc_only_as_a_stub_cut_through():
+    """Cut through, a frame on the driver bus is relayed from its header while a reply
+    is awaited; its first two bytes show it is not the answer, and the PC gets a
+    frame too short to be one (AA CC id type AA EE), which no parser accepts."""
+    b = make()
+    b.drivers[2].wrong_id = 5
+    assert b.request(2, GCP) == (None, None)
+    c = b.counters
+    assert c["stale_drops"] == 1 and c["timeouts"] == 1 and c["replies"] == 0
+    assert b.pc.raw == bytes((0xAA, 0xCC, 5, GCP, 0xAA, 0xEE)) and b.pc.frames == []
+    assert b.pc.parser.short == 1
+    assert b.request(3, GCP)[1] == b"\x00" + bytes(4)  # the next request is answered as ever
 
 
 def test_late_reply_never_answers_the_next_request():
@@ -278,3 +292,20 @@ def test_no_request_of_the_jig_while_a_broadcast_is_cut_through():
     b.run_for(10000.0)
     assert not bridge.busy() and b.drivers[2].requests == 1 and b.drivers[3].requests == 1
     assert b.counters["int_requests"] == 0 and b.down_bus.collisions == 0
+
+
+def test_driver_frame_broken_off_before_its_two_bytes_is_not_the_answer():
+    """Cut through, a header on the driver bus goes on to the PC at once; if the frame
+    breaks off before its id and type are in (a glitch, silence), it was no answer:
+    the wait goes on and the real reply, coming later, is relayed."""
+    b = make()
+    d = b.drivers[2]
+    d.late_us = 20000.0
+    t = b.send(F.encode(2, GCP))
+    b.clock.run_until(t + 300.0)
+    b.down_bus.inject(bytes((0xAA, 0xCC, 2)))  # ... and then nothing
+    b.run_for(60000.0)
+    c = b.counters
+    assert c["replies"] == 1 and c["relay_corrupt"] == 0 and c["timeouts"] == 0
+    assert [w for _t, w in b.pc.frames] == [F.encode(2, GCP, b"\x00" + bytes(4))]
+    assert b.pc.raw.startswith(bytes((0xAA, 0xCC, 2)))  # the broken-off start reached the PC

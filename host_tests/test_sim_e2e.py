@@ -130,7 +130,13 @@ def test_slave_info_for_jig_and_each_driver(bench):
     _w, r = bench.request(1, F.GET_SLAVE_INFO)
     assert r[0] == 0 and r[1] == diag.SLAVE_TYPE
     assert r[2:].rstrip(b"\x00").startswith(b"MotorJig")
-    assert bench.down_tap.by("jig-down") == []  # answered locally, nothing forwarded
+    sent_down = b"".join(bench.down_tap.by("jig-down"))
+    if bench.app.params.ram[P_FORWARD_MODE] == 0:
+        # cut through, the header went on before the id was known: ended as a stub
+        # (a frame too short to be one, which every drive drops)
+        assert sent_down == bytes((0xAA, 0xCC, 1, 0xAA, 0xEE))
+    else:
+        assert sent_down == b""  # answered locally, nothing forwarded
     for i in (2, 3):
         _w, r = bench.request(i, F.GET_SLAVE_INFO)
         assert r[0] == 0 and r[1] == 20 and b"Ezi-STEP" in r

@@ -77,9 +77,9 @@ class App:
         # stop at each routing decision (EV_HEAD) and at each dropped frame.
         # (a reply matches on its first two body bytes, whatever its layout: bridge.py)
         self.up_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_UP_BAUD],
-                                             head_at=1 if cut else 0, stop_drop=cut)
+                                             head_at=1 if cut else 0, stop_drop=cut, start_ev=cut)
         self.down_parser = _parser.FrameParser(ver8, pr[P.P_INTERBYTE_US], True, 10000000 // pr[P.P_DOWN_BAUD],
-                                               head_at=2 if cut else 0, stop_drop=cut)
+                                               head_at=2 if cut else 0, stop_drop=cut, start_ev=cut)
         # The bridge reads driver frames layout-free (mixed Ver6/Ver8 bus): allow the
         # longer Ver8 body whatever the jig's own protocol.
         self.down_parser.max_body = MAX_BODY

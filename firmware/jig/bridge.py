@@ -25,15 +25,17 @@ frames from either side and the timeout.
 
 Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
 
-* **cut-through** (default): the parsers raise EV_HEAD as soon as a frame's
-  routing bytes are in -- the slave id of a PC frame, the two matching bytes of a
-  driver frame -- and the routing decision is taken there. A forwarded frame starts on
-  the driver bus at once (header and id, re-stuffed) and every further byte
-  follows as it arrives (``up_bytes``: the raw bytes the parser consumed); a
-  matching reply goes to the PC the same way. DE stays up until the frame's tail
-  has gone. A frame that turns out bad has been passed on, as a wire would: it
-  is counted (``cut_corrupt``, ``relay_corrupt``), and a PC that goes silent
-  mid-frame gets the transmission ended cleanly (``cut_truncated``).
+* **cut-through** (default): a frame goes on from its header (EV_START), both
+  ways -- a PC frame to the driver bus, a driver frame to the PC while a reply is
+  awaited -- and every further byte follows as it arrives (``up_bytes``: the raw
+  bytes the parser consumed). The routing decision is taken at EV_HEAD, when the
+  routing bytes are in: the slave id of a PC frame (one for the jig is ended on
+  the driver bus with a tail: a frame too short to be one), the two matching
+  bytes of a driver frame (one that does not match is ended with a tail on the PC
+  bus). DE stays up until the frame's tail has gone. A frame that turns out bad
+  has been passed on, as a wire would: it is counted (``cut_corrupt``,
+  ``relay_corrupt``), and a PC that goes silent mid-frame gets the transmission
+  ended cleanly (``cut_truncated``).
 * **store-and-forward**: only whole, CRC-checked frames are sent on, re-stuffed
   from the parsed body (stuffing is canonical, so the bytes are the received ones).
 """
@@ -43,7 +45,7 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
                           C_FORWARDS, C_INT_ABORTS, C_INT_REPLIES, C_INT_REQUESTS, C_INT_TIMEOUTS, C_LOCAL,
                           C_LOCAL_ERRORS, C_RELAY_CORRUPT, C_REPLIES, C_STALE, C_TIMEOUTS, C_UNAWAITED, C_UP_IN,
                           C_UP_OUT)
-from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
+from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, EV_START, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
 from jig.compat import const, ticks_diff
 from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
@@ -183,10 +185,13 @@ class Bridge:
         self.sync_next = INT_SYNC_FIRST  # Ver8 sync numbers of jig-originated requests
         # Cut-through: the Rs485 a frame is being streamed to (None: none), per side.
         self.fwd = None  # PC frame -> driver bus
+        self.fwd_routed = False  # its id is in, and it is for the drivers
         self.rel = None  # driver frame -> PC bus
+        self.rel_checked = False  # the frame being relayed matched the request
         self.hdr = bytearray(2 + 2 * 3)  # AA CC + the (stuffed) head of a frame cut through
         self.hdr[0] = frame.STUFF
         self.hdr[1] = frame.HEADER2
+        self.tail = bytes((frame.STUFF, frame.TAIL2))
         self._ticks = hal.ticks_us
         self._turnaround = counters.turnaround
         # Cut through, the raw bytes go straight to the port's write (Rs485.part adds
@@ -220,7 +225,9 @@ class Bridge:
             if self.fwd is not None and j > i:
                 self.fwd_part(buf, i, j - i)  # the raw bytes of the frame being cut through
             ev = st[S_EVENT]
-            if ev == EV_HEAD:
+            if ev == EV_START:
+                self._pc_start(now)
+            elif ev == EV_HEAD:
                 self._pc_head(body[0], now)
             elif ev == EV_FRAME:
                 self.on_pc_frame(p, now)
@@ -228,26 +235,48 @@ class Bridge:
                 self._pc_drop(st, body)
             i = j
 
-    def _pc_head(self, slave, now):
-        """Cut-through: the id of a PC frame is known; route it now."""
-        # (No frame is being passed on here: every frame the parser ends raises
-        # EV_FRAME or EV_DROP first, and both finish the transmission.)
+    def _pc_start(self, now):
+        """Cut-through: a header from the PC. It goes on to the driver bus at once,
+        before its id is known (routing follows at the id). While the jig's own
+        request is out, the driver bus is its: wait for the id then."""
         if self.rel is not None:  # the PC talks over a reply in progress: stop relaying
             self._end_relay(True)
-        if slave == self.params.ram[P_SLAVE_ID]:
-            return  # answered when complete
-        # Header and id (the bytes that carried them may have come in an earlier
-        # read); everything after them is passed on raw.
-        hdr = self.hdr
-        hdr[2] = slave
-        k = 3
-        if slave == _STUFF:
-            hdr[3] = slave
-            k = 4
+        if self.state == AWAIT_INT:
+            return
         fwd = self.down
-        fwd.begin(hdr, 0, k)
+        fwd.begin(self.hdr, 0, 2)
         self.fwd = fwd
+        self.fwd_routed = False
         self._watch_line(now)
+
+    def _pc_head(self, slave, now):
+        """Cut-through: the id of a PC frame is known; route it now."""
+        if self.rel is not None:  # (a frame that started with a resync: no EV_START)
+            self._end_relay(True)
+        fwd = self.fwd
+        if slave == self.params.ram[P_SLAVE_ID]:
+            if fwd is not None:
+                # Already on the driver bus as AA CC id: end it with a tail there. The
+                # drives see a frame too short to be one and drop it; the jig's reply
+                # is not held up behind a copy of the whole frame.
+                self.fwd = None
+                self.fwd_part(self.tail, 0, 2)
+                fwd.finish()
+            return  # answered when complete
+        if fwd is None:
+            # Not passed on from its header (the jig's own request was out, or the
+            # frame began with a resync): it starts now with header and id, re-stuffed.
+            hdr = self.hdr
+            hdr[2] = slave
+            k = 3
+            if slave == _STUFF:
+                hdr[3] = slave
+                k = 4
+            fwd = self.down
+            fwd.begin(hdr, 0, k)
+            self.fwd = fwd
+            self._watch_line(now)
+        self.fwd_routed = True
         v = self.v
         v[C_DOWN_OUT] += 1
         if slave == _BROADCAST_ID:
@@ -267,6 +296,8 @@ class Bridge:
             return
         self.fwd = None
         fwd.finish()
+        if not self.fwd_routed:
+            return  # it broke off before its id: no driver was asked anything
         v = self.v
         why = st[S_WHY]
         if why == _WHY_TIMEOUT:
@@ -292,7 +323,7 @@ class Bridge:
         body = p.body
         fwd = self.fwd
         if fwd is not None:
-            # Cut through: the tail has gone out with the raw bytes; now await.
+            # Cut through: the tail has gone out with the raw bytes.
             self.fwd = None
             fwd.finish()
             if self.state == AWAIT_PC:
@@ -414,9 +445,10 @@ class Bridge:
             if self.rel is not None and j > i:
                 self.rel_part(buf, i, j - i)
             ev = st[S_EVENT]
-            if ev == EV_HEAD:
-                if self.state == AWAIT_PC:
-                    self._down_head(body, now)
+            if ev == EV_START:
+                self._down_start(now)
+            elif ev == EV_HEAD:
+                self._down_head(body, now)
             elif ev == EV_FRAME:
                 self.on_down_frame(p, now)
             elif ev == EV_DROP:
@@ -426,9 +458,12 @@ class Bridge:
     def _down_drop(self):
         """Cut-through: a driver frame ended without being good."""
         if self.rel is not None:
+            checked = self.rel_checked
             self._end_relay(False)
-            self.v[C_RELAY_CORRUPT] += 1
-            self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
+            if checked:
+                self.v[C_RELAY_CORRUPT] += 1
+                self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
+            # (else it broke off before its first two bytes: not the answer, still awaited)
 
     def gap(self, p, from_pc, now):
         """Slow pass: let parser p judge the silence up to now. True if it dropped a
@@ -449,10 +484,32 @@ class Bridge:
         # matches (the type check adds nothing once the sync differs).
         return body[0] == self.p_b0 and body[1] == self.p_b1
 
+    def _down_start(self, now):
+        """Cut-through: a header on the driver bus while a PC request is awaited (and
+        the PC is not talking). Nothing else talks there then but the drive asked, so
+        it goes on to the PC at once; its first two bytes confirm it (``_down_head``)."""
+        if self.state != AWAIT_PC or self.fwd is not None:
+            return
+        rel = self.up
+        rel.begin(self.hdr, 0, 2)
+        self.rel = rel
+        self.rel_checked = False
+        self._watch_line(now)
+
     def _down_head(self, body, now):
-        """Cut-through, a PC request awaited: the first two body bytes of a driver
-        frame are in. A match goes on to the PC from here."""
-        if not self._matches(body):
+        """Cut-through: the first two body bytes of a driver frame are in. A frame being
+        relayed that does not match (a late reply) is cut short with a tail: the PC
+        sees a frame too short to be one, which its parser drops (counted as stale
+        when the whole frame is in). A match not relayed yet goes on from here."""
+        rel = self.rel
+        if rel is not None:
+            if self._matches(body):
+                self.rel_checked = True
+            else:
+                self.rel_part(self.tail, 0, 2)
+                self._end_relay(False)
+            return
+        if self.state != AWAIT_PC or self.fwd is not None or not self._matches(body):
             return
         b0 = body[0]
         b1 = body[1]
@@ -467,13 +524,14 @@ class Bridge:
         rel = self.up
         rel.begin(hdr, 0, k)
         self.rel = rel
+        self.rel_checked = True
         self._watch_line(now)
 
     def _end_relay(self, count_abort):
         rel = self.rel
         self.rel = None
         rel.finish()
-        if count_abort:
+        if count_abort and self.rel_checked:
             self.v[C_ABORTS] += 1
             self._event(E_CUT_SHORT)
 

@@ -31,6 +31,7 @@ _A_STUFF_ERROR = const(8)
 _EV_FRAME = const(1)
 _EV_HEAD = const(2)
 _EV_DROP = const(3)
+_EV_START = const(4)
 _S_STATE = const(0)
 _S_N = const(1)
 _S_EVENT = const(2)
@@ -50,6 +51,7 @@ _S_OVERLONG = const(17)
 _S_TIMEOUTS = const(18)
 _S_RESYNCS = const(19)
 _S_WHY = const(20)
+_S_START_EV = const(21)
 _CRC_AT = const(512)  # the CRC table's first u16 in tables
 _MASK = const(0x3FFFFFFF)
 _HALF = const(0x20000000)
@@ -90,6 +92,7 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
     limit = s[_S_LIMIT]
     head_at = s[_S_HEAD_AT]
     stop_drop = s[_S_STOP_DROP]
+    start_ev = s[_S_START_EV]
     i = start
     while i < end:
         c = d[i]
@@ -114,6 +117,9 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
                     break
         elif a == _A_START:
             n = 0
+            if start_ev != 0:
+                ev = _EV_START
+                break
         elif a == _A_END:
             if n < s[_S_MIN_LEN]:
                 s[_S_SHORT] += 1

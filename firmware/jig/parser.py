@@ -44,8 +44,9 @@ attribute store costs several times an array store, and the viper engine can
 only reach integers and buffers. Nothing is allocated per frame.
 
 ``feed`` returns at the first *event* (``S_EVENT``): ``EV_FRAME``, a good frame is
-in ``body``; if asked for at construction, ``EV_HEAD``, the first ``head_at``
-body bytes of a frame are known (cut-through forwarding routes on them) and
+in ``body``; if asked for at construction, ``EV_START``, a header (AA CC) has
+started a frame (cut-through forwarding starts passing it on), ``EV_HEAD``, the
+first ``head_at`` body bytes of a frame are known (it routes on them) and
 ``EV_DROP``, the frame being received ended without being good (bad CRC, too
 short, stuffing error, overflow, a new header, an inter-byte timeout); or
 ``EV_NONE`` when the input is used up.
@@ -105,7 +106,8 @@ EV_NONE = const(0)  # the input is used up
 EV_FRAME = const(1)  # a good frame is in body
 EV_HEAD = const(2)  # the first head_at body bytes of a frame are known
 EV_DROP = const(3)  # the frame being received ended without being good
-EVENT_NAMES = ("none", "frame", "head", "drop")
+EV_START = const(4)  # a header (AA CC) has started a frame
+EVENT_NAMES = ("none", "frame", "head", "drop", "start")
 
 # Indices into FrameParser.st (the engines' whole state)
 S_STATE = const(0)
@@ -129,7 +131,8 @@ S_OVERLONG = const(17)
 S_TIMEOUTS = const(18)
 S_RESYNCS = const(19)
 S_WHY = const(20)  # after EV_DROP: the action that dropped the frame (0: inter-byte timeout)
-S_SIZE = const(21)
+S_START_EV = const(21)  # 1: return EV_START when a header starts a frame
+S_SIZE = const(22)
 
 # Counter names, in the order ``counters()`` reports them.
 COUNTER_NAMES = ("good", "noise", "stuff_errors", "crc_errors", "short", "overlong", "timeouts", "resyncs")
@@ -207,6 +210,7 @@ def scan_py(st, data, start, end, body, tables, now):
     limit = st[S_LIMIT]
     head_at = st[S_HEAD_AT]
     stop_drop = st[S_STOP_DROP]
+    start_ev = st[S_START_EV]
     bulk = st[S_BULK]
     step = STEP
     i = start
@@ -284,6 +288,9 @@ def scan_py(st, data, start, end, body, tables, now):
                     break
         elif action == A_START:
             n = 0
+            if start_ev:
+                ev = EV_START
+                break
         elif action == A_END:
             if n < st[S_MIN_LEN]:
                 st[S_SHORT] += 1
@@ -341,11 +348,12 @@ class FrameParser:
 
     ``engine``: "viper", "bulk" or "table" (default: viper where the port has a
     native emitter, else bulk; ``bulk=False`` is the old spelling of "table").
-    ``head_at``/``stop_drop`` switch on the EV_HEAD/EV_DROP events.
+    ``head_at``/``stop_drop``/``start_ev`` switch on the EV_HEAD/EV_DROP/EV_START
+    events.
     """
 
     def __init__(self, ver8=False, interbyte_timeout_us=DEFAULT_INTERBYTE_TIMEOUT_US, bulk=True, byte_us=0,
-                 engine=None, head_at=0, stop_drop=False):
+                 engine=None, head_at=0, stop_drop=False, start_ev=False):
         if engine is None:
             engine = "table" if not bulk else ("viper" if NATIVE is not None else "bulk")
         self.engine = engine
@@ -362,6 +370,7 @@ class FrameParser:
         st[S_MIN_LEN] = MIN_BODY
         st[S_HEAD_AT] = head_at
         st[S_STOP_DROP] = 1 if stop_drop else 0
+        st[S_START_EV] = 1 if start_ev else 0
         st[S_BULK] = 0 if engine == "table" else 1
         self.st = st
 
