@@ -225,3 +225,18 @@ def test_turnaround_counters():
     assert (c.get("turnaround_count"), c.get("turnaround_min_us"), c.get("turnaround_avg_us"), c.get("turnaround_max_us")) == (3, 10, 40, 70)
     c.reset()
     assert c.get("turnaround_max_us") == 0 and c.get("turnaround_count") == 0
+
+
+def test_turnaround_average_restarts_before_its_sum_leaves_the_small_ints():
+    from jig.counters import Counters
+
+    c = Counters()
+    c.turnaround(0x20000000)
+    c.turnaround(0x20000000)  # the sum would pass 2**30 - 1: the average starts over here
+    assert c.get("turnaround_avg_us") == 0x20000000
+    c.turnaround(0)
+    names = ("turnaround_count", "turnaround_min_us", "turnaround_avg_us", "turnaround_max_us")
+    assert tuple(c.get(n) for n in names) == (3, 0, 0x10000000, 0x20000000)
+    c.reset()
+    c.turnaround(6)
+    assert tuple(c.get(n) for n in names) == (1, 6, 6, 6)

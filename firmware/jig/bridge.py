@@ -163,6 +163,7 @@ class Bridge:
         self.down = down  # rs485.Rs485 on the driver bus
         self.handlers = handlers
         self.params = params
+        self.ram = params.ram  # (bound once: the hot path reads ids and times from it)
         self.c = counters
         self.v = counters.v
         self.ver8 = ver8
@@ -247,14 +248,18 @@ class Bridge:
         fwd.begin(self.hdr, 0, 2)
         self.fwd = fwd
         self.fwd_routed = False
-        self._watch_line(now)
+        # _watch_line inline (hot path)
+        t = (now + self.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
+        due = self.due
+        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:
+            due[0] = t
 
     def _pc_head(self, slave, now):
         """Cut-through: the id of a PC frame is known; route it now."""
         if self.rel is not None:  # (a frame that started with a resync: no EV_START)
             self._end_relay(True)
         fwd = self.fwd
-        if slave == self.params.ram[P_SLAVE_ID]:
+        if slave == self.ram[P_SLAVE_ID]:
             if fwd is not None:
                 # Already on the driver bus as AA CC id: end it with a tail there. The
                 # drives see a frame too short to be one and drop it; the jig's reply
@@ -279,14 +284,16 @@ class Bridge:
         self.fwd_routed = True
         v = self.v
         v[C_DOWN_OUT] += 1
+        # (the transition inline: _event's work without its call, on the hot path)
         if slave == _BROADCAST_ID:
-            flags = self._event(E_PC_BROADCAST)
+            k = self.state * N_EVENTS + E_PC_BROADCAST
             v[C_BROADCASTS] += 1
         else:
-            flags = self._event(E_PC_FORWARD)
+            k = self.state * N_EVENTS + E_PC_FORWARD
             v[C_FORWARDS] += 1
             self.p_b1 = -1  # nothing matches until the request's second byte is known
-        if flags & F_ABORT:
+        self.state = _NEXT[k]
+        if _FLAGS[k] & F_ABORT:
             self._abort()
 
     def _pc_drop(self, st, body):
@@ -330,7 +337,7 @@ class Bridge:
                 self._pend_pc(body, p.st[S_N])
             return
         slave = body[0]
-        if slave == self.params.ram[P_SLAVE_ID]:
+        if slave == self.ram[P_SLAVE_ID]:
             ev = E_PC_LOCAL
         elif slave == _BROADCAST_ID:
             ev = E_PC_BROADCAST
@@ -362,10 +369,21 @@ class Bridge:
         """Await the reply to the PC request body[0:n]. Its timeout: the frame type is
         body[1] (Ver6) or body[2] (Ver8); wait as long as the slower of the two
         readings asks (no layout assumed)."""
-        m = TIMEOUT_MULTIPLIER[body[1]]
-        if n > 2 and TIMEOUT_MULTIPLIER[body[2]] > m:
-            m = TIMEOUT_MULTIPLIER[body[2]]
-        self._pend(None, body[0], body[1], self.params.ram[P_REPLY_TIMEOUT_MS] * m)
+        b1 = body[1]
+        m = TIMEOUT_MULTIPLIER[b1]
+        if n > 2:
+            m2 = TIMEOUT_MULTIPLIER[body[2]]
+            if m2 > m:
+                m = m2
+        # _pend(None, ...) inline: every forwarded request comes through here
+        self.client = None
+        self.p_b0 = body[0]
+        self.p_b1 = b1
+        d = (self._ticks() + self.ram[P_REPLY_TIMEOUT_MS] * m * 1000) & _TICKS_MASK
+        self.deadline = d
+        due = self.due
+        if (d - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # d comes before due[0]
+            due[0] = d
 
     def _pend(self, client, b0, b1, timeout_ms):
         self.client = client
@@ -382,7 +400,7 @@ class Bridge:
         """A frame is being cut through: the slow pass must look at the line within the
         inter-byte timeout (and keeps doing so while the frame lasts) to end the
         transmission cleanly if the sender falls silent."""
-        t = (now + self.params.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
+        t = (now + self.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
         due = self.due
         if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
             due[0] = t
@@ -494,7 +512,11 @@ class Bridge:
         rel.begin(self.hdr, 0, 2)
         self.rel = rel
         self.rel_checked = False
-        self._watch_line(now)
+        # _watch_line inline (hot path)
+        t = (now + self.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
+        due = self.due
+        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:
+            due[0] = t
 
     def _down_head(self, body, now):
         """Cut-through: the first two body bytes of a driver frame are in. A frame being
@@ -503,7 +525,7 @@ class Bridge:
         when the whole frame is in). A match not relayed yet goes on from here."""
         rel = self.rel
         if rel is not None:
-            if self._matches(body):
+            if body[0] == self.p_b0 and body[1] == self.p_b1:  # _matches, inline
                 self.rel_checked = True
             else:
                 self.rel_part(self.tail, 0, 2)
@@ -539,10 +561,13 @@ class Bridge:
         v = self.v
         v[C_DOWN_IN] += 1
         body = p.body
-        if self.rel is not None:
-            # Relayed as it came: the tail has gone with the raw bytes.
-            self._end_relay(False)
-            self._event(E_REPLY)
+        rel = self.rel
+        if rel is not None:
+            # Relayed as it came: the tail has gone with the raw bytes. (_end_relay and
+            # _event inline, on the hot path)
+            self.rel = None
+            rel.finish()
+            self.state = _NEXT[self.state * N_EVENTS + E_REPLY]
             if body[0] < SEEN_IDS:
                 self.seen |= 1 << body[0]
             v[C_REPLIES] += 1

@@ -87,8 +87,9 @@ class Counters:
 
     def __init__(self):
         self.v = [0] * COUNT
-        self.ta_sum = 0  # sum and count of the turnaround times in the average
-        self.ta_n = 0
+        # The average: sum of the turnaround times since the count was ta_base
+        self.ta_sum = 0
+        self.ta_base = 0
         self.reset()
 
     def reset(self):
@@ -96,7 +97,7 @@ class Counters:
         for i in range(COUNT):
             v[i] = 0
         self.ta_sum = 0
-        self.ta_n = 0
+        self.ta_base = 0
 
     def turnaround(self, us):
         """Record one jig handling time in µs (the average is worked out in
@@ -105,22 +106,21 @@ class Counters:
         if us < 0:
             us = 0
         n = v[C_TA_COUNT]
+        v[C_TA_COUNT] = n + 1
         if n == 0 or us < v[C_TA_MIN]:
             v[C_TA_MIN] = us
         if us > v[C_TA_MAX]:
             v[C_TA_MAX] = us
-        v[C_TA_COUNT] = n + 1
         s = self.ta_sum + us
         if s > 0x3FFFFFFF:  # keep the sum a small int: restart the average window
-            self.ta_sum = us
-            self.ta_n = 1
-        else:
-            self.ta_sum = s
-            self.ta_n += 1
+            s = us
+            self.ta_base = n
+        self.ta_sum = s
 
     def update_average(self):
-        if self.ta_n:
-            self.v[C_TA_AVG] = self.ta_sum // self.ta_n
+        n = self.v[C_TA_COUNT] - self.ta_base
+        if n:
+            self.v[C_TA_AVG] = self.ta_sum // n
 
     def get(self, name):
         self.update_average()
