@@ -248,11 +248,7 @@ class Bridge:
         fwd.begin(self.hdr, 0, 2)
         self.fwd = fwd
         self.fwd_routed = False
-        # _watch_line inline (hot path)
-        t = (now + self.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
-        due = self.due
-        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:
-            due[0] = t
+        self._watch_line(now)
 
     def _pc_head(self, slave, now):
         """Cut-through: the id of a PC frame is known; route it now."""
@@ -284,16 +280,14 @@ class Bridge:
         self.fwd_routed = True
         v = self.v
         v[C_DOWN_OUT] += 1
-        # (the transition inline: _event's work without its call, on the hot path)
         if slave == _BROADCAST_ID:
-            k = self.state * N_EVENTS + E_PC_BROADCAST
+            flags = self._event(E_PC_BROADCAST)
             v[C_BROADCASTS] += 1
         else:
-            k = self.state * N_EVENTS + E_PC_FORWARD
+            flags = self._event(E_PC_FORWARD)
             v[C_FORWARDS] += 1
             self.p_b1 = -1  # nothing matches until the request's second byte is known
-        self.state = _NEXT[k]
-        if _FLAGS[k] & F_ABORT:
+        if flags & F_ABORT:
             self._abort()
 
     def _pc_drop(self, st, body):
@@ -369,21 +363,10 @@ class Bridge:
         """Await the reply to the PC request body[0:n]. Its timeout: the frame type is
         body[1] (Ver6) or body[2] (Ver8); wait as long as the slower of the two
         readings asks (no layout assumed)."""
-        b1 = body[1]
-        m = TIMEOUT_MULTIPLIER[b1]
-        if n > 2:
-            m2 = TIMEOUT_MULTIPLIER[body[2]]
-            if m2 > m:
-                m = m2
-        # _pend(None, ...) inline: every forwarded request comes through here
-        self.client = None
-        self.p_b0 = body[0]
-        self.p_b1 = b1
-        d = (self._ticks() + self.ram[P_REPLY_TIMEOUT_MS] * m * 1000) & _TICKS_MASK
-        self.deadline = d
-        due = self.due
-        if (d - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # d comes before due[0]
-            due[0] = d
+        m = TIMEOUT_MULTIPLIER[body[1]]
+        if n > 2 and TIMEOUT_MULTIPLIER[body[2]] > m:
+            m = TIMEOUT_MULTIPLIER[body[2]]
+        self._pend(None, body[0], body[1], self.ram[P_REPLY_TIMEOUT_MS] * m)
 
     def _pend(self, client, b0, b1, timeout_ms):
         self.client = client
@@ -512,26 +495,23 @@ class Bridge:
         rel.begin(self.hdr, 0, 2)
         self.rel = rel
         self.rel_checked = False
-        # _watch_line inline (hot path)
-        t = (now + self.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
-        due = self.due
-        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:
-            due[0] = t
+        self._watch_line(now)
 
     def _down_head(self, body, now):
         """Cut-through: the first two body bytes of a driver frame are in. A frame being
         relayed that does not match (a late reply) is cut short with a tail: the PC
         sees a frame too short to be one, which its parser drops (counted as stale
         when the whole frame is in). A match not relayed yet goes on from here."""
-        rel = self.rel
-        if rel is not None:
-            if body[0] == self.p_b0 and body[1] == self.p_b1:  # _matches, inline
-                self.rel_checked = True
-            else:
+        relaying = self.rel is not None
+        if not relaying and (self.state != AWAIT_PC or self.fwd is not None):
+            return
+        if not self._matches(body):
+            if relaying:
                 self.rel_part(self.tail, 0, 2)
                 self._end_relay(False)
             return
-        if self.state != AWAIT_PC or self.fwd is not None or not self._matches(body):
+        if relaying:
+            self.rel_checked = True
             return
         b0 = body[0]
         b1 = body[1]
@@ -561,13 +541,10 @@ class Bridge:
         v = self.v
         v[C_DOWN_IN] += 1
         body = p.body
-        rel = self.rel
-        if rel is not None:
-            # Relayed as it came: the tail has gone with the raw bytes. (_end_relay and
-            # _event inline, on the hot path)
-            self.rel = None
-            rel.finish()
-            self.state = _NEXT[self.state * N_EVENTS + E_REPLY]
+        if self.rel is not None:
+            # Relayed as it came: the tail has gone with the raw bytes.
+            self._end_relay(False)
+            self._event(E_REPLY)
             if body[0] < SEEN_IDS:
                 self.seen |= 1 << body[0]
             v[C_REPLIES] += 1
