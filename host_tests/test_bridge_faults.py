@@ -4,6 +4,7 @@ import struct
 
 from jig import frame as F
 from jig import params as P
+from jig.bridge import B_FWD, B_STATE
 from motorjig.sim import SimBench
 
 GCP = F.GET_COMMAND_POS
@@ -285,7 +286,7 @@ def test_no_request_of_the_jig_while_a_broadcast_is_cut_through():
     t = b.send(wire[:4])
     b.clock.run_until(t + 500.0)
     bridge = b.app.bridge
-    assert bridge.state == 0 and bridge.fwd is not None  # IDLE, and passing the broadcast on
+    assert bridge.bs[B_STATE] == 0 and bridge.bs[B_FWD]  # IDLE, and passing the broadcast on
     assert bridge.busy()
     assert bridge.request(b.app.scanner, 2, F.GET_SLAVE_INFO, bytearray(1), 0, 20) is False
     b.send(wire[4:])

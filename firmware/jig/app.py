@@ -37,6 +37,8 @@ Ports are opened by the HAL at the baud rates the app asks for: the app calls
 take effect at restart).
 """
 
+from array import array
+
 from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
@@ -85,7 +87,7 @@ class App:
         self.down_parser.max_body = MAX_BODY
         self.handlers = Handlers(self)
         self.t_beat = hal.ticks_us()
-        self.due = [self.t_beat]  # the tick at which the slow pass must next run
+        self.due = array("i", [self.t_beat])  # the tick at which the slow pass must next run
         self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due)
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)

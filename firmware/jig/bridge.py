@@ -40,6 +40,8 @@ Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
   from the parsed body (stuffing is canonical, so the bytes are the received ones).
 """
 
+from array import array
+
 from jig import frame
 from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED, C_DOWN_IN, C_DOWN_OUT,
                           C_FORWARDS, C_INT_ABORTS, C_INT_REPLIES, C_INT_REQUESTS, C_INT_TIMEOUTS, C_LOCAL,
@@ -86,8 +88,24 @@ FLAG_NAMES = ("abort", "local", "forward", "broadcast", "send", "relay", "delive
 INT_SYNC_FIRST = const(0xC0)
 INT_SYNC_LAST = const(0xEF)
 
-# Driver ids 0..SEEN_IDS-1 are tracked in the ``seen`` bitmap (a small int on MicroPython).
+# Driver ids 0..SEEN_IDS-1 are tracked in the ``B_SEEN`` bitmap.
 SEEN_IDS = const(30)
+
+# Everything about the bridge that changes per frame lives in one integer array,
+# ``Bridge.bs`` (an array store costs less than an attribute store on MicroPython, and
+# the machine-code pump in ``jig.fastpath`` shares it):
+B_STATE = const(0)  # IDLE, AWAIT_PC or AWAIT_INT
+B_FWD = const(1)  # 1: a PC frame is being passed on to the driver bus (cut-through)
+B_ROUTED = const(2)  # ... and its id is in: it is for the drivers
+B_REL = const(3)  # 1: a driver frame is being passed on to the PC (cut-through)
+B_CHECKED = const(4)  # ... and it matched the request
+B_P_B0 = const(5)  # first two body bytes of the pending request: id and
+B_P_B1 = const(6)  # (Ver6) type / (Ver8) sync; -1: nothing matches yet
+B_DEADLINE = const(7)  # tick at which the pending wait times out
+B_T_PC = const(8)  # tick of the last good frame from the PC
+B_PC_FRAMES = const(9)  # good PC frames since boot (the safety stop arms on the first)
+B_SEEN = const(10)  # bitmap of driver ids that answered
+B_SIZE = const(11)
 
 # TRANSITIONS[state][event] = (action flags, next state)
 TRANSITIONS = (
@@ -170,25 +188,15 @@ class Bridge:
         self.cut_through = cut_through
         self.head = 3 if ver8 else 2  # id, [sync], type
         # due[0]: tick by which the app's slow pass must run (the reply deadline).
-        self.due = due if due is not None else [0]
-        self.state = IDLE
+        self.due = due if due is not None else array("i", [0])
+        bs = array("i", bytes(4 * B_SIZE))
+        bs[B_P_B0] = bs[B_P_B1] = -1
+        self.bs = bs
         self.txbuf = bytearray(frame.MAX_WIRE)
         self.body = bytearray(frame.MAX_BODY)
         self.reply = bytearray(frame.MAX_DATA)
-        # First two body bytes of the pending request: id and (Ver6) type / (Ver8) sync.
-        self.p_b0 = -1
-        self.p_b1 = -1
-        self.deadline = 0
         self.client = None  # None: the PC; else an object with on_reply/on_timeout/on_abort
-        self.seen = 0  # bitmap of driver ids that answered
-        self.t_pc = 0  # tick of the last frame from the PC
-        self.pc_frames = 0  # PC frames since boot (the safety stop arms on the first)
         self.sync_next = INT_SYNC_FIRST  # Ver8 sync numbers of jig-originated requests
-        # Cut-through: the Rs485 a frame is being streamed to (None: none), per side.
-        self.fwd = None  # PC frame -> driver bus
-        self.fwd_routed = False  # its id is in, and it is for the drivers
-        self.rel = None  # driver frame -> PC bus
-        self.rel_checked = False  # the frame being relayed matched the request
         self.hdr = bytearray(2 + 2 * 3)  # AA CC + the (stuffed) head of a frame cut through
         self.hdr[0] = frame.STUFF
         self.hdr[1] = frame.HEADER2
@@ -200,9 +208,19 @@ class Bridge:
         self.fwd_part = down.port.write if down.tx_blocks and not down.track_echo else down.part
         self.rel_part = up.port.write if up.tx_blocks and not up.track_echo else up.part
 
+    # --- what other parts of the jig read ------------------------------------------
+    def seen(self):
+        """Bitmap of the driver ids that answered since boot."""
+        return self.bs[B_SEEN]
+
+    def busy(self):
+        bs = self.bs
+        return bs[B_STATE] != IDLE or bs[B_FWD] != 0
+
     def _event(self, ev):
-        k = self.state * N_EVENTS + ev
-        self.state = _NEXT[k]
+        bs = self.bs
+        k = bs[B_STATE] * N_EVENTS + ev
+        bs[B_STATE] = _NEXT[k]
         return _FLAGS[k]
 
     def _abort(self):
@@ -220,51 +238,56 @@ class Bridge:
         st = p.st
         scan = p.scan
         body = p.body
+        bs = self.bs
         i = 0
         while i < n:
             j = scan(st, buf, i, n, body, TABLES, now)
-            if self.fwd is not None and j > i:
+            if bs[B_FWD] and j > i:
                 self.fwd_part(buf, i, j - i)  # the raw bytes of the frame being cut through
-            ev = st[S_EVENT]
-            if ev == EV_START:
-                self._pc_start(now)
-            elif ev == EV_HEAD:
-                self._pc_head(body[0], now)
-            elif ev == EV_FRAME:
-                self.on_pc_frame(p, now)
-            elif ev == EV_DROP:
-                self._pc_drop(st, body)
+            if st[S_EVENT]:
+                self.pc_event(p, st[S_EVENT], now)
             i = j
+
+    def pc_event(self, p, ev, now):
+        """Act on parser event ev of the PC side's parser p."""
+        if ev == EV_START:
+            self._pc_start(now)
+        elif ev == EV_HEAD:
+            self._pc_head(p.body[0], now)
+        elif ev == EV_FRAME:
+            self.on_pc_frame(p, now)
+        elif ev == EV_DROP:
+            self._pc_drop(p.st, p.body)
 
     def _pc_start(self, now):
         """Cut-through: a header from the PC. It goes on to the driver bus at once,
         before its id is known (routing follows at the id). While the jig's own
         request is out, the driver bus is its: wait for the id then."""
-        if self.rel is not None:  # the PC talks over a reply in progress: stop relaying
+        bs = self.bs
+        if bs[B_REL]:  # the PC talks over a reply in progress: stop relaying
             self._end_relay(True)
-        if self.state == AWAIT_INT:
+        if bs[B_STATE] == AWAIT_INT:
             return
-        fwd = self.down
-        fwd.begin(self.hdr, 0, 2)
-        self.fwd = fwd
-        self.fwd_routed = False
+        self.down.begin(self.hdr, 0, 2)
+        bs[B_FWD] = 1
+        bs[B_ROUTED] = 0
         self._watch_line(now)
 
     def _pc_head(self, slave, now):
         """Cut-through: the id of a PC frame is known; route it now."""
-        if self.rel is not None:  # (a frame that started with a resync: no EV_START)
+        bs = self.bs
+        if bs[B_REL]:  # (a frame that started with a resync: no EV_START)
             self._end_relay(True)
-        fwd = self.fwd
         if slave == self.ram[P_SLAVE_ID]:
-            if fwd is not None:
+            if bs[B_FWD]:
                 # Already on the driver bus as AA CC id: end it with a tail there. The
                 # drives see a frame too short to be one and drop it; the jig's reply
                 # is not held up behind a copy of the whole frame.
-                self.fwd = None
+                bs[B_FWD] = 0
                 self.fwd_part(self.tail, 0, 2)
-                fwd.finish()
+                self.down.finish()
             return  # answered when complete
-        if fwd is None:
+        if not bs[B_FWD]:
             # Not passed on from its header (the jig's own request was out, or the
             # frame began with a resync): it starts now with header and id, re-stuffed.
             hdr = self.hdr
@@ -273,11 +296,10 @@ class Bridge:
             if slave == _STUFF:
                 hdr[3] = slave
                 k = 4
-            fwd = self.down
-            fwd.begin(hdr, 0, k)
-            self.fwd = fwd
+            self.down.begin(hdr, 0, k)
+            bs[B_FWD] = 1
             self._watch_line(now)
-        self.fwd_routed = True
+        bs[B_ROUTED] = 1
         v = self.v
         v[C_DOWN_OUT] += 1
         if slave == _BROADCAST_ID:
@@ -286,18 +308,18 @@ class Bridge:
         else:
             flags = self._event(E_PC_FORWARD)
             v[C_FORWARDS] += 1
-            self.p_b1 = -1  # nothing matches until the request's second byte is known
+            bs[B_P_B1] = -1  # nothing matches until the request's second byte is known
         if flags & F_ABORT:
             self._abort()
 
     def _pc_drop(self, st, body):
         """Cut-through: a PC frame being passed on ended without being good."""
-        fwd = self.fwd
-        if fwd is None:
+        bs = self.bs
+        if not bs[B_FWD]:
             return
-        self.fwd = None
-        fwd.finish()
-        if not self.fwd_routed:
+        bs[B_FWD] = 0
+        self.down.finish()
+        if not bs[B_ROUTED]:
             return  # it broke off before its id: no driver was asked anything
         v = self.v
         why = st[S_WHY]
@@ -305,7 +327,7 @@ class Bridge:
             v[C_CUT_TRUNCATED] += 1
         else:
             v[C_CUT_CORRUPT] += 1
-        if self.state == AWAIT_PC and self.p_b1 < 0:
+        if bs[B_STATE] == AWAIT_PC and bs[B_P_B1] < 0:
             n = st[S_N]
             if n >= 2 and why != _WHY_TIMEOUT:
                 # The drive got a whole frame with a bad CRC (or length): it may answer
@@ -319,15 +341,15 @@ class Bridge:
         """A good frame from the PC, whose last byte arrived at tick t_in."""
         v = self.v
         v[C_UP_IN] += 1
-        self.t_pc = t_in
-        self.pc_frames += 1
+        bs = self.bs
+        bs[B_T_PC] = t_in
+        bs[B_PC_FRAMES] += 1
         body = p.body
-        fwd = self.fwd
-        if fwd is not None:
+        if bs[B_FWD]:
             # Cut through: the tail has gone out with the raw bytes.
-            self.fwd = None
-            fwd.finish()
-            if self.state == AWAIT_PC:
+            bs[B_FWD] = 0
+            self.down.finish()
+            if bs[B_STATE] == AWAIT_PC:
                 self._pend_pc(body, p.st[S_N])
             return
         slave = body[0]
@@ -370,11 +392,12 @@ class Bridge:
 
     def _pend(self, client, b0, b1, timeout_ms):
         self.client = client
-        self.p_b0 = b0
-        self.p_b1 = b1
+        bs = self.bs
+        bs[B_P_B0] = b0
+        bs[B_P_B1] = b1
         # The wait starts when our request has left the wire.
         d = (self._ticks() + timeout_ms * 1000) & _TICKS_MASK
-        self.deadline = d
+        bs[B_DEADLINE] = d
         due = self.due
         if (d - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # d comes before due[0]
             due[0] = d
@@ -413,7 +436,7 @@ class Bridge:
     def request(self, client, slave, ftype, data, n, timeout_ms, framing=-1):
         """Send a request of our own downstream; False if the bridge is busy.
         ``framing``: -1 the jig's protocol, 0 Ver6, 1 Ver8 (a mixed bus)."""
-        if self.fwd is not None:  # a broadcast is being cut through (the state is IDLE)
+        if self.bs[B_FWD]:  # a broadcast is being cut through (the state is IDLE)
             return False
         flags = self._event(E_INTERNAL)
         if not flags & F_SEND:
@@ -431,35 +454,38 @@ class Bridge:
         self._pend(client, slave, self.body[1], timeout_ms)
         return True
 
-    def busy(self):
-        return self.state != IDLE or self.fwd is not None
-
     # --- bytes from the drivers ------------------------------------------------
     def down_bytes(self, p, buf, n, now):
         """Parse buf[0:n] from the driver bus (arrived by tick now) and act on every event."""
         st = p.st
         scan = p.scan
         body = p.body
+        bs = self.bs
         i = 0
         while i < n:
             j = scan(st, buf, i, n, body, TABLES, now)
-            if self.rel is not None and j > i:
+            if bs[B_REL] and j > i:
                 self.rel_part(buf, i, j - i)
-            ev = st[S_EVENT]
-            if ev == EV_START:
-                self._down_start(now)
-            elif ev == EV_HEAD:
-                self._down_head(body, now)
-            elif ev == EV_FRAME:
-                self.on_down_frame(p, now)
-            elif ev == EV_DROP:
-                self._down_drop()
+            if st[S_EVENT]:
+                self.down_event(p, st[S_EVENT], now)
             i = j
+
+    def down_event(self, p, ev, now):
+        """Act on parser event ev of the driver side's parser p."""
+        if ev == EV_START:
+            self._down_start(now)
+        elif ev == EV_HEAD:
+            self._down_head(p.body, now)
+        elif ev == EV_FRAME:
+            self.on_down_frame(p, now)
+        elif ev == EV_DROP:
+            self._down_drop()
 
     def _down_drop(self):
         """Cut-through: a driver frame ended without being good."""
-        if self.rel is not None:
-            checked = self.rel_checked
+        bs = self.bs
+        if bs[B_REL]:
+            checked = bs[B_CHECKED]
             self._end_relay(False)
             if checked:
                 self.v[C_RELAY_CORRUPT] += 1
@@ -483,18 +509,19 @@ class Bridge:
         # is the frame type, as always; for a Ver8 drive it is the sync number, which
         # changes with every request, so a late reply to an older request never
         # matches (the type check adds nothing once the sync differs).
-        return body[0] == self.p_b0 and body[1] == self.p_b1
+        bs = self.bs
+        return body[0] == bs[B_P_B0] and body[1] == bs[B_P_B1]
 
     def _down_start(self, now):
         """Cut-through: a header on the driver bus while a PC request is awaited (and
         the PC is not talking). Nothing else talks there then but the drive asked, so
         it goes on to the PC at once; its first two bytes confirm it (``_down_head``)."""
-        if self.state != AWAIT_PC or self.fwd is not None:
+        bs = self.bs
+        if bs[B_STATE] != AWAIT_PC or bs[B_FWD]:
             return
-        rel = self.up
-        rel.begin(self.hdr, 0, 2)
-        self.rel = rel
-        self.rel_checked = False
+        self.up.begin(self.hdr, 0, 2)
+        bs[B_REL] = 1
+        bs[B_CHECKED] = 0
         self._watch_line(now)
 
     def _down_head(self, body, now):
@@ -502,8 +529,9 @@ class Bridge:
         relayed that does not match (a late reply) is cut short with a tail: the PC
         sees a frame too short to be one, which its parser drops (counted as stale
         when the whole frame is in). A match not relayed yet goes on from here."""
-        relaying = self.rel is not None
-        if not relaying and (self.state != AWAIT_PC or self.fwd is not None):
+        bs = self.bs
+        relaying = bs[B_REL]
+        if not relaying and (bs[B_STATE] != AWAIT_PC or bs[B_FWD]):
             return
         if not self._matches(body):
             if relaying:
@@ -511,7 +539,7 @@ class Bridge:
                 self._end_relay(False)
             return
         if relaying:
-            self.rel_checked = True
+            bs[B_CHECKED] = 1
             return
         b0 = body[0]
         b1 = body[1]
@@ -523,17 +551,16 @@ class Bridge:
         if b1 == _STUFF:
             hdr[4] = b1
             k = 5
-        rel = self.up
-        rel.begin(hdr, 0, k)
-        self.rel = rel
-        self.rel_checked = True
+        self.up.begin(hdr, 0, k)
+        bs[B_REL] = 1
+        bs[B_CHECKED] = 1
         self._watch_line(now)
 
     def _end_relay(self, count_abort):
-        rel = self.rel
-        self.rel = None
-        rel.finish()
-        if count_abort and self.rel_checked:
+        bs = self.bs
+        bs[B_REL] = 0
+        self.up.finish()
+        if count_abort and bs[B_CHECKED]:
             self.v[C_ABORTS] += 1
             self._event(E_CUT_SHORT)
 
@@ -541,21 +568,22 @@ class Bridge:
         v = self.v
         v[C_DOWN_IN] += 1
         body = p.body
-        if self.rel is not None:
+        bs = self.bs
+        if bs[B_REL]:
             # Relayed as it came: the tail has gone with the raw bytes.
             self._end_relay(False)
             self._event(E_REPLY)
             if body[0] < SEEN_IDS:
-                self.seen |= 1 << body[0]
+                bs[B_SEEN] |= 1 << body[0]
             v[C_REPLIES] += 1
             v[C_UP_OUT] += 1
             return
-        match = self.state != IDLE and p.st[S_N] >= 5 and self._matches(body)
+        match = bs[B_STATE] != IDLE and p.st[S_N] >= 5 and self._matches(body)
         if match and self.cut_through and self.client is None:
             match = False  # cut through, a reply to the PC is relayed from its head or not at all
         flags = self._event(E_REPLY if match else E_DOWN_OTHER)
         if flags & (F_RELAY | F_DELIVER) and body[0] < SEEN_IDS:
-            self.seen |= 1 << body[0]
+            bs[B_SEEN] |= 1 << body[0]
         if flags & F_RELAY:
             self._send(self.up, body, p.st[S_N], t_in)
             v[C_REPLIES] += 1
@@ -573,7 +601,9 @@ class Bridge:
         """Time out the pending wait."""
         # (the wait starts when the request has gone, and no timeout cuts a frame
         # being passed on short: cut through, either is still in progress)
-        if self.state != IDLE and self.rel is None and self.fwd is None and ticks_diff(now, self.deadline) >= 0:
+        bs = self.bs
+        if (bs[B_STATE] != IDLE and not bs[B_REL] and not bs[B_FWD]
+                and ticks_diff(now, bs[B_DEADLINE]) >= 0):
             self._event(E_TIMEOUT)
             client = self.client
             if client is None:
@@ -586,7 +616,8 @@ class Bridge:
     def wait_us(self, now):
         """µs until the pending wait times out (-1: nothing pending, or a frame is
         being passed on, which no timeout cuts short)."""
-        if self.state == IDLE or self.rel is not None or self.fwd is not None:
+        bs = self.bs
+        if bs[B_STATE] == IDLE or bs[B_REL] or bs[B_FWD]:
             return -1
-        d = ticks_diff(self.deadline, now)
+        d = ticks_diff(bs[B_DEADLINE], now)
         return d if d > 0 else 0

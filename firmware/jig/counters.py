@@ -13,6 +13,8 @@ Conservation laws the tests check (``pending`` is 1 while a reply is awaited):
   (cut through, the routing decision comes before the frame is known to be good)
 """
 
+from array import array
+
 from jig.compat import const
 
 NAMES = (
@@ -83,10 +85,11 @@ COUNT = const(30)
 
 
 class Counters:
-    """Integer counters in a preallocated list (small ints: no allocation on MicroPython)."""
+    """Integer counters in a preallocated 32-bit array (jig.fastpath's machine code
+    counts in it too; a counter wraps after 2**31 events)."""
 
     def __init__(self):
-        self.v = [0] * COUNT
+        self.v = array("i", bytes(4 * COUNT))
         # The average: sum of the turnaround times since the count was ta_base
         self.ta_sum = 0
         self.ta_base = 0

@@ -22,7 +22,7 @@ as 0, which keeps every value a small int (no heap use on MicroPython).
 
 No shadowing: SetParameter ``jig_slave_id`` (0) to an id at which a driver
 answers on the driver bus gets 0x81, since the jig would answer in its place and
-hide it. Ids the jig has relayed a reply from (``Bridge.seen``) or found in its
+hide it. Ids the jig has relayed a reply from (``Bridge.seen()``) or found in its
 bus scan are refused at once; any other new id is probed first with GetSlaveInfo
 through ``Bridge.request`` (``scan_timeout_ms``), and the PC's reply is deferred
 until that probe ends: an answer -> 0x81, a timeout -> the id is taken (the reply
@@ -196,7 +196,7 @@ class Handlers:
             return 1
         if new_id != app.params.ram[P.P_SLAVE_ID]:
             bit = 1 << new_id
-            if (app.bridge.seen | app.scanner.found) & bit or self.id_check.busy:
+            if (app.bridge.seen() | app.scanner.found) & bit or self.id_check.busy:
                 return 1  # a driver answers there (or a check is still running)
             if not self.id_check.start(p, new_id):
                 return 1  # the jig's own request is out: cannot check now

@@ -15,7 +15,7 @@ driver thus executes exactly one stop; on a bus of one variant nothing changes.
 
 from jig import counters as K
 from jig import frame
-from jig.bridge import SEEN_IDS
+from jig.bridge import B_PC_FRAMES, B_T_PC, SEEN_IDS
 from jig.compat import ticks_diff
 from jig.params import P_REPLY_TIMEOUT_MS, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
 
@@ -25,7 +25,7 @@ class SafetyStop:
         self.bridge = bridge
         self.params = params
         self.c = counters
-        self.fired_at = -1  # bridge.pc_frames value when it last fired
+        self.fired_at = -1  # bridge.bs[B_PC_FRAMES] value when it last fired
         self.todo = 0  # bitmap of ids still to stop
         self.next_id = 0
         self.waiting = False
@@ -39,9 +39,9 @@ class SafetyStop:
         if self.todo:
             return -1 if self.waiting or self.bridge.busy() else 0
         ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
-        if ms == 0 or self.bridge.pc_frames == 0 or self.fired_at == self.bridge.pc_frames:
+        if ms == 0 or self.bridge.bs[B_PC_FRAMES] == 0 or self.fired_at == self.bridge.bs[B_PC_FRAMES]:
             return -1
-        d = ms * 1000 - ticks_diff(now, self.bridge.t_pc)
+        d = ms * 1000 - ticks_diff(now, self.bridge.bs[B_T_PC])
         return d if d > 0 else 0
 
     def poll(self, now):
@@ -49,13 +49,13 @@ class SafetyStop:
         if not self.todo:
             # The same armed test as wait_us, inline: this runs on every main-loop pass.
             ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
-            if ms == 0 or b.pc_frames == 0 or self.fired_at == b.pc_frames:
+            if ms == 0 or b.bs[B_PC_FRAMES] == 0 or self.fired_at == b.bs[B_PC_FRAMES]:
                 return
-            if ticks_diff(now, b.t_pc) <= ms * 1000:
+            if ticks_diff(now, b.bs[B_T_PC]) <= ms * 1000:
                 return
-            self.fired_at = b.pc_frames
+            self.fired_at = b.bs[B_PC_FRAMES]
             self.c.v[K.C_SAFETY_STOPS] += 1
-            self.todo = b.seen
+            self.todo = b.seen()
             self.next_id = 0
             if not self.todo:
                 return
