@@ -8,3 +8,34 @@ for sub in ("firmware", "tools"):
     path = os.path.join(ROOT, sub)
     if path not in sys.path:
         sys.path.insert(0, path)
+
+import pytest  # noqa: E402
+
+# The bridge suites run twice: on the portable main loop (what CPython and the
+# WebAssembly VM run) and on jig.fastpath.pump, the board's machine-code hot path,
+# whose very source runs here as Python. Both must pass the same tests.
+JIG_LOOP_MODULES = {"test_bridge_faults", "test_sim_e2e", "test_bench_timing", "test_vendor_probe", "test_handlers",
+                    "test_safety", "test_board", "test_soak", "test_hil_on_bench", "test_captures"}
+
+
+def pytest_generate_tests(metafunc):
+    if metafunc.module.__name__.rsplit(".", 1)[-1] in JIG_LOOP_MODULES:
+        metafunc.fixturenames.append("jig_loop")
+        metafunc.parametrize("jig_loop", ["portable", "fastpath"])
+
+
+@pytest.fixture(autouse=True)
+def _select_jig_loop(request):
+    """Sets the benches' main loop for a test parametrized with jig_loop (autouse:
+    before any fixture that builds a bench)."""
+    callspec = getattr(request.node, "callspec", None)
+    loop = callspec.params.get("jig_loop") if callspec is not None else None
+    if loop is None:
+        yield
+        return
+    from motorjig.sim import bench
+
+    old = bench.DEFAULT_FASTPATH
+    bench.DEFAULT_FASTPATH = loop == "fastpath"
+    yield
+    bench.DEFAULT_FASTPATH = old

@@ -43,7 +43,7 @@ from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
-from jig.compat import const, ticks_add, ticks_diff
+from jig.compat import NATIVE, const, ticks_add, ticks_diff
 from jig.frame import MAX_BODY
 from jig.handlers import Handlers
 from jig.rs485 import Rs485
@@ -58,8 +58,24 @@ TICKS_HALF = const(0x20000000)
 PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
 
 
+def _fastpath_module(use):
+    """jig.fastpath where it runs as machine code (a port with a native emitter);
+    ``use=True`` loads its source as plain Python elsewhere (CPython: the host tests'
+    parity runs), ``use=False`` never."""
+    if use is False:
+        return None
+    if NATIVE is None and not use:
+        return None  # (the WebAssembly VM cannot even compile it)
+    from jig import fastpath
+
+    return fastpath
+
+
 class App:
-    def __init__(self, hal):
+    def __init__(self, hal, fastpath=None):
+        """``fastpath``: None runs the cut-through hot path as machine code where it
+        can (``jig.fastpath``), True also elsewhere (its source as Python), False
+        never (the portable loop)."""
         self.hal = hal
         self.counters = K.Counters()
         self.params = P.Params(getattr(hal, "fs", None), getattr(hal, "param_path", None))
@@ -106,6 +122,10 @@ class App:
         self.base_up_ovf = hal.up.overflows
         self.base_down_ovf = hal.down.overflows
         self.beat = False
+        # The hot path in machine code: cut-through between two plain ports.
+        fast = _fastpath_module(fastpath) if cut and self.up.plain and self.down.plain else None
+        self.pump = fast.pump if fast is not None else None
+        self.pump_ctx = fast.context(self) if fast is not None else None
 
     # --- parameters --------------------------------------------------------------
     def apply_params(self):
@@ -164,6 +184,9 @@ class App:
         """The main loop, forever (or ``passes`` passes). Every name it uses is a local,
         bound once: an idle pass is two ``any()`` calls, a tick and a compare, and a
         pass with bytes calls only the port's read and the bridge."""
+        if self.pump is not None:
+            self._run_pump(passes)
+            return
         down_any = self._down_any
         up_any = self._up_any
         down_read = self._down_read
@@ -194,6 +217,20 @@ class App:
             now = ticks()
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
                 self._slow(now)
+
+    def _run_pump(self, passes):
+        """run() with the passes in jig.fastpath.pump, which returns to run the slow pass."""
+        pump = self.pump
+        ctx = self.pump_ctx
+        ticks = self._ticks
+        due = self.due
+        while True:
+            passes = pump(ctx, passes)
+            now = ticks()
+            if (now - due[0]) & TICKS_MASK < TICKS_HALF:
+                self._slow(now)
+            if passes == 0:
+                return
 
     def _slow(self, now):
         """Everything with a time in it; sets the next due tick."""

@@ -160,10 +160,11 @@ def _multipliers():
 
 TIMEOUT_MULTIPLIER = _multipliers()
 
-# TRANSITIONS flattened for the hot path: index state * N_EVENTS + event.
+# TRANSITIONS flattened for the hot path (here and in jig.fastpath): index
+# state * N_EVENTS + event.
 N_EVENTS = len(EVENT_NAMES)
-_NEXT = bytes([nxt for row in TRANSITIONS for _f, nxt in row])
-_FLAGS = tuple([f for row in TRANSITIONS for f, _n in row])
+FLAT_NEXT = bytes([nxt for row in TRANSITIONS for _f, nxt in row])
+FLAT_FLAGS = array("H", [f for row in TRANSITIONS for f, _n in row])
 
 # What an EV_DROP on the PC side means for a frame being cut through
 _WHY_TIMEOUT = const(0)
@@ -220,8 +221,8 @@ class Bridge:
     def _event(self, ev):
         bs = self.bs
         k = bs[B_STATE] * N_EVENTS + ev
-        bs[B_STATE] = _NEXT[k]
-        return _FLAGS[k]
+        bs[B_STATE] = FLAT_NEXT[k]
+        return FLAT_FLAGS[k]
 
     def _abort(self):
         if self.client is None:

@@ -44,6 +44,11 @@ from .link import Bus
 # crosses the wrap that MicroPython's ticks_us has every ~18 minutes.
 VIRTUAL_START_US = float((1 << 30) - 3000000)
 
+# The jig's main loop on the bench: None as on a board without a native emitter (the
+# portable loop, on CPython), True for jig.fastpath's source run as Python (the host
+# tests run the bridge suites both ways: conftest.py).
+DEFAULT_FASTPATH = None
+
 
 class PcPort:
     """The PC's RS-485 adapter (automatic direction) on the upstream bus."""
@@ -90,11 +95,11 @@ class PcPort:
 class JigRunner:
     """Runs App.poll on the bench clock: on input, and at the app's deadlines."""
 
-    def __init__(self, clock, hal):
+    def __init__(self, clock, hal, fastpath=None):
         self.clock = clock
         self.hal = hal
         hal.rx_callback = self.wake
-        self.app = App(hal)
+        self.app = App(hal, fastpath)
         self.in_poll = False
         self.t_next = None
         self.polls = 0
@@ -156,7 +161,7 @@ class SimBench:
     def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
                  echo_down=False, record=True, servo_on=False, start_us=None, jig_ver8=None,
-                 ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0)):
+                 ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0), fastpath=None):
         """``ver8``: the default variant of the jig and every driver. ``jig_ver8``
         (None: ``ver8``) sets the jig's protocol parameter; ``ver8_drivers`` (None:
         every driver follows ``ver8``) lists the ids of the Ver8 drivers, all others
@@ -206,7 +211,7 @@ class SimBench:
                           echo_up=echo_up, echo_down=echo_down, record=record, cpu_model=cpu_model)
         if settings or fresh:
             self.write_params(settings)
-        self.runner = JigRunner(self.clock, self.hal)
+        self.runner = JigRunner(self.clock, self.hal, DEFAULT_FASTPATH if fastpath is None else fastpath)
         self.app = self.runner.app
         self._sync = 0
 

@@ -1,0 +1,279 @@
+"""The main loop's cut-through hot path as machine code (viper): ``pump``.
+
+``App.run`` hands its passes to ``pump`` where the port has a native emitter (the
+board), the jig forwards cut-through and both RS-485 ports are plain (software
+DE, /RE tied to DE, a write that returns after the last stop bit: ``Rs485.plain``).
+One pass does what ``App.run``'s own pass does -- bytes waiting on the driver bus,
+then on the PC bus, through the parser (``jig.native.scan``) into the bridge --
+but the frame events of a forwarded transaction are acted on here, in machine
+code, on the bridge's state array ``Bridge.bs``:
+
+* a PC frame starts out on the driver bus at its header, routes at its id (to a
+  driver, a broadcast, or the tail stub when it is for the jig), and its end
+  starts the reply wait;
+* a driver frame starts out to the PC at its header while a reply is awaited,
+  matches (or is cut short) at its first two body bytes, and its end is the reply.
+
+Every other event -- a local frame, a drop, a reply to the jig's own request, a
+relay the PC talks over, anything in state AWAIT_INT -- goes to the bridge's own
+``pc_event``/``down_event`` (Python), which share the state array, so the two
+never disagree about where the bridge is. The portable twin of this module is
+``Bridge.up_bytes``/``down_bytes`` with those methods: the WebAssembly VM and
+store-and-forward run them, and the host tests run both and compare
+(``host_tests/test_fastpath.py``). ``pump`` returns when its passes are used up
+or the slow pass is due (``due[0]``), which ``App.run`` then runs.
+
+Under CPython the same source runs as plain Python through ``jig.compat``'s shims
+(for those tests). The constants mirror ``jig.bridge``, ``jig.parser``,
+``jig.counters`` and ``jig.params`` (viper folds only its own module's constants);
+a host test checks they agree.
+"""
+
+try:
+    import micropython
+except ImportError:  # CPython: run the source as plain Python
+    from jig.compat import micropython_shim as micropython
+from jig.compat import const, ptr8, ptr16, ptr32  # noqa: F401 (casts under viper)
+
+_RX_CHUNK = const(256)  # app.RX_CHUNK
+_MASK = const(0x3FFFFFFF)
+_HALF = const(0x20000000)
+_STUFF = const(0xAA)
+_BROADCAST_ID = const(99)
+# jig.parser
+_EV_FRAME = const(1)
+_EV_HEAD = const(2)
+_EV_START = const(4)
+_S_N = const(1)
+_S_EVENT = const(2)
+# jig.bridge
+_AWAIT_PC = const(1)
+_AWAIT_INT = const(2)
+_E_PC_FORWARD = const(1)
+_E_PC_BROADCAST = const(2)
+_E_REPLY = const(4)
+_N_EVENTS = const(8)
+_F_ABORT = const(1)
+_B_STATE = const(0)
+_B_FWD = const(1)
+_B_ROUTED = const(2)
+_B_REL = const(3)
+_B_CHECKED = const(4)
+_B_P_B0 = const(5)
+_B_P_B1 = const(6)
+_B_DEADLINE = const(7)
+_B_T_PC = const(8)
+_B_PC_FRAMES = const(9)
+_B_SEEN = const(10)
+_SEEN_IDS = const(30)
+# jig.counters
+_C_UP_IN = const(0)
+_C_UP_OUT = const(1)
+_C_DOWN_IN = const(2)
+_C_DOWN_OUT = const(3)
+_C_FORWARDS = const(6)
+_C_BROADCASTS = const(7)
+_C_REPLIES = const(8)
+_C_ABORTS = const(10)
+# jig.params
+_P_SLAVE_ID = const(0)
+_P_REPLY_TIMEOUT_MS = const(3)
+_P_INTERBYTE_US = const(4)
+_P_DE_PRE_US = const(6)
+_P_DE_POST_US = const(7)
+
+
+def context(app):
+    """What ``pump`` works with, bound once (a tuple: pump unpacks it at each call)."""
+    b = app.bridge
+    up = app.hal.up
+    down = app.hal.down
+    from jig.bridge import FLAT_FLAGS, FLAT_NEXT, TIMEOUT_MULTIPLIER
+    from jig.parser import TABLES
+
+    return (up.any, up.readinto, up.de, up.write, down.any, down.readinto, down.de, down.write,
+            app.hal.ticks_us, app.hal.sleep_us,
+            app.up_parser, app.up_parser.scan, app.up_parser.st, app.up_rx, app.up_parser.body,
+            app.down_parser, app.down_parser.scan, app.down_parser.st, app.down_rx, app.down_parser.body,
+            TABLES, b.pc_event, b.down_event, b.bs, app.counters.v, app.due, app.params.ram, b.hdr, b.tail,
+            TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS)
+
+
+@micropython.viper
+def pump(ctx, passes: int) -> int:
+    """Run passes passes of the main loop (< 0: until the slow pass is due); return
+    the passes left (0, or what was left when the slow pass fell due)."""
+    (up_any, up_read, up_de, up_write, down_any, down_read, down_de, down_write, ticks, sleep,
+     up_parser, up_scan, up_st, up_rx, up_body, down_parser, down_scan, down_st, down_rx, down_body,
+     tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
+     flags_buf) = ctx
+    ust = ptr32(up_st)
+    ub = ptr8(up_body)
+    dst = ptr32(down_st)
+    db = ptr8(down_body)
+    bs = ptr32(bs_arr)
+    v = ptr32(v_arr)
+    due = ptr32(due_arr)
+    hdr = ptr8(hdr_buf)
+    tmult = ptr8(tmult_buf)
+    nxt = ptr8(next_buf)
+    flg = ptr16(flags_buf)
+    while passes != 0:
+        if passes > 0:
+            passes -= 1
+        # --- the driver bus first (a reply already in goes before a new PC request)
+        avail = int(down_any())
+        if avail != 0:
+            n = int(down_read(down_rx, avail if avail < _RX_CHUNK else _RX_CHUNK))
+            now = int(ticks())
+            i = 0
+            while i < n:
+                j = int(down_scan(down_st, down_rx, i, n, down_body, tables, now))
+                if bs[_B_REL] != 0 and j > i:
+                    up_write(down_rx, i, j - i)  # the raw bytes of the reply being relayed
+                i = j
+                ev = dst[_S_EVENT]
+                if ev == 0:
+                    continue
+                state = bs[_B_STATE]
+                if ev == _EV_START:
+                    # Bridge._down_start: to the PC at once while its reply is awaited
+                    if state == _AWAIT_PC and bs[_B_FWD] == 0:
+                        up_de(1)
+                        pre = int(ram[_P_DE_PRE_US])
+                        if pre != 0:
+                            sleep(pre)
+                        up_write(hdr_buf, 0, 2)
+                        bs[_B_REL] = 1
+                        bs[_B_CHECKED] = 0
+                        t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
+                        if ((t - due[0]) & _MASK) >= _HALF:
+                            due[0] = t
+                elif ev == _EV_HEAD:
+                    # Bridge._down_head: relay a match, cut short a frame that is not one
+                    relaying = bs[_B_REL]
+                    if relaying == 0 and (state != _AWAIT_PC or bs[_B_FWD] != 0):
+                        continue
+                    b0 = db[0]
+                    b1 = db[1]
+                    if b0 != bs[_B_P_B0] or b1 != bs[_B_P_B1]:
+                        if relaying != 0:
+                            up_write(tail, 0, 2)
+                            bs[_B_REL] = 0
+                            post = int(ram[_P_DE_POST_US])
+                            if post != 0:
+                                sleep(post)
+                            up_de(0)
+                    elif relaying != 0:
+                        bs[_B_CHECKED] = 1
+                    else:
+                        hdr[2] = b0
+                        hdr[3] = b1
+                        k = 4
+                        if b1 == _STUFF:
+                            hdr[4] = b1
+                            k = 5
+                        up_de(1)
+                        pre = int(ram[_P_DE_PRE_US])
+                        if pre != 0:
+                            sleep(pre)
+                        up_write(hdr_buf, 0, k)
+                        bs[_B_REL] = 1
+                        bs[_B_CHECKED] = 1
+                        t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
+                        if ((t - due[0]) & _MASK) >= _HALF:
+                            due[0] = t
+                elif ev == _EV_FRAME and bs[_B_REL] != 0:
+                    # Bridge.on_down_frame: the reply, relayed as it came
+                    v[_C_DOWN_IN] += 1
+                    bs[_B_REL] = 0
+                    post = int(ram[_P_DE_POST_US])
+                    if post != 0:
+                        sleep(post)
+                    up_de(0)
+                    bs[_B_STATE] = nxt[state * _N_EVENTS + _E_REPLY]
+                    b0 = db[0]
+                    if b0 < _SEEN_IDS:
+                        bs[_B_SEEN] |= 1 << b0
+                    v[_C_REPLIES] += 1
+                    v[_C_UP_OUT] += 1
+                else:
+                    down_event(down_parser, ev, now)
+        # --- the PC bus
+        avail = int(up_any())
+        if avail != 0:
+            n = int(up_read(up_rx, avail if avail < _RX_CHUNK else _RX_CHUNK))
+            now = int(ticks())
+            i = 0
+            while i < n:
+                j = int(up_scan(up_st, up_rx, i, n, up_body, tables, now))
+                if bs[_B_FWD] != 0 and j > i:
+                    down_write(up_rx, i, j - i)  # the raw bytes of the frame being cut through
+                i = j
+                ev = ust[_S_EVENT]
+                if ev == 0:
+                    continue
+                state = bs[_B_STATE]
+                if ev == _EV_START and bs[_B_REL] == 0 and state != _AWAIT_INT:
+                    # Bridge._pc_start: on to the driver bus from the header
+                    down_de(1)
+                    pre = int(ram[_P_DE_PRE_US])
+                    if pre != 0:
+                        sleep(pre)
+                    down_write(hdr_buf, 0, 2)
+                    bs[_B_FWD] = 1
+                    bs[_B_ROUTED] = 0
+                    t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
+                    if ((t - due[0]) & _MASK) >= _HALF:
+                        due[0] = t
+                elif ev == _EV_HEAD and bs[_B_FWD] != 0 and bs[_B_REL] == 0 and state != _AWAIT_INT:
+                    # Bridge._pc_head: route at the id
+                    slave = ub[0]
+                    if slave == int(ram[_P_SLAVE_ID]):
+                        bs[_B_FWD] = 0
+                        down_write(tail, 0, 2)
+                        post = int(ram[_P_DE_POST_US])
+                        if post != 0:
+                            sleep(post)
+                        down_de(0)
+                        continue
+                    bs[_B_ROUTED] = 1
+                    v[_C_DOWN_OUT] += 1
+                    k = state * _N_EVENTS
+                    if slave == _BROADCAST_ID:
+                        k += _E_PC_BROADCAST
+                        v[_C_BROADCASTS] += 1
+                    else:
+                        k += _E_PC_FORWARD
+                        v[_C_FORWARDS] += 1
+                        bs[_B_P_B1] = -1
+                    bs[_B_STATE] = nxt[k]
+                    if flg[k] & _F_ABORT:
+                        v[_C_ABORTS] += 1  # (no client: the jig's own wait is AWAIT_INT)
+                elif ev == _EV_FRAME and bs[_B_FWD] != 0:
+                    # Bridge.on_pc_frame: the tail has gone out with the raw bytes
+                    v[_C_UP_IN] += 1
+                    bs[_B_T_PC] = now
+                    bs[_B_PC_FRAMES] += 1
+                    bs[_B_FWD] = 0
+                    post = int(ram[_P_DE_POST_US])
+                    if post != 0:
+                        sleep(post)
+                    down_de(0)
+                    if state == _AWAIT_PC:
+                        # Bridge._pend_pc: the reply wait starts now
+                        m = tmult[ub[1]]
+                        if ust[_S_N] > 2 and tmult[ub[2]] > m:
+                            m = tmult[ub[2]]
+                        bs[_B_P_B0] = ub[0]
+                        bs[_B_P_B1] = ub[1]
+                        d = (int(ticks()) + int(ram[_P_REPLY_TIMEOUT_MS]) * m * 1000) & _MASK
+                        bs[_B_DEADLINE] = d
+                        if ((d - due[0]) & _MASK) >= _HALF:
+                            due[0] = d
+                else:
+                    pc_event(up_parser, ev, now)
+        now = int(ticks())
+        if ((now - due[0]) & _MASK) < _HALF:
+            return passes
+    return 0
