@@ -82,6 +82,11 @@ C_CUT_TRUNCATED = const(27)
 C_RELAY_CORRUPT = const(28)
 C_UNAWAITED = const(29)
 COUNT = const(30)
+# Kept in the same array after the wire counters, never sent: the turnaround average
+# is _TA_SUM / (C_TA_COUNT - _TA_BASE) (the sum restarts before it leaves a small int).
+_TA_SUM = const(30)
+_TA_BASE = const(31)
+_SLOTS = const(32)
 
 
 class Counters:
@@ -89,18 +94,12 @@ class Counters:
     counts in it too; a counter wraps after 2**31 events)."""
 
     def __init__(self):
-        self.v = array("i", bytes(4 * COUNT))
-        # The average: sum of the turnaround times since the count was ta_base
-        self.ta_sum = 0
-        self.ta_base = 0
-        self.reset()
+        self.v = array("i", bytes(4 * _SLOTS))
 
     def reset(self):
         v = self.v
-        for i in range(COUNT):
+        for i in range(_SLOTS):
             v[i] = 0
-        self.ta_sum = 0
-        self.ta_base = 0
 
     def turnaround(self, us):
         """Record one jig handling time in µs (the average is worked out in
@@ -114,16 +113,17 @@ class Counters:
             v[C_TA_MIN] = us
         if us > v[C_TA_MAX]:
             v[C_TA_MAX] = us
-        s = self.ta_sum + us
+        s = v[_TA_SUM] + us
         if s > 0x3FFFFFFF:  # keep the sum a small int: restart the average window
             s = us
-            self.ta_base = n
-        self.ta_sum = s
+            v[_TA_BASE] = n
+        v[_TA_SUM] = s
 
     def update_average(self):
-        n = self.v[C_TA_COUNT] - self.ta_base
+        v = self.v
+        n = v[C_TA_COUNT] - v[_TA_BASE]
         if n:
-            self.v[C_TA_AVG] = self.ta_sum // n
+            v[C_TA_AVG] = v[_TA_SUM] // n
 
     def get(self, name):
         self.update_average()

@@ -49,6 +49,7 @@ _S_EVENT = const(2)
 # jig.bridge
 _AWAIT_PC = const(1)
 _AWAIT_INT = const(2)
+_E_PC_LOCAL = const(0)
 _E_PC_FORWARD = const(1)
 _E_PC_BROADCAST = const(2)
 _E_REPLY = const(4)
@@ -75,6 +76,16 @@ _C_FORWARDS = const(6)
 _C_BROADCASTS = const(7)
 _C_REPLIES = const(8)
 _C_ABORTS = const(10)
+_C_LOCAL_ERRORS = const(5)
+_C_TA_COUNT = const(22)
+_C_TA_MIN = const(23)
+_C_TA_MAX = const(25)
+_TA_SUM = const(30)
+_TA_BASE = const(31)
+# jig.frame
+_STATUS_FRAME_TYPE_ERROR = const(0x80)
+_STATUS_DATA_ERROR = const(0x81)
+_STATUS_FRAME_ERROR = const(0x82)
 # jig.params
 _P_SLAVE_ID = const(0)
 _P_REPLY_TIMEOUT_MS = const(3)
@@ -90,13 +101,19 @@ def context(app):
     down = app.hal.down
     from jig.bridge import FLAT_FLAGS, FLAT_NEXT, TIMEOUT_MULTIPLIER
     from jig.parser import TABLES
+    from jig import crc
+    from jig.compat import native_source
+
+    enc = native_source()  # jig.native: put_body and stuff (as Python on CPython)
 
     return (up.any, up.readinto, up.de, up.write, down.any, down.readinto, down.de, down.write,
             app.hal.ticks_us, app.hal.sleep_us,
             app.up_parser, app.up_parser.scan, app.up_parser.st, app.up_rx, app.up_parser.body,
             app.down_parser, app.down_parser.scan, app.down_parser.st, app.down_rx, app.down_parser.body,
             TABLES, b.pc_event, b.down_event, b.bs, app.counters.v, app.due, app.params.ram, b.hdr, b.tail,
-            TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS)
+            TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS,
+            b.answer_local, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
+            crc.TABLE)
 
 
 @micropython.viper
@@ -106,7 +123,10 @@ def pump(ctx, passes: int) -> int:
     (up_any, up_read, up_de, up_write, down_any, down_read, down_de, down_write, ticks, sleep,
      up_parser, up_scan, up_st, up_rx, up_body, down_parser, down_scan, down_st, down_rx, down_body,
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
-     flags_buf) = ctx
+     flags_buf, answer_local, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
+     crc_table) = ctx
+    head = int(head_obj)
+    reply = ptr8(reply_buf)
     ust = ptr32(up_st)
     ub = ptr8(up_body)
     dst = ptr32(down_st)
@@ -271,6 +291,58 @@ def pump(ctx, passes: int) -> int:
                         bs[_B_DEADLINE] = d
                         if ((d - due[0]) & _MASK) >= _HALF:
                             due[0] = d
+                elif ev == _EV_FRAME and bs[_B_FWD] == 0 and ub[0] == int(ram[_P_SLAVE_ID]):
+                    # Bridge.on_pc_frame and _local: a frame for the jig, answered here
+                    v[_C_UP_IN] += 1
+                    bs[_B_T_PC] = now
+                    bs[_B_PC_FRAMES] += 1
+                    k = state * _N_EVENTS + _E_PC_LOCAL
+                    bs[_B_STATE] = nxt[k]
+                    if flg[k] & _F_ABORT:
+                        v[_C_ABORTS] += 1  # (the PC's own wait: a local frame has no abort in AWAIT_INT)
+                    n_rep = int(answer_local(up_parser))  # (the handlers: Python)
+                    if n_rep < 0:
+                        continue  # answered later, through Bridge.local_reply
+                    # Bridge.local_reply
+                    status = reply[0]
+                    if status == _STATUS_FRAME_TYPE_ERROR or status == _STATUS_DATA_ERROR or status == _STATUS_FRAME_ERROR:
+                        v[_C_LOCAL_ERRORS] += 1
+                    sync = -1
+                    ftype = ub[1]
+                    if head == 3:
+                        sync = ub[1]
+                        ftype = ub[2]
+                    blen = int(put_body(reply_body, ub[0], sync, ftype, reply_buf, n_rep, crc_table))
+                    m = int(stuff(txbuf, reply_body, blen))
+                    # Rs485.send
+                    t_tx = int(ticks())
+                    up_de(1)
+                    pre = int(ram[_P_DE_PRE_US])
+                    if pre != 0:
+                        sleep(pre)
+                    up_write(txbuf, 0, m)
+                    post = int(ram[_P_DE_POST_US])
+                    if post != 0:
+                        sleep(post)
+                    up_de(0)
+                    # Counters.turnaround(ticks_diff(t_tx, now))
+                    us = ((t_tx - now + _HALF) & _MASK) - _HALF
+                    if us < 0:
+                        us = 0
+                    k = v[_C_TA_COUNT]
+                    v[_C_TA_COUNT] = k + 1
+                    if k == 0 or us < v[_C_TA_MIN]:
+                        v[_C_TA_MIN] = us
+                    if us > v[_C_TA_MAX]:
+                        v[_C_TA_MAX] = us
+                    s = v[_TA_SUM] + us
+                    if s > 0x3FFFFFFF:
+                        s = us
+                        v[_TA_BASE] = k
+                    v[_TA_SUM] = s
+                    v[_C_UP_OUT] += 1
+                    if int(handlers.pending_change) >= 0:
+                        after_reply(up_parser)  # a parameter change that waited for the reply
                 else:
                     pc_event(up_parser, ev, now)
         now = int(ticks())

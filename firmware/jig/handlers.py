@@ -101,8 +101,9 @@ class Handlers:
         self.counter_values = [0] * diag.N_WIRE
         self.pending_change = -1
         self.id_check = SlaveIdCheck(app)
-        # frame type -> (handler, required request data length or LEN_ANY)
-        self.table = {
+        # frame type -> (handler, required request data length or LEN_ANY), as a list
+        # indexed by frame type (a subscript is cheaper than a dict's get on the board)
+        by_type = {
             frame.GET_SLAVE_INFO: (self.slave_info, 0),
             frame.SAVE_ALL_PARAMETERS: (self.save_all, 0),
             frame.GET_ROM_PARAMETER: (self.get_rom_param, 1),
@@ -120,6 +121,9 @@ class Handlers:
             diag.GET_BUS_SCAN_RESULT: (self.scan_result, 0),
             diag.READ_CRASH_LOG: (self.crash_log, 0),
         }
+        self.table = [None] * 256
+        for ftype, entry in by_type.items():
+            self.table[ftype] = entry
         # Reply data lengths (status included) of the no-axis answers.
         self.no_axis_len = bytearray(256)
         self.no_axis_len[frame.GET_AXIS_STATUS] = 1 + 4
@@ -134,7 +138,7 @@ class Handlers:
         body = p.body
         head = st[S_HEAD]
         n = st[S_N] - 2 - head  # data length
-        entry = self.table.get(body[head - 1])
+        entry = self.table[body[head - 1]]
         if entry is None or n < 0:  # n < 0: a Ver6 frame read as Ver8 (type = a CRC byte)
             out[0] = frame.STATUS_FRAME_TYPE_ERROR
             return 1
