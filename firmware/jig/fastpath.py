@@ -76,6 +76,7 @@ _C_FORWARDS = const(6)
 _C_BROADCASTS = const(7)
 _C_REPLIES = const(8)
 _C_ABORTS = const(10)
+_C_LOCAL = const(4)
 _C_LOCAL_ERRORS = const(5)
 _C_TA_COUNT = const(22)
 _C_TA_MIN = const(23)
@@ -112,7 +113,7 @@ def context(app):
             app.down_parser, app.down_parser.scan, app.down_parser.st, app.down_rx, app.down_parser.body,
             TABLES, b.pc_event, b.down_event, b.bs, app.counters.v, app.due, app.params.ram, b.hdr, b.tail,
             TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS,
-            b.answer_local, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
+            app.handlers.handle, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
             crc.TABLE)
 
 
@@ -123,7 +124,7 @@ def pump(ctx, passes: int) -> int:
     (up_any, up_read, up_de, up_write, down_any, down_read, down_de, down_write, ticks, sleep,
      up_parser, up_scan, up_st, up_rx, up_body, down_parser, down_scan, down_st, down_rx, down_body,
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
-     flags_buf, answer_local, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
+     flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
      crc_table) = ctx
     head = int(head_obj)
     reply = ptr8(reply_buf)
@@ -141,6 +142,7 @@ def pump(ctx, passes: int) -> int:
     while passes != 0:
         if passes > 0:
             passes -= 1
+        now = -1
         # --- the driver bus first (a reply already in goes before a new PC request)
         avail = int(down_any())
         if avail != 0:
@@ -300,7 +302,8 @@ def pump(ctx, passes: int) -> int:
                     bs[_B_STATE] = nxt[k]
                     if flg[k] & _F_ABORT:
                         v[_C_ABORTS] += 1  # (the PC's own wait: a local frame has no abort in AWAIT_INT)
-                    n_rep = int(answer_local(up_parser))  # (the handlers: Python)
+                    v[_C_LOCAL] += 1
+                    n_rep = int(handle(up_parser, reply_buf))  # Bridge.answer_local (the handlers: Python)
                     if n_rep < 0:
                         continue  # answered later, through Bridge.local_reply
                     # Bridge.local_reply
@@ -345,7 +348,8 @@ def pump(ctx, passes: int) -> int:
                         after_reply(up_parser)  # a parameter change that waited for the reply
                 else:
                     pc_event(up_parser, ev, now)
-        now = int(ticks())
+        if now < 0:
+            now = int(ticks())  # (a pass that read input judges the slow pass by its last read's tick)
         if ((now - due[0]) & _MASK) < _HALF:
             return passes
     return 0

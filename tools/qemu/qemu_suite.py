@@ -307,10 +307,13 @@ class MemHal(bridge_probe.Hal):
         self.down = MemPort(down_baud)
 
 
-def hal_call_costs():
-    """Instructions per call of each stand-in HAL method (HAL_CALL_NAMES order)."""
-    port = MemPort(115200)
-    hal = MemHal()
+def hal_call_costs(port=None, hal=None):
+    """Instructions per call of each stand-in HAL method (HAL_CALL_NAMES order), on
+    the given port and HAL (a rig's own: an instance's attribute look-ups cost what
+    its own map costs, which moves with the heap)."""
+    if port is None:
+        port = MemPort(115200)
+        hal = MemHal()
     buf = bytearray(8)
     data = b"\x00" * 8
     n = 400
@@ -498,10 +501,15 @@ def bench_bridge(transactions=200):
     from jig import params
 
     costs = hal_call_costs()
-    result("stand-in HAL instructions per call (taken out below; C methods on the board): "
-           + ", ".join(["%s %d" % (HAL_CALL_NAMES[k], costs[k]) for k in range(len(costs))]))
+    result("stand-in HAL instructions per call (taken out below, measured again on each rig's own ports; "
+           "C methods on the board): " + ", ".join(["%s %d" % (HAL_CALL_NAMES[k], costs[k]) for k in range(len(costs))]))
     for mode, name in ((params.CUT_THROUGH, "cut-through"), (params.STORE_AND_FORWARD, "store-and-forward")):
         rig = BridgeRig(mode)
+        costs = hal_call_costs(rig.hal.up, rig.hal)
+        fast = rig.app.pump is not None
+        if compat.NATIVE is not None and fast != (mode == params.CUT_THROUGH):
+            fail("bridge %s: the main loop is %s (jig.fastpath.pump is for cut-through on plain ports)"
+                 % (name, "jig.fastpath.pump" if fast else "the portable loop"))
         rx = len(rig.request) + len(rig.reply)
         per_t, heap_t, calls_t = measure(rig.forward, transactions, costs, rig)
         per_b, heap_b, calls_b = measure(rig.forward_bytewise, transactions // 4, costs, rig)
@@ -514,10 +522,10 @@ def bench_bridge(transactions=200):
                 fail("bridge %s: %s allocated with the heap locked" % (name, what))
             elif heap > 0 and compat.IS_MICROPYTHON:
                 fail("bridge %s: %s allocated %d heap bytes per call" % (name, what, heap))
-        result("bridge %s: forwarded transaction (%d+%d bytes, two bursts) %d instructions + %d HAL calls; "
+        result("bridge %s (%s): forwarded transaction (%d+%d bytes, two bursts) %d instructions + %d HAL calls; "
                "every byte on its own %d instructions/byte + %d HAL calls; local GetSlaveInfo %d + %d HAL calls; "
                "idle pass %d + %d HAL calls; heap allocated per transaction %d / per idle pass %d bytes (heap locked)"
-               % (name, len(rig.request), len(rig.reply), per_t, calls_t, per_b // rx, calls_b // rx, local, calls_l,
+               % (name, "jig.fastpath.pump" if fast else "portable loop", len(rig.request), len(rig.reply), per_t, calls_t, per_b // rx, calls_b // rx, local, calls_l,
                   idle, calls_i, heap_t, heap_i))
 
 
@@ -526,7 +534,7 @@ def probe_cross_check(n=200):
     benchmarks use: a second opinion on the numbers above."""
     rig = bridge_probe.Rig()
     dt = timed(lambda: [rig.forward_once() for _ in range(n)] and None)
-    result("bridge_probe.Rig forward: %d instructions/transaction" % (instr(dt) // n))
+    result("bridge_probe.Rig forward (its Python stand-in ports and ring buffers included): %d instructions/transaction" % (instr(dt) // n))
     if compat.IS_MICROPYTHON:
         used, ok = bridge_probe.forward_alloc(n)
         used_l, ok_l = bridge_probe.local_alloc(n, counters=True)

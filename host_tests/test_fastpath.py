@@ -1,0 +1,115 @@
+"""jig.fastpath.pump (the board's machine-code hot path) against the portable main loop.
+
+Its source runs here as plain Python through jig.compat's shims. The bridge suites
+already run on both loops (conftest.py: ``jig_loop``); here the two loops get the
+same random traffic on two identical benches and must put the same bytes on both
+buses at the same virtual times, with the same DE edges and the same counters.
+"""
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jig import app, bridge, counters, fastpath, frame, params, parser
+from jig import diag
+from motorjig.sim import SimBench
+
+GOOD_TYPES = (frame.GET_SLAVE_INFO, frame.GET_AXIS_STATUS, frame.GET_COMMAND_POS, frame.GET_ALL_STATUS,
+              diag.READ_COUNTERS)
+
+
+def test_constants_mirror_the_modules_they_come_from():
+    """viper folds only its own module's constants: each must equal its source's."""
+    sources = {
+        "RX_CHUNK": app, "EV_FRAME": parser, "EV_HEAD": parser, "EV_START": parser, "S_N": parser,
+        "S_EVENT": parser, "AWAIT_PC": bridge, "AWAIT_INT": bridge, "E_PC_LOCAL": bridge, "E_PC_FORWARD": bridge,
+        "E_PC_BROADCAST": bridge, "E_REPLY": bridge, "N_EVENTS": bridge, "F_ABORT": bridge, "SEEN_IDS": bridge,
+        "STATUS_FRAME_TYPE_ERROR": frame, "STATUS_DATA_ERROR": frame, "STATUS_FRAME_ERROR": frame,
+        "P_SLAVE_ID": params, "P_REPLY_TIMEOUT_MS": params, "P_INTERBYTE_US": params, "P_DE_PRE_US": params,
+        "P_DE_POST_US": params, "TA_SUM": counters, "TA_BASE": counters,
+    }
+    names = [n[1:] for n in vars(fastpath) if n.startswith("_") and n[1:2].isupper()]
+    checked = 0
+    for name in names:
+        if name.startswith(("B_", "C_")):
+            src = bridge if name.startswith("B_") else counters
+        elif name in sources:
+            src = sources[name]
+        else:
+            continue
+        attr = name if hasattr(src, name) else "_" + name
+        assert getattr(fastpath, "_" + name) == getattr(src, attr), name
+        checked += 1
+    assert checked >= 45
+    assert fastpath._MASK == app.TICKS_MASK and fastpath._HALF == app.TICKS_HALF
+    assert fastpath._STUFF == frame.STUFF and fastpath._BROADCAST_ID == frame.BROADCAST_ID
+
+
+def test_the_board_runs_the_pump_only_where_it_applies():
+    assert SimBench(fastpath=True).runner.app.pump is fastpath.pump
+    assert SimBench().runner.app.pump is None  # CPython: the portable loop unless asked
+    sf = SimBench(fastpath=True, jig_params={params.P_FORWARD_MODE: params.STORE_AND_FORWARD})
+    assert sf.runner.app.pump is None  # store-and-forward is the portable loop's
+    echo = SimBench(fastpath=True, echo_up=True)
+    assert echo.runner.app.pump is None  # a port that hears its own echo is not plain
+
+
+class Run:
+    """One bench, everything it puts on the wire recorded with its time."""
+
+    def __init__(self, fast, chunk, faults):
+        self.b = SimBench(driver_ids=(2, 3), fastpath=fast, stream_chunk=chunk)
+        for slave, fault in faults:
+            setattr(self.b.drivers[slave], fault, True)
+        self.down = []
+        self.b.down_bus.add_node("spy", lambda data, t: self.down.append((t, bytes(data))), record=False)
+
+    def play(self, steps):
+        b = self.b
+        for wire, gap_us in steps:
+            b.run_for(gap_us)
+            end = b.pc.send(wire)
+            b.run_for(max(0.0, end - b.clock.now))
+        b.run_for(300000)
+        hal = b.hal
+        return (b.pc.raw, b.pc.frames, self.down, hal.up.node.de_log, hal.down.node.de_log, b.counters)
+
+
+def _step(kind, slave, ftype, cut, gap):
+    wire = frame.encode(slave, ftype, bytes(range(ftype % 7)) if ftype == frame.SET_PARAMETER else b"")
+    if kind == "bad_crc":
+        wire = wire[:-3] + bytes([wire[-3] ^ 0x01]) + wire[-2:]
+    elif kind == "cut":
+        wire = wire[: max(1, min(cut, len(wire) - 1))]
+    elif kind == "garbage":
+        wire = bytes([(ftype * 37 + i * 11) & 0xFF for i in range(cut)])
+    return wire, gap
+
+
+steps_strategy = st.lists(
+    st.builds(_step, st.sampled_from(["good", "good", "good", "bad_crc", "cut", "garbage"]),
+              st.sampled_from([1, 2, 3, 5, 99]), st.sampled_from(GOOD_TYPES + (frame.SET_PARAMETER,)),
+              st.integers(1, 12), st.sampled_from([0, 50, 400, 3000, 20000])),
+    min_size=1, max_size=8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(steps_strategy, st.sampled_from([1, 3, 64]),
+       st.lists(st.tuples(st.sampled_from([2, 3]), st.sampled_from(["bad_crc", "silent"])), max_size=1))
+def test_the_pump_does_on_the_wire_what_the_portable_loop_does(steps, chunk, faults):
+    portable = Run(False, chunk, faults).play(steps)
+    pumped = Run(True, chunk, faults).play(steps)
+    names = ("PC bytes", "PC frames", "driver bus", "PC-side DE", "driver-side DE", "counters")
+    for name, a, b in zip(names, portable, pumped):
+        assert a == b, name
+
+
+def test_a_local_frame_after_a_long_burst_scans_only_what_was_read():
+    """A local reply's length is no read count: the bytes after a local frame in the
+    receive buffer are stale (a regression the differential test above also guards)."""
+    steps = [(frame.encode(2, frame.SET_PARAMETER, bytes(40)), 0), (frame.encode(1, frame.GET_SLAVE_INFO), 5000),
+             (frame.encode(1, frame.GET_SLAVE_INFO), 5000)]
+    portable = Run(False, 64, ()).play(steps)
+    pumped = Run(True, 64, ()).play(steps)
+    assert pumped == portable
+    c = pumped[-1]
+    assert c["up_noise"] == 0 and c["local_requests"] == 2 and c["up_frames_out"] == 3  # (2 local + the drive's answer)
