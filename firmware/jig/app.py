@@ -10,7 +10,9 @@ the heartbeat -- runs in the *slow pass*, only when the tick reaches ``due[0]``:
 the earliest time any of them needs attention (at least every ``SLOW_US``; the
 bridge moves it earlier for a reply deadline and for the inter-byte timeout of a
 frame it is cutting through). An idle pass is two ``any()`` calls, a tick and a
-compare. ``run()`` loops forever (the board's main.py calls it).
+compare. ``run()`` loops forever (the board's main.py calls it). On the board, cut
+through, the passes themselves run as machine code in ``jig.fastpath.pump``
+(docs/bridge.md, "The machine-code hot path"); elsewhere in the portable loop here.
 
 The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
 
