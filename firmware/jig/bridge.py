@@ -412,16 +412,11 @@ class Bridge:
         if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
             due[0] = t
 
-    def answer_local(self, p):
-        """The reply data (status first) to local frame p, into self.reply: its length,
-        or < 0 when the handler answers later, through local_reply."""
-        self.v[C_LOCAL] += 1
-        return self.handlers.handle(p, self.reply)
-
     def _local(self, p, t_in):
-        n = self.answer_local(p)
+        self.v[C_LOCAL] += 1
+        n = self.handlers.handle(p, self.reply)
         if n < 0:
-            return  # deferred
+            return  # deferred: the handler answers later through local_reply
         body = p.body
         head = self.head
         self.local_reply(body[0], body[head - 1], body[1] if head == 3 else -1, self.reply, n, t_in)

@@ -303,7 +303,7 @@ def pump(ctx, passes: int) -> int:
                     if flg[k] & _F_ABORT:
                         v[_C_ABORTS] += 1  # (the PC's own wait: a local frame has no abort in AWAIT_INT)
                     v[_C_LOCAL] += 1
-                    n_rep = int(handle(up_parser, reply_buf))  # Bridge.answer_local (the handlers: Python)
+                    n_rep = int(handle(up_parser, reply_buf))  # Bridge._local (the handlers: Python)
                     if n_rep < 0:
                         continue  # answered later, through Bridge.local_reply
                     # Bridge.local_reply

@@ -307,13 +307,10 @@ class MemHal(bridge_probe.Hal):
         self.down = MemPort(down_baud)
 
 
-def hal_call_costs(port=None, hal=None):
-    """Instructions per call of each stand-in HAL method (HAL_CALL_NAMES order), on
-    the given port and HAL (a rig's own: an instance's attribute look-ups cost what
-    its own map costs, which moves with the heap)."""
-    if port is None:
-        port = MemPort(115200)
-        hal = MemHal()
+def hal_call_costs():
+    """Instructions per call of each stand-in HAL method (HAL_CALL_NAMES order)."""
+    port = MemPort(115200)
+    hal = MemHal()
     buf = bytearray(8)
     data = b"\x00" * 8
     n = 400
@@ -501,11 +498,10 @@ def bench_bridge(transactions=200):
     from jig import params
 
     costs = hal_call_costs()
-    result("stand-in HAL instructions per call (taken out below, measured again on each rig's own ports; "
-           "C methods on the board): " + ", ".join(["%s %d" % (HAL_CALL_NAMES[k], costs[k]) for k in range(len(costs))]))
+    result("stand-in HAL instructions per call (taken out below; C methods on the board): "
+           + ", ".join(["%s %d" % (HAL_CALL_NAMES[k], costs[k]) for k in range(len(costs))]))
     for mode, name in ((params.CUT_THROUGH, "cut-through"), (params.STORE_AND_FORWARD, "store-and-forward")):
         rig = BridgeRig(mode)
-        costs = hal_call_costs(rig.hal.up, rig.hal)
         fast = rig.app.pump is not None
         if compat.NATIVE is not None and fast != (mode == params.CUT_THROUGH):
             fail("bridge %s: the main loop is %s (jig.fastpath.pump is for cut-through on plain ports)"
