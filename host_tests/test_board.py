@@ -79,6 +79,28 @@ class Mem32:
                 self.regs[base + ISR] = self.regs.get(base + ISR, 0) & ~value
 
 
+class FakeTxRegs:
+    """The USART's ISR..TDR words as ``UartPort.queue``/``drain`` see them (word 0 =
+    ISR, word 3 = TDR): the FIFO always has room, each byte written to TDR is sent."""
+
+    def __init__(self, uart):
+        self.uart = uart
+
+    def __getitem__(self, word):
+        return (1 << 7) | ISR_TC if word == 0 else 0
+
+    def __setitem__(self, word, value):
+        assert word == 3, "only TDR is written"
+        self.uart.sent.append(bytes((value,)))
+
+
+def with_fifo(board):
+    """The board's ports transmit-FIFO registers on FakeTxRegs (CPython has no USART)."""
+    for port in (board.up, board.down):
+        port.regs = FakeTxRegs(port.uart)
+    return board
+
+
 class FakeUART:
     """machine.UART on stm32 as far as the port uses it: an rxbuf ring that the
     (C) RX interrupt fills, read and written through the stream methods."""
@@ -171,6 +193,7 @@ def fakes(monkeypatch, tmp_path):
     micropython = types.ModuleType("micropython")
     micropython.alloc_emergency_exception_buf = lambda n: None
     micropython.const = lambda v: v
+    micropython.viper = lambda fn: fn  # the compiler's decorator; here the source runs as Python
     stm = types.ModuleType("stm")
     stm.mem32 = Mem32()
     FakeUART.mem = stm.mem32
@@ -462,14 +485,15 @@ def test_app_bridges_on_the_board_hal(fakes, tmp_path):
     b = fakes.board.Board("MotorJig STM32H7_JIG with STM32H743VI")
     b.param_path = str(tmp_path / "jigparams.bin")
     app = App(b)
+    with_fifo(b)
+    assert app.up.queued and app.down.queued
     pc, drv = FakeUART.instances[2], FakeUART.instances[3]
     de_up = FakePin.instances["UP_DE"]
 
     pc.receive(frame.encode(1, frame.GET_SLAVE_INFO))
     app.poll()
-    assert len(pc.sent) == 1
     p = FrameParser()
-    p.feed(pc.sent[0])
+    p.feed(b"".join(pc.sent))  # one write (the pump) or queued byte by byte (Rs485.send)
     assert p.ready and p.slave == 1 and p.ftype == frame.GET_SLAVE_INFO and p.body[p.data_start] == 0
     assert de_up.writes[-2:] == [1, 0]  # software DE around the reply
     # cut through, its header went on before the id was known: ended as a stub
@@ -496,6 +520,8 @@ def test_app_reads_only_the_bytes_waiting(fakes, tmp_path):
     b = fakes.board.Board("MotorJig STM32H7_JIG with STM32H743VI")
     b.param_path = str(tmp_path / "jigparams.bin")
     app = App(b)
+    with_fifo(b)
+    assert app.up.queued and app.down.queued
     pc, drv = FakeUART.instances[2], FakeUART.instances[3]
     pc.receive(frame.encode(2, frame.GET_AXIS_STATUS))
     app.poll()
@@ -581,3 +607,57 @@ def test_main_ctrl_c_keeps_the_watchdog_fed(fakes, monkeypatch, tmp_path):
     feeds = FakeWDT.last.feeds
     FakeTimer.made[0].callback(None)
     assert FakeWDT.last.feeds == feeds + 1
+
+
+# --- transmit FIFO (queue/drain: viper on ISR/TDR; here as Python on a register block) ------
+def test_queue_puts_each_byte_into_tdr_and_drain_waits_for_tc(fakes):
+    b = make_board(fakes)
+    up = fakes.uartport
+    regs = bytearray(16)  # word 0 = ISR, word 3 = TDR, as at USART + 0x1C
+    regs[0] = up.USART_ISR_TXFNF | up.USART_ISR_TC
+    b.down.regs = regs
+    data = bytearray(b"\x00\xaa\xcc\x02\x43\xd1\x2b\xaa\xee")
+    seen = bytearray()
+    for i in range(1, len(data)):
+        assert b.down.queue(data, i, 1) == 1
+        seen.append(regs[12])
+    assert seen == data[1:]
+    assert b.down.queue(data, 1, 8) == 8 and regs[12] == 0xEE  # the last byte queued is in TDR
+    assert b.down.drain() == 0
+
+
+def test_queue_stops_when_the_fifo_stays_full(fakes):
+    b = make_board(fakes)
+    regs = bytearray(16)
+    regs[0] = fakes.uartport.USART_ISR_TC  # TXFNF clear: the FIFO is full and never empties
+    b.down.regs = regs
+    assert b.down.queue(b"\xaa\xcc", 0, 2) == 0
+    assert regs[12] == 0
+
+
+def test_rs485_queues_on_the_board_port(fakes):
+    from jig.rs485 import Rs485
+
+    b = make_board(fakes)
+
+    class Hal:
+        ticks_us = staticmethod(lambda: 0)
+        sleep_us = staticmethod(lambda us: None)
+
+    rs = Rs485(Hal(), b.down)
+    assert rs.plain and rs.queued
+    assert rs.raw_part.__func__ is type(b.down).queue and rs.drain.__func__ is type(b.down).drain
+
+
+def test_a_port_without_registers_has_only_the_blocking_write(fakes, monkeypatch):
+    monkeypatch.setattr(fakes.uartport, "usart_base", lambda uid: None)
+    b = make_board(fakes)
+    assert b.down.queue is None and b.down.drain is None
+    from jig.rs485 import Rs485
+
+    class Hal:
+        ticks_us = staticmethod(lambda: 0)
+        sleep_us = staticmethod(lambda us: None)
+
+    rs = Rs485(Hal(), b.down)
+    assert rs.plain and not rs.queued and rs.raw_part == b.down.write

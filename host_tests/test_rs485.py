@@ -240,3 +240,68 @@ def test_turnaround_average_restarts_before_its_sum_leaves_the_small_ints():
     c.reset()
     c.turnaround(6)
     assert tuple(c.get(n) for n in names) == (1, 6, 6, 6)
+
+
+# --- a transmitter with a queue (the USART FIFO on the board: port.queue/drain) -------
+def _queued_bench(baud=921600, cpu_model=(6.5, 2.5)):
+    return SimBench(driver_ids=(2,), baud=baud, turnaround_us=100.0, cpu_model=cpu_model,
+                    jig_params={P.P_FORWARD_MODE: P.CUT_THROUGH})
+
+
+def test_cut_through_pieces_are_queued_and_drained_before_de_drops():
+    b = _queued_bench()
+    assert b.app.down.queued and b.app.up.queued
+    down, up = Tap(b.down_bus), Tap(b.up_bus)
+    wire, r = b.request(2, F.GET_ALL_STATUS, timeout_us=1e6)
+    assert r is not None and r[0] == 0
+    (_n, j0, j1, sent), = down.by("jig-down")
+    assert sent == F.encode(2, F.GET_ALL_STATUS)
+    # Queued pieces follow each other on the wire: the frame takes its own wire time,
+    # though the jig's CPU (6.5 us a pass) is slower than a byte time (10.85 us) would
+    # allow if it had to wait for each piece to leave before reading the next.
+    assert abs((j1 - j0) - len(sent) * 10e6 / 921600) < 1e-3
+    check_de(b.hal.down.node, j0, j1, b.app.params.get(P.P_DE_PRE_US), float("inf"))
+    (_n, u0, u1, relayed), = up.by("jig-up")
+    assert relayed == wire
+    assert abs((u1 - u0) - len(wire) * 10e6 / 921600) < 1e-3
+    check_de(b.hal.up.node, u0, u1, b.app.params.get(P.P_DE_PRE_US), float("inf"))
+    assert b.up_bus.lost == 0 and b.down_bus.lost == 0
+
+
+def test_hop_latency_does_not_grow_with_the_frame():
+    """With the pieces queued, the CPU works while they go out: the jig is one fixed
+    delay behind the wire, not one pass per piece."""
+    b = _queued_bench()
+    down = Tap(b.down_bus)
+    pc = Tap(b.up_bus)
+    hops = []
+    for data in (b"", bytes(40)):  # GetAllStatus (8 bytes on the wire) and a 48-byte SetIO-like frame
+        down.segs.clear()
+        pc.segs.clear()
+        b.request(2, F.GET_ALL_STATUS if not data else F.SET_IO_OUTPUT, data, timeout_us=1e6)
+        (_n, _p0, p1, _), = [s for s in pc.by("pc")]
+        (_n, _j0, j1, _), = down.by("jig-down")
+        hops.append(j1 - p1)
+    assert abs(hops[1] - hops[0]) < 1.0, hops
+
+
+def test_sim_write_refuses_while_queued_bytes_go_out():
+    b = _queued_bench(cpu_model=(0.0, 0.0))
+    port = b.hal.down
+    port.de(1)
+    port.queue(b"\xaa\xcc\x02", 0, 3)
+    with pytest.raises(RuntimeError):
+        port.write(b"\xaa\xee", 0, 2)
+    port.drain()
+    port.write(b"\xaa\xee", 0, 2)
+    port.de(0)
+
+
+def test_a_port_without_a_queue_writes_each_piece():
+    hal, port = FakeHal(), FakePort(echo=False)
+    rs = Rs485(hal, port, pre_us=0, post_us=0)
+    assert not rs.queued and rs.raw_part == port.write
+    rs.begin(b"\xaa\xcc", 0, 2)
+    rs.part(b"\x02\x40", 0, 2)
+    rs.finish()
+    assert port.log[-3:] == [("write", 2), ("write", 2), ("de", 0)]

@@ -24,6 +24,8 @@ The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
         .readinto(buf, n) -> int    move up to n bytes into buf[0:], non-blocking
         .overflows                  RX overruns detected (bytes lost, buffer full)
         .write(buf, off, n)         send buf[off:off+n]; returns after the last stop bit
+        .queue(buf, off, n)         optional: queue for the transmitter, return at once
+        .drain()                    with queue: return after the last stop bit queued
         .tx_blocks                  True if write returns after transmit-complete
         .de(v)                      DE pin (1 = drive the bus); /RE tied to it or .re(v)
         .hw_de(on, pre16, post16)   USART hardware DE on/off -> True if supported

@@ -204,10 +204,10 @@ class Bridge:
         self.tail = bytes((frame.STUFF, frame.TAIL2))
         self._ticks = hal.ticks_us
         self._turnaround = counters.turnaround
-        # Cut through, the raw bytes go straight to the port's write (Rs485.part adds
+        # Cut through, the raw bytes go straight to the port (queued or written: Rs485.part adds
         # nothing to it for an echo-free port whose write returns after the last stop bit).
-        self.fwd_part = down.port.write if down.tx_blocks and not down.track_echo else down.part
-        self.rel_part = up.port.write if up.tx_blocks and not up.track_echo else up.part
+        self.fwd_part = down.raw_part if down.tx_blocks and not down.track_echo else down.part
+        self.rel_part = up.raw_part if up.tx_blocks and not up.track_echo else up.part
 
     # --- what other parts of the jig read ------------------------------------------
     def seen(self):

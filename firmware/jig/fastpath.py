@@ -3,6 +3,9 @@
 ``App.run`` hands its passes to ``pump`` where the port has a native emitter (the
 board), the jig forwards cut-through and both RS-485 ports are plain (software
 DE, /RE tied to DE, a write that returns after the last stop bit: ``Rs485.plain``).
+The pieces of a frame passed on are queued for the port's transmitter
+(``Rs485.raw_part``: the USART's FIFO on the board) and drained before DE drops,
+so the CPU goes on with the next bytes while they go out.
 One pass does what ``App.run``'s own pass does -- bytes waiting on the driver bus,
 then on the PC bus, through the parser (``jig.native.scan``) into the bridge --
 but the frame events of a forwarded transaction are acted on here, in machine
@@ -107,7 +110,8 @@ def context(app):
 
     enc = native_source()  # jig.native: put_body and stuff (as Python on CPython)
 
-    return (up.any, up.readinto, up.de, up.write, down.any, down.readinto, down.de, down.write,
+    return (up.any, up.readinto, up.de, up.write, app.up.raw_part, app.up.drain,
+            down.any, down.readinto, down.de, app.down.raw_part, app.down.drain,
             app.hal.ticks_us, app.hal.sleep_us,
             app.up_parser, app.up_parser.scan, app.up_parser.st, app.up_rx, app.up_parser.body,
             app.down_parser, app.down_parser.scan, app.down_parser.st, app.down_rx, app.down_parser.body,
@@ -121,7 +125,8 @@ def context(app):
 def pump(ctx, passes: int) -> int:
     """Run passes passes of the main loop (< 0: until the slow pass is due); return
     the passes left (0, or what was left when the slow pass fell due)."""
-    (up_any, up_read, up_de, up_write, down_any, down_read, down_de, down_write, ticks, sleep,
+    (up_any, up_read, up_de, up_write, up_queue, up_drain, down_any, down_read, down_de, down_queue,
+     down_drain, ticks, sleep,
      up_parser, up_scan, up_st, up_rx, up_body, down_parser, down_scan, down_st, down_rx, down_body,
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
      flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
@@ -152,7 +157,7 @@ def pump(ctx, passes: int) -> int:
             while i < n:
                 j = int(down_scan(down_st, down_rx, i, n, down_body, tables, now))
                 if bs[_B_REL] != 0 and j > i:
-                    up_write(down_rx, i, j - i)  # the raw bytes of the reply being relayed
+                    up_queue(down_rx, i, j - i)  # the raw bytes of the reply being relayed
                 i = j
                 ev = dst[_S_EVENT]
                 if ev == 0:
@@ -165,7 +170,7 @@ def pump(ctx, passes: int) -> int:
                         pre = int(ram[_P_DE_PRE_US])
                         if pre != 0:
                             sleep(pre)
-                        up_write(hdr_buf, 0, 2)
+                        up_queue(hdr_buf, 0, 2)
                         bs[_B_REL] = 1
                         bs[_B_CHECKED] = 0
                         t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
@@ -180,8 +185,9 @@ def pump(ctx, passes: int) -> int:
                     b1 = db[1]
                     if b0 != bs[_B_P_B0] or b1 != bs[_B_P_B1]:
                         if relaying != 0:
-                            up_write(tail, 0, 2)
+                            up_queue(tail, 0, 2)
                             bs[_B_REL] = 0
+                            up_drain()
                             post = int(ram[_P_DE_POST_US])
                             if post != 0:
                                 sleep(post)
@@ -199,7 +205,7 @@ def pump(ctx, passes: int) -> int:
                         pre = int(ram[_P_DE_PRE_US])
                         if pre != 0:
                             sleep(pre)
-                        up_write(hdr_buf, 0, k)
+                        up_queue(hdr_buf, 0, k)
                         bs[_B_REL] = 1
                         bs[_B_CHECKED] = 1
                         t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
@@ -209,6 +215,7 @@ def pump(ctx, passes: int) -> int:
                     # Bridge.on_down_frame: the reply, relayed as it came
                     v[_C_DOWN_IN] += 1
                     bs[_B_REL] = 0
+                    up_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
                         sleep(post)
@@ -230,7 +237,7 @@ def pump(ctx, passes: int) -> int:
             while i < n:
                 j = int(up_scan(up_st, up_rx, i, n, up_body, tables, now))
                 if bs[_B_FWD] != 0 and j > i:
-                    down_write(up_rx, i, j - i)  # the raw bytes of the frame being cut through
+                    down_queue(up_rx, i, j - i)  # the raw bytes of the frame being cut through
                 i = j
                 ev = ust[_S_EVENT]
                 if ev == 0:
@@ -242,7 +249,7 @@ def pump(ctx, passes: int) -> int:
                     pre = int(ram[_P_DE_PRE_US])
                     if pre != 0:
                         sleep(pre)
-                    down_write(hdr_buf, 0, 2)
+                    down_queue(hdr_buf, 0, 2)
                     bs[_B_FWD] = 1
                     bs[_B_ROUTED] = 0
                     t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
@@ -253,7 +260,8 @@ def pump(ctx, passes: int) -> int:
                     slave = ub[0]
                     if slave == int(ram[_P_SLAVE_ID]):
                         bs[_B_FWD] = 0
-                        down_write(tail, 0, 2)
+                        down_queue(tail, 0, 2)
+                        down_drain()
                         post = int(ram[_P_DE_POST_US])
                         if post != 0:
                             sleep(post)
@@ -278,6 +286,7 @@ def pump(ctx, passes: int) -> int:
                     bs[_B_T_PC] = now
                     bs[_B_PC_FRAMES] += 1
                     bs[_B_FWD] = 0
+                    down_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
                         sleep(post)

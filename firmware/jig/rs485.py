@@ -5,7 +5,12 @@ left the shift register (the HAL's ``write`` returns after transmit-complete, or
 we wait the computed wire time), waits the post-delay and releases DE. A frame
 that is passed on as it arrives (cut-through) is sent as ``begin``, any number of
 ``part`` calls and ``finish``: DE stays up from the first byte to the last stop
-bit of the last part. In hardware-DE mode the USART drives DE itself (set up
+bit of the last part. Where the port can queue bytes for its transmitter
+(``port.queue``/``port.drain``: the USART's transmit FIFO on the board), the
+pieces of such a frame are queued and the CPU goes on while they go out;
+``finish`` drains the transmitter before DE drops. So DE is never dropped with
+bytes still queued, and a whole-frame ``write`` always finds the transmitter
+empty. In hardware-DE mode the USART drives DE itself (set up
 through ``port.hw_de``) and only writes happen here; the USART drops DE whenever
 its transmitter runs empty, so the app uses hardware DE only in store-and-forward
 mode, where every frame is one write.
@@ -27,6 +32,11 @@ BITS_PER_BYTE = const(10)  # 8N1: start + 8 data + stop
 def wire_time_us(nbytes, baud):
     """Time nbytes take on the wire at baud, in µs (rounded up)."""
     return (nbytes * BITS_PER_BYTE * 1000000 + baud - 1) // baud
+
+
+def _nothing_queued():
+    """``drain`` of a port whose writes return after the last stop bit."""
+    return 0
 
 
 class Rs485:
@@ -73,6 +83,12 @@ class Rs485:
         # transmit-complete) needs none of the checks below: a frame cut through pays
         # only for the calls into the HAL.
         self.plain = not self.hw and not self.track_echo and self.tx_blocks and self.re is None
+        # Pieces of a frame go into the transmitter's queue where there is one (only on
+        # a plain port: echo bookkeeping needs each piece on the wire before it reads).
+        queue = getattr(self.port, "queue", None)
+        self.queued = self.plain and queue is not None
+        self.raw_part = queue if self.queued else self._write
+        self.drain = self.port.drain if self.queued else _nothing_queued
         return self.hw
 
     def begin(self, buf, off, n):
@@ -82,7 +98,7 @@ class Rs485:
             self._de(1)
             if self.pre_us:
                 self._sleep(self.pre_us)
-            self._write(buf, off, n)
+            self.raw_part(buf, off, n)
             return
         if self.track_echo:
             self._expect = self._any()  # what is waiting now arrived before we talked
@@ -95,8 +111,9 @@ class Rs485:
         self.part(buf, off, n)
 
     def part(self, buf, off, n):
-        """Transmit buf[off:off + n] while the bus is ours; returns after its last stop bit."""
-        self._write(buf, off, n)
+        """Transmit buf[off:off + n] while the bus is ours; returns after its last stop
+        bit, or once it is queued on a port that queues (``queued``)."""
+        self.raw_part(buf, off, n)
         if not self.tx_blocks:
             self._sleep(wire_time_us(n, self.port.baud))
         if self.track_echo:
@@ -105,6 +122,7 @@ class Rs485:
     def finish(self):
         """Release the bus after the last part: post-delay, DE down, /RE on."""
         if self.plain:
+            self.drain()  # the last stop bit of what is queued
             if self.post_us:
                 self._sleep(self.post_us)
             self._de(0)

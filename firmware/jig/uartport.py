@@ -15,7 +15,16 @@ between and nothing allocated. Their contract (docs/hal.md):
   (``n <= any()``): the UART's read returns at once then. Asked for more it waits
   for them, up to one character timeout (>= 2 ms) after the last byte that came.
 * ``write(buf, n)`` / ``write(buf, off, n)`` returns after the last stop bit
-  (stm32 waits for transmit-complete; there is no transmit buffer).
+  (stm32 waits for transmit-complete).
+
+Transmit path for a frame passed on in pieces: ``queue`` puts bytes straight into
+the USART's 16-byte transmit FIFO (the stm32 port enables it on the H7) and
+returns; it waits only while the FIFO is full. ``drain`` waits for
+transmit-complete (ISR.TC: FIFO empty and the last stop bit sent). Both are viper,
+on the USART's ISR/TDR registers: MicroPython's UART has no non-blocking write,
+and its ``write`` waits for TC after every call, so the CPU and the line would
+take turns. ``jig.rs485`` drains before DE drops, so ``write`` (which with
+timeout 0 refuses when the FIFO is full) always finds the FIFO empty.
 
 A full ring loses bytes silently (the driver stops reading the USART, whose
 16-byte FIFO then overruns). ``housekeep`` -- run by the board every few ms,
@@ -32,11 +41,16 @@ unit-tested on the host.
 import machine
 
 try:
+    import micropython
+except ImportError:  # CPython (host tests): the viper source as plain Python
+    from jig.compat import micropython_shim as micropython
+
+try:
     import stm
 except ImportError:  # a port without the stm module: software DE only
     stm = None
 
-from jig.compat import const, ticks_diff, ticks_ms
+from jig.compat import const, ptr8, ptr32, ticks_diff, ticks_ms  # noqa: F401 (ptrN: viper casts)
 
 # --- USART registers (RM0433, chapter USART/UART: "RS485 driver enable" and the
 # descriptions of USART_CR1, USART_CR3, USART_ISR and USART_ICR). DEM/DEP and
@@ -51,6 +65,13 @@ USART_CR3_DEM = const(1 << 14)  # driver enable mode: DE on the RTS pin
 USART_CR3_DEP = const(1 << 15)  # DE polarity: 0 = active high
 USART_ISR_IDLE = const(1 << 4)  # an idle line was seen after received bytes
 USART_ISR_TC = const(1 << 6)  # transmission complete
+USART_ISR_TXFNF = const(1 << 7)  # transmit FIFO not full (TXE with the FIFO off)
+USART_TDR_WORDS_AFTER_ISR = const(3)  # TDR at 0x28, ISR at 0x1C
+# Bounds on the transmit waits, in polls of ISR (a few cycles each at 400 MHz): a
+# byte takes ~1 ms at 9 600 baud, the whole FIFO ~18 ms. They end a wait only if
+# the USART stopped sending; the watchdog would not catch a hang shorter than its period.
+TX_FIFO_SPINS = const(1 << 20)
+TX_DRAIN_SPINS = const(1 << 23)
 USART_ICR_IDLECF = const(1 << 4)  # write 1: clear ISR.IDLE
 USART_ICR_OFFSET = const(0x20)  # where the stm module has no USART_ICR name
 DE_TIME_MAX = const(31)
@@ -149,6 +170,44 @@ class UartPort:
         if self.base is not None:
             self._isr = self.base + stm.USART_ISR
             self._icr = self.base + getattr(stm, "USART_ICR", USART_ICR_OFFSET)
+        # queue/drain work on the ISR/TDR registers (``regs``: the ISR's address, or
+        # any buffer laid out like ISR..TDR in the tests); without them the port has
+        # only the blocking write.
+        self.regs = self._isr
+        if self._isr is None:
+            self.queue = None
+            self.drain = None
+
+    # --- transmit FIFO (a frame passed on in pieces) --------------------------------
+    @micropython.viper
+    def queue(self, buf, off: int, n: int) -> int:
+        """Put buf[off:off + n] into the transmit FIFO; return once the last byte is
+        in it (not sent), the count queued. Waits only while the FIFO is full."""
+        reg = ptr32(self.regs)
+        src = ptr8(buf)
+        i = off
+        end = off + n
+        while i < end:
+            spins = 0
+            while (reg[0] & USART_ISR_TXFNF) == 0:
+                spins += 1
+                if spins > TX_FIFO_SPINS:
+                    return i - off  # the transmitter stopped: what went in
+            reg[USART_TDR_WORDS_AFTER_ISR] = src[i]
+            i += 1
+        return n
+
+    @micropython.viper
+    def drain(self) -> int:
+        """Return after the last stop bit of everything queued (ISR.TC); -1 if the
+        transmitter stopped before that."""
+        reg = ptr32(self.regs)
+        spins = 0
+        while (reg[0] & USART_ISR_TC) == 0:
+            spins += 1
+            if spins > TX_DRAIN_SPINS:
+                return -1
+        return 0
 
     # --- housekeeping (the board calls this every few ms, never per byte) --------------
     def housekeep(self):

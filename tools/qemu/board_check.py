@@ -13,6 +13,10 @@ modules are imported. What this checks that the CPython host tests cannot:
   the nearer estimate of the board's (the board's C bodies do about as little);
 * the board's housekeeping (traffic LED from the USART idle flag, overflow
   check, error LED) with the heap locked, and its cost per pass;
+* the port's transmit FIFO calls (``queue``/``drain``: viper on the USART's
+  ISR/TDR) compiled for the M7 and run against a register block in RAM: bytes
+  land in TDR, a full FIFO or a stopped transmitter ends the wait, nothing
+  allocates, and what a call costs;
 * the DE register arithmetic with MicroPython's integers (addresses above 2**30
   are big ints there);
 * crash-log text formatting with MicroPython's ``sys.print_exception``, and the
@@ -280,7 +284,42 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
         result("board housekeeping (idle flags, overflow check, LEDs unchanged; C-method UARTs; heap locked): "
                "%d instructions per pass, at most every %d ms from wdt_feed" % (instr(dt) // 100, board.HOUSEKEEP_MS))
 
-    # 4. Hardware DE on MicroPython integers.
+    # 4. The transmit FIFO calls on a register block in RAM: word 0 = ISR, word 3 = TDR.
+    regs = bytearray(16)
+    isr_ok = uartport.USART_ISR_TXFNF | uartport.USART_ISR_TC
+    regs[0] = isr_ok
+    port.regs = regs
+    queue = port.queue
+    drain = port.drain
+    data = bytearray(b"\xaa\xcc\x02\x40\x08\x04\xaa\xee")
+    sent = bytearray()
+    for i in range(len(data)):
+        if queue(data, i, 1) != 1:
+            fail("board: queue refused a byte with room in the FIFO")
+        sent.append(regs[12])
+    if sent != data:
+        fail("board: queue put %r into TDR, expected %r" % (bytes(sent), bytes(data)))
+    if drain() != 0:
+        fail("board: drain with ISR.TC set did not return 0")
+    dq = _locked(_loop_write, queue, data, CALLS)
+    dd = _locked(_loop_call0, drain, CALLS)
+    base_loop = _locked(_loop_empty, CALLS)
+    if dq < 0 or dd < 0:
+        fail("board: queue/drain allocated with the heap locked")
+    regs[0] = uartport.USART_ISR_TC  # FIFO full: nothing may go in
+    stuck_q = queue(data, 0, 4)
+    regs[0] = uartport.USART_ISR_TXFNF  # bytes never finish
+    stuck_d = drain()
+    if stuck_q != 0 or stuck_d != -1:
+        fail("board: a stopped transmitter gave queue %d (expected 0), drain %d (expected -1)"
+             % (stuck_q, stuck_d))
+    elif dq >= 0 and dd >= 0:
+        result("board transmit FIFO (viper on ISR/TDR, register block in RAM, heap locked): "
+               "queue(buf, 0, %d) %d, drain() %d instructions per call; a full FIFO / stopped "
+               "transmitter ends the wait (queue 0, drain -1)"
+               % (CHUNK, instr(dq - base_loop) // CALLS, instr(dd - base_loop) // CALLS))
+
+    # 5. Hardware DE on MicroPython integers.
     base = stm.USART2
     stm.mem32[base] = 0x2000000D
     stm.mem32[base + 0x1C] = 0x40  # ISR.TC: the transmitter is idle
@@ -293,7 +332,7 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
     else:
         result("board DE registers on MicroPython ints: CR1=0x%08x CR3=0x%08x" % (cr1, cr3))
 
-    # 5. Crash-log text with MicroPython's traceback printer; the boot decision.
+    # 6. Crash-log text with MicroPython's traceback printer; the boot decision.
     try:
         raise ValueError("qemu check")
     except ValueError as e:

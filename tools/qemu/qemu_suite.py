@@ -250,7 +250,9 @@ H_WRITE = 2
 H_DE = 3
 H_SLEEP = 4
 H_LOAD = 5  # the rig putting bytes on the line
-HAL_CALL_NAMES = ("any", "readinto", "write", "de", "sleep_us", "load")
+H_QUEUE = 6
+H_DRAIN = 7
+HAL_CALL_NAMES = ("any", "readinto", "write", "de", "sleep_us", "load", "queue", "drain")
 HAL_CALLS = [0] * len(HAL_CALL_NAMES)
 
 
@@ -285,6 +287,17 @@ class MemPort(MemRx):
         if buf[off + n - 1] == 0xEE:
             self.writes += 1
 
+    def queue(self, buf, off, n):
+        HAL_CALLS[H_QUEUE] += 1
+        self.tx_bytes += n
+        if buf[off + n - 1] == 0xEE:
+            self.writes += 1
+        return n
+
+    def drain(self):
+        HAL_CALLS[H_DRAIN] += 1
+        return 0
+
     def de(self, v):
         HAL_CALLS[H_DE] += 1
 
@@ -318,6 +331,8 @@ def hal_call_costs():
     any_ = port.any
     readinto = port.readinto
     write = port.write
+    queue = port.queue
+    drain = port.drain
     de = port.de
     sleep = hal.sleep_us
     load = port.load
@@ -349,6 +364,12 @@ def hal_call_costs():
         elif k == H_LOAD:
             for _ in range(n):
                 load(data, 1, 0)
+        elif k == H_QUEUE:
+            for _ in range(n):
+                queue(data, 0, 8)
+        elif k == H_DRAIN:
+            for _ in range(n):
+                drain()
         return ticks_diff(ticks_us(), t0)
 
     base = loop()
