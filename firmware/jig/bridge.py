@@ -47,7 +47,7 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
                           C_FORWARDS, C_INT_ABORTS, C_INT_REPLIES, C_INT_REQUESTS, C_INT_TIMEOUTS, C_LOCAL,
                           C_LOCAL_ERRORS, C_RELAY_CORRUPT, C_REPLIES, C_STALE, C_TIMEOUTS, C_UNAWAITED, C_UP_IN,
                           C_UP_OUT)
-from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, EV_START, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
+from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, EV_START, HEADER, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
 from jig.compat import const, ticks_diff
 from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
@@ -187,6 +187,10 @@ class Bridge:
         self.v = counters.v
         self.ver8 = ver8
         self.cut_through = cut_through
+        # Cut through between plain ports, the other bus is taken (DE up) as soon as a
+        # byte that can start a header is in, so the DE pre-delay runs while the rest
+        # of the header arrives (``_early``).
+        self.early_ok = cut_through and up.plain and down.plain
         self.head = 3 if ver8 else 2  # id, [sync], type
         # due[0]: tick by which the app's slow pass must run (the reply deadline).
         self.due = due if due is not None else array("i", [0])
@@ -248,6 +252,8 @@ class Bridge:
             if st[S_EVENT]:
                 self.pc_event(p, st[S_EVENT], now)
             i = j
+        if self.early_ok:
+            self._early(st, self.down, now, bs[B_STATE] == IDLE and not bs[B_FWD] and not bs[B_REL])
 
     def pc_event(self, p, ev, now):
         """Act on parser event ev of the PC side's parser p."""
@@ -403,6 +409,20 @@ class Bridge:
         if (d - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # d comes before due[0]
             due[0] = d
 
+    def _early(self, st, rs, now, may):
+        """After a chunk: it ended on an AA that can start a header (parser in HEADER)
+        and a frame from this side would go on at its header (``may``: the PC's in
+        IDLE, a driver's while a reply is awaited) -- raise DE on the other bus now.
+        Its pre-delay runs while the CC arrives, and ``begin`` waits only the rest.
+        No header followed (the parser left HEADER without a start, or timed out
+        there: ``gap``) -- let the bus go."""
+        if st[S_STATE] == HEADER:
+            if may and rs.early[0] < 0:
+                rs.raise_early()
+                self._watch_line(now)
+        elif rs.early[0] >= 0:
+            rs.drop_early()
+
     def _watch_line(self, now):
         """A frame is being cut through: the slow pass must look at the line within the
         inter-byte timeout (and keeps doing so while the frame lasts) to end the
@@ -470,6 +490,8 @@ class Bridge:
             if st[S_EVENT]:
                 self.down_event(p, st[S_EVENT], now)
             i = j
+        if self.early_ok:
+            self._early(st, self.up, now, bs[B_STATE] == AWAIT_PC and not bs[B_FWD] and not bs[B_REL])
 
     def down_event(self, p, ev, now):
         """Act on parser event ev of the driver side's parser p."""
@@ -503,7 +525,10 @@ class Bridge:
                 self._pc_drop(st, p.body)
             else:
                 self._down_drop()
-        return st[S_STATE] == HUNT
+        if st[S_STATE] == HUNT:
+            (self.down if from_pc else self.up).drop_early()  # a lone AA, then silence
+            return True
+        return False
 
     def _matches(self, body):
         # Stale-reply protection keeps its strength: for a Ver6 drive the second byte

@@ -47,9 +47,12 @@ _BROADCAST_ID = const(99)
 _EV_FRAME = const(1)
 _EV_HEAD = const(2)
 _EV_START = const(4)
+_S_STATE = const(0)
 _S_N = const(1)
 _S_EVENT = const(2)
+_HEADER = const(1)
 # jig.bridge
+_IDLE = const(0)
 _AWAIT_PC = const(1)
 _AWAIT_INT = const(2)
 _E_PC_LOCAL = const(0)
@@ -110,8 +113,8 @@ def context(app):
 
     enc = native_source()  # jig.native: put_body and stuff (as Python on CPython)
 
-    return (up.any, up.readinto, up.de, up.write, app.up.raw_part, app.up.drain,
-            down.any, down.readinto, down.de, app.down.raw_part, app.down.drain,
+    return (up.any, up.readinto, up.de, up.write, app.up.raw_part, app.up.drain, app.up.early,
+            down.any, down.readinto, down.de, app.down.raw_part, app.down.drain, app.down.early,
             app.hal.ticks_us, app.hal.sleep_us,
             app.up_parser, app.up_parser.scan, app.up_parser.st, app.up_rx, app.up_parser.body,
             app.down_parser, app.down_parser.scan, app.down_parser.st, app.down_rx, app.down_parser.body,
@@ -125,8 +128,8 @@ def context(app):
 def pump(ctx, passes: int) -> int:
     """Run passes passes of the main loop (< 0: until the slow pass is due); return
     the passes left (0, or what was left when the slow pass fell due)."""
-    (up_any, up_read, up_de, up_write, up_queue, up_drain, down_any, down_read, down_de, down_queue,
-     down_drain, ticks, sleep,
+    (up_any, up_read, up_de, up_write, up_queue, up_drain, up_early, down_any, down_read, down_de,
+     down_queue, down_drain, down_early, ticks, sleep,
      up_parser, up_scan, up_st, up_rx, up_body, down_parser, down_scan, down_st, down_rx, down_body,
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
      flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
@@ -144,6 +147,8 @@ def pump(ctx, passes: int) -> int:
     tmult = ptr8(tmult_buf)
     nxt = ptr8(next_buf)
     flg = ptr16(flags_buf)
+    uearly = ptr32(up_early)  # Rs485.early: tick DE went up ahead of a frame, -1: not
+    dearly = ptr32(down_early)
     while passes != 0:
         if passes > 0:
             passes -= 1
@@ -166,10 +171,16 @@ def pump(ctx, passes: int) -> int:
                 if ev == _EV_START:
                     # Bridge._down_start: to the PC at once while its reply is awaited
                     if state == _AWAIT_PC and bs[_B_FWD] == 0:
-                        up_de(1)
-                        pre = int(ram[_P_DE_PRE_US])
-                        if pre != 0:
-                            sleep(pre)
+                        # Rs485.begin (DE up early: only the rest of the pre-delay)
+                        wait = int(ram[_P_DE_PRE_US])
+                        t = uearly[0]
+                        if t >= 0:
+                            uearly[0] = -1
+                            wait -= ((int(ticks()) - t) & _MASK) - 1
+                        else:
+                            up_de(1)
+                        if wait > 0:
+                            sleep(wait)
                         up_queue(hdr_buf, 0, 2)
                         bs[_B_REL] = 1
                         bs[_B_CHECKED] = 0
@@ -201,10 +212,15 @@ def pump(ctx, passes: int) -> int:
                         if b1 == _STUFF:
                             hdr[4] = b1
                             k = 5
-                        up_de(1)
-                        pre = int(ram[_P_DE_PRE_US])
-                        if pre != 0:
-                            sleep(pre)
+                        wait = int(ram[_P_DE_PRE_US])
+                        t = uearly[0]
+                        if t >= 0:
+                            uearly[0] = -1
+                            wait -= ((int(ticks()) - t) & _MASK) - 1
+                        else:
+                            up_de(1)
+                        if wait > 0:
+                            sleep(wait)
                         up_queue(hdr_buf, 0, k)
                         bs[_B_REL] = 1
                         bs[_B_CHECKED] = 1
@@ -228,6 +244,17 @@ def pump(ctx, passes: int) -> int:
                     v[_C_UP_OUT] += 1
                 else:
                     down_event(down_parser, ev, now)
+            # Bridge._early: the PC bus taken while a reply's header may be arriving
+            if dst[_S_STATE] == _HEADER:
+                if uearly[0] < 0 and bs[_B_STATE] == _AWAIT_PC and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
+                    up_de(1)
+                    uearly[0] = int(ticks())
+                    t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
+                    if ((t - due[0]) & _MASK) >= _HALF:
+                        due[0] = t
+            elif uearly[0] >= 0:
+                uearly[0] = -1
+                up_de(0)
         # --- the PC bus
         avail = int(up_any())
         if avail != 0:
@@ -245,10 +272,15 @@ def pump(ctx, passes: int) -> int:
                 state = bs[_B_STATE]
                 if ev == _EV_START and bs[_B_REL] == 0 and state != _AWAIT_INT:
                     # Bridge._pc_start: on to the driver bus from the header
-                    down_de(1)
-                    pre = int(ram[_P_DE_PRE_US])
-                    if pre != 0:
-                        sleep(pre)
+                    wait = int(ram[_P_DE_PRE_US])
+                    t = dearly[0]
+                    if t >= 0:
+                        dearly[0] = -1
+                        wait -= ((int(ticks()) - t) & _MASK) - 1
+                    else:
+                        down_de(1)
+                    if wait > 0:
+                        sleep(wait)
                     down_queue(hdr_buf, 0, 2)
                     bs[_B_FWD] = 1
                     bs[_B_ROUTED] = 0
@@ -328,10 +360,15 @@ def pump(ctx, passes: int) -> int:
                     m = int(stuff(txbuf, reply_body, blen))
                     # Rs485.send
                     t_tx = int(ticks())
-                    up_de(1)
-                    pre = int(ram[_P_DE_PRE_US])
-                    if pre != 0:
-                        sleep(pre)
+                    wait = int(ram[_P_DE_PRE_US])
+                    t = uearly[0]
+                    if t >= 0:
+                        uearly[0] = -1
+                        wait -= ((int(ticks()) - t) & _MASK) - 1
+                    else:
+                        up_de(1)
+                    if wait > 0:
+                        sleep(wait)
                     up_write(txbuf, 0, m)
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
@@ -357,6 +394,17 @@ def pump(ctx, passes: int) -> int:
                         after_reply(up_parser)  # a parameter change that waited for the reply
                 else:
                     pc_event(up_parser, ev, now)
+            # Bridge._early: the driver bus taken while a PC header may be arriving
+            if ust[_S_STATE] == _HEADER:
+                if dearly[0] < 0 and bs[_B_STATE] == _IDLE and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
+                    down_de(1)
+                    dearly[0] = int(ticks())
+                    t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
+                    if ((t - due[0]) & _MASK) >= _HALF:
+                        due[0] = t
+            elif dearly[0] >= 0:
+                dearly[0] = -1
+                down_de(0)
         if now < 0:
             now = int(ticks())  # (a pass that read input judges the slow pass by its last read's tick)
         if ((now - due[0]) & _MASK) < _HALF:

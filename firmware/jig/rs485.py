@@ -5,7 +5,10 @@ left the shift register (the HAL's ``write`` returns after transmit-complete, or
 we wait the computed wire time), waits the post-delay and releases DE. A frame
 that is passed on as it arrives (cut-through) is sent as ``begin``, any number of
 ``part`` calls and ``finish``: DE stays up from the first byte to the last stop
-bit of the last part. Where the port can queue bytes for its transmitter
+bit of the last part. On a plain port DE may go up early (``raise_early``: the
+bridge does it when a byte that can start a header arrives); the ``begin`` that
+follows waits only what is left of the pre-delay, and ``drop_early`` lets the bus
+go if no frame follows. Where the port can queue bytes for its transmitter
 (``port.queue``/``port.drain``: the USART's transmit FIFO on the board), the
 pieces of such a frame are queued and the CPU goes on while they go out;
 ``finish`` drains the transmitter before DE drops. So DE is never dropped with
@@ -23,8 +26,12 @@ counted. A port that declares ``echo_free`` (receiver off whenever DE is up, as
 /RE tied to DE on the jig) skips that bookkeeping.
 """
 
+from array import array
+
 from jig import mem
 from jig.compat import const
+
+_TICKS_MASK = const(0x3FFFFFFF)
 
 BITS_PER_BYTE = const(10)  # 8N1: start + 8 data + stop
 
@@ -45,6 +52,9 @@ class Rs485:
         self.port = port
         self.echo_bytes = 0  # bytes discarded as echo
         self.t_tx_start = 0  # tick when the last ``send`` took the bus
+        # early[0]: tick at which DE went up ahead of a frame (``raise_early``), -1: it
+        # did not. An array: the machine-code pump (jig.fastpath) shares it.
+        self.early = array("i", [-1])
         self._keep = 0  # bytes still to deliver before the echo to skip
         self._skip = 0  # echo bytes still to skip
         self._expect = 0  # bytes in the receive buffer, as last seen (echo bookkeeping)
@@ -93,11 +103,18 @@ class Rs485:
 
     def begin(self, buf, off, n):
         """Take the bus (/RE off, DE up, pre-delay: software DE) and transmit the
-        first part, buf[off:off + n]."""
+        first part, buf[off:off + n]. If DE went up early, only what is left of the
+        pre-delay is waited (one tick more: the ticks count whole µs)."""
         if self.plain:
-            self._de(1)
-            if self.pre_us:
-                self._sleep(self.pre_us)
+            wait = self.pre_us
+            t = self.early[0]
+            if t >= 0:
+                self.early[0] = -1
+                wait -= ((self._ticks() - t) & _TICKS_MASK) - 1
+            else:
+                self._de(1)
+            if wait > 0:
+                self._sleep(wait)
             self.raw_part(buf, off, n)
             return
         if self.track_echo:
@@ -135,6 +152,19 @@ class Rs485:
                 self.re(0)
         if self.track_echo:
             self._note_echo()
+
+    def raise_early(self):
+        """Plain port: DE up now, ahead of a frame that may follow (its pre-delay runs
+        meanwhile); the next ``begin`` or ``drop_early`` ends it."""
+        if self.early[0] < 0:
+            self._de(1)
+            self.early[0] = self._ticks()
+
+    def drop_early(self):
+        """No frame followed an early DE: let the bus go."""
+        if self.early[0] >= 0:
+            self.early[0] = -1
+            self._de(0)
 
     def _note_echo(self):
         """Bytes that came in while we talked are our own echo: skip them when read.
