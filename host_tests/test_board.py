@@ -94,11 +94,25 @@ class FakeTxRegs:
         self.uart.sent.append(bytes((value,)))
 
 
-def with_fifo(board):
-    """The board's ports transmit-FIFO registers on FakeTxRegs (CPython has no USART)."""
-    for port in (board.up, board.down):
+def board_app(fakes, tmp_path):
+    """jig.app.App on Board, the ports' transmit-FIFO registers on FakeTxRegs (CPython
+    has no USART): (board, app)."""
+    from jig.app import App
+
+    b = fakes.board.Board("MotorJig STM32H7_JIG with STM32H743VI")
+    b.param_path = str(tmp_path / "jigparams.bin")
+    app = App(b)
+    for port in (b.up, b.down):
         port.regs = FakeTxRegs(port.uart)
-    return board
+    assert app.up.queued and app.down.queued
+    return b, app
+
+
+class NoClockHal:
+    """Just what Rs485 binds from a HAL."""
+
+    ticks_us = staticmethod(lambda: 0)
+    sleep_us = staticmethod(lambda us: None)
 
 
 class FakeUART:
@@ -479,14 +493,9 @@ def test_no_flash_device_off_the_board(fakes):
 def test_app_bridges_on_the_board_hal(fakes, tmp_path):
     """jig.app.App runs on Board: a local answer, a forward and a relayed reply."""
     from jig import frame
-    from jig.app import App
     from jig.parser import FrameParser
 
-    b = fakes.board.Board("MotorJig STM32H7_JIG with STM32H743VI")
-    b.param_path = str(tmp_path / "jigparams.bin")
-    app = App(b)
-    with_fifo(b)
-    assert app.up.queued and app.down.queued
+    b, app = board_app(fakes, tmp_path)
     pc, drv = FakeUART.instances[2], FakeUART.instances[3]
     de_up = FakePin.instances["UP_DE"]
 
@@ -512,16 +521,10 @@ def test_app_bridges_on_the_board_hal(fakes, tmp_path):
     assert b.wdt is not None and b.wdt.feeds >= 1
 
 
-
 def test_app_reads_only_the_bytes_waiting(fakes, tmp_path):
     from jig import frame
-    from jig.app import App
 
-    b = fakes.board.Board("MotorJig STM32H7_JIG with STM32H743VI")
-    b.param_path = str(tmp_path / "jigparams.bin")
-    app = App(b)
-    with_fifo(b)
-    assert app.up.queued and app.down.queued
+    _b, app = board_app(fakes, tmp_path)
     pc, drv = FakeUART.instances[2], FakeUART.instances[3]
     pc.receive(frame.encode(2, frame.GET_AXIS_STATUS))
     app.poll()
@@ -640,11 +643,7 @@ def test_rs485_queues_on_the_board_port(fakes):
 
     b = make_board(fakes)
 
-    class Hal:
-        ticks_us = staticmethod(lambda: 0)
-        sleep_us = staticmethod(lambda us: None)
-
-    rs = Rs485(Hal(), b.down)
+    rs = Rs485(NoClockHal(), b.down)
     assert rs.plain and rs.queued
     assert rs.raw_part.__func__ is type(b.down).queue and rs.drain.__func__ is type(b.down).drain
 
@@ -655,9 +654,5 @@ def test_a_port_without_registers_has_only_the_blocking_write(fakes, monkeypatch
     assert b.down.queue is None and b.down.drain is None
     from jig.rs485 import Rs485
 
-    class Hal:
-        ticks_us = staticmethod(lambda: 0)
-        sleep_us = staticmethod(lambda us: None)
-
-    rs = Rs485(Hal(), b.down)
+    rs = Rs485(NoClockHal(), b.down)
     assert rs.plain and not rs.queued and rs.raw_part == b.down.write

@@ -29,9 +29,7 @@ counted. A port that declares ``echo_free`` (receiver off whenever DE is up, as
 from array import array
 
 from jig import mem
-from jig.compat import const
-
-_TICKS_MASK = const(0x3FFFFFFF)
+from jig.compat import const, ticks_diff
 
 BITS_PER_BYTE = const(10)  # 8N1: start + 8 data + stop
 
@@ -110,7 +108,7 @@ class Rs485:
             t = self.early[0]
             if t >= 0:
                 self.early[0] = -1
-                wait -= ((self._ticks() - t) & _TICKS_MASK) - 1
+                wait -= ticks_diff(self._ticks(), t) - 1
             else:
                 self._de(1)
             if wait > 0:
