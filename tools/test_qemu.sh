@@ -8,7 +8,9 @@
 # ports/stm32 builds it; the qemu port's own defaults differ by 3-8 %) and the `jig` package, the capture replay and tools/qemu/qemu_suite.py
 # frozen in (armv7emdp), runs it in qemu-system-arm with -icount shift=0 (1
 # instruction = 1 ns of virtual time, so ticks_us x 1000 = instructions) and
-# executes qemu_suite.main() through the REPL's paste mode. Exits 0 with a message
+# executes qemu_suite.main() through the REPL's paste mode. Two user C modules of
+# our own go into this build only (tools/qemu/cmodules): the board's Python stack
+# and the benchmark's HAL port in C (memport). Exits 0 with a message
 # when MICROPY_DIR is not set.
 set -euo pipefail
 

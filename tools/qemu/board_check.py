@@ -121,6 +121,9 @@ def _fake_modules():
 
 
 def run(result, fail, instr):
+    """Run the checks; return what the board's HAL calls cost (instructions per call:
+    any, readinto, write, queue of 1 byte, queue of CHUNK bytes, drain) where measured,
+    else None."""
     saved = {}
     names = ("machine", "stm", "jig.uartport", "jig.board")
     for name in names:
@@ -133,7 +136,7 @@ def run(result, fail, instr):
     try:
         from jig import board, crashlog, safeboot, uartport
 
-        _check(uartport, board, crashlog, safeboot, stm, result, fail, instr)
+        return _check(uartport, board, crashlog, safeboot, stm, result, fail, instr)
     finally:
         for name, mod in saved.items():
             if mod is None:
@@ -166,6 +169,11 @@ def _loop_read(f, buf, n):
 def _loop_write(f, buf, n):
     for _ in range(n):
         f(buf, 0, CHUNK)
+
+
+def _loop_write1(f, buf, n):
+    for _ in range(n):
+        f(buf, 0, 1)
 
 
 def _loop_housekeep(b, now, n):
@@ -206,6 +214,7 @@ def _port_costs(port, rewind, fail, instr, what):
 
 
 def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
+    prices = None
     # 1. The port calls on a Python stand-in UART.
     port = uartport.UartPort((2, "UP_TX", "UP_RX", "UP_DE", 7), 115200, True)
     uart = port.uart
@@ -302,9 +311,10 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
     if drain() != 0:
         fail("board: drain with ISR.TC set did not return 0")
     dq = _locked(_loop_write, queue, data, CALLS)
+    dq1 = _locked(_loop_write1, queue, data, CALLS)
     dd = _locked(_loop_call0, drain, CALLS)
     base_loop = _locked(_loop_empty, CALLS)
-    if dq < 0 or dd < 0:
+    if dq < 0 or dq1 < 0 or dd < 0:
         fail("board: queue/drain allocated with the heap locked")
     regs[0] = uartport.USART_ISR_TC  # FIFO full: nothing may go in
     stuck_q = queue(data, 0, 4)
@@ -313,11 +323,15 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
     if stuck_q != 0 or stuck_d != -1:
         fail("board: a stopped transmitter gave queue %d (expected 0), drain %d (expected -1)"
              % (stuck_q, stuck_d))
-    elif dq >= 0 and dd >= 0:
+    elif dq >= 0 and dq1 >= 0 and dd >= 0:
+        q8 = instr(dq - base_loop) // CALLS
+        q1 = instr(dq1 - base_loop) // CALLS
+        qd = instr(dd - base_loop) // CALLS
         result("board transmit FIFO (viper on ISR/TDR, register block in RAM, heap locked): "
-               "queue(buf, 0, %d) %d, drain() %d instructions per call; a full FIFO / stopped "
-               "transmitter ends the wait (queue 0, drain -1)"
-               % (CHUNK, instr(dq - base_loop) // CALLS, instr(dd - base_loop) // CALLS))
+               "queue(buf, 0, 1) %d, queue(buf, 0, %d) %d, drain() %d instructions per call; a full "
+               "FIFO / stopped transmitter ends the wait (queue 0, drain -1)" % (q1, CHUNK, q8, qd))
+        if c is not None:
+            prices = (c[1], c[2], c[3], q1, q8, qd)
 
     # 5. Hardware DE on MicroPython integers.
     base = stm.USART2
@@ -350,3 +364,4 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
     if (safeboot.decide_boot(True, 0) != safeboot.MODE_SAFE_BUTTON
             or safeboot.decide_boot(False, 5) == safeboot.MODE_BRIDGE):
         fail("board: safe-boot decision")
+    return prices

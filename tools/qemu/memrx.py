@@ -1,9 +1,9 @@
-"""Received bytes held in a preallocated buffer, for the qemu suite's stand-in ports.
+"""Received bytes held in a preallocated buffer, for board_check's stand-in UART.
 
-``qemu_suite.MemPort`` (the HAL port of the bridge benchmark) and board_check's
-fake UART both read from it: ``load`` puts bytes on the line, ``any``/``readinto``
-behave like a UART's. Nothing allocates per call (board_check reads with the heap
-locked). The methods do the work themselves rather than call one another: their
+board_check's Python fake of machine.UART reads from it: ``load`` puts bytes on the
+line, ``any``/``readinto`` behave like a UART's. (The bridge benchmark's HAL port
+is C: tools/qemu/cmodules/memport.) Nothing allocates per call (board_check reads
+with the heap locked). The methods do the work themselves rather than call one another: their
 cost is part of the instruction counts the suite reports.
 """
 

@@ -11,12 +11,14 @@ which runs ``import qemu_suite; qemu_suite.main()`` in qemu-system-arm with
 2. CRC parity: the viper CRC and copy (jig.native, which must load here) against
    the table CRC and a plain loop, on pseudo-random buffers;
 3. jig.board / jig.uartport on real MicroPython with stand-in machine/stm
-   modules: the port's any/readinto/write and the board's housekeeping with the
-   heap locked, and their instruction cost (board_check);
+   modules: the port's any/readinto/write/queue/drain and the board's
+   housekeeping with the heap locked, and their instruction cost (board_check);
 4. figures: instructions per byte for the CRC and the parser, and per forwarded
    transaction (PC request -> driver -> reply relayed) through ``jig.app.App``
-   on a HAL whose ports are memory buffers, plus heap bytes allocated in steady
-   state (expected 0).
+   on a HAL whose ports are memory buffers (``memport``, a C module of the qemu
+   build: its calls cost a few hundred instructions, always the same, and are
+   taken out), plus heap bytes allocated in steady state (expected 0); then the
+   same with the HAL calls priced at what board_check measured for the board's.
 
 Lines starting with ``RESULT`` are the summary the shell script prints; a line
 starting with ``FAIL`` makes it exit non-zero. The module also runs under CPython
@@ -26,6 +28,7 @@ nothing.
 
 import gc
 import sys
+from array import array
 
 from jig import compat, crc, frame, mem, parser
 from jig.compat import ticks_diff, ticks_us
@@ -41,7 +44,11 @@ except ImportError:
     capture_format = None
 
 import bridge_probe  # host_tests' in-memory rig (also used on the WebAssembly VM)
-from memrx import MemRx
+
+try:
+    import memport  # the HAL port in C: in the qemu build only (tools/qemu/cmodules/memport)
+except ImportError:
+    memport = None
 
 INSTR_PER_US = 1000  # qemu -icount shift=0: 1 instruction = 1 ns
 failures = []
@@ -241,9 +248,10 @@ def bench_parser(repeat=40, chunk=256):
            % (p.engine, n, frames, instr(dt) // n, instr(dt) // frames, a1 - a0))
 
 
-# Calls into the stand-in HAL (Python methods here, C methods of machine.UART/Pin and
-# time.sleep_us on the board), counted so their own cost can be taken out of the
-# figures: what is left is the firmware's.
+# Calls into the stand-in HAL, counted so their own cost can be taken out of the
+# figures: what is left is the firmware's. On the emulated M7 the ports are C
+# (tools/qemu/cmodules/memport, as machine.UART and machine.Pin are on the board); the
+# counters are one array('i') the C methods add to. Index order: memport.c's K_*.
 H_ANY = 0
 H_READ = 1
 H_WRITE = 2
@@ -252,54 +260,104 @@ H_SLEEP = 4
 H_LOAD = 5  # the rig putting bytes on the line
 H_QUEUE = 6
 H_DRAIN = 7
+H_QBYTES = 8  # not a call: the bytes the queue calls carried
 HAL_CALL_NAMES = ("any", "readinto", "write", "de", "sleep_us", "load", "queue", "drain")
-HAL_CALLS = [0] * len(HAL_CALL_NAMES)
+HAL_CALLS = array("i", [0] * (len(HAL_CALL_NAMES) + 1))
 
 
-class MemPort(MemRx):
-    """A HAL port over memory: ``load`` puts received bytes on the line, ``write``
-    counts the frames sent (a frame cut through is written in pieces)."""
+class PyPort:
+    """memport.Port's interface in Python, for CPython (main(quick=True) in the host tests)."""
 
-    def __init__(self, baud):
-        MemRx.__init__(self)
-        self.baud = baud
-        self.tx_blocks = True
-        self.echo_free = True  # like the jig's transceivers: /RE tied to DE
-        self.overflows = 0
+    def __init__(self, counts):
+        self.counts = counts
+        self.rx = bytearray(512)
+        self.rx_n = 0
+        self.rx_pos = 0
+        self.hold = 0
+        self.most = 0
         self.writes = 0
         self.tx_bytes = 0
 
+    def load(self, data, n, off=0, hold=0):
+        self.counts[H_LOAD] += 1
+        self.rx[0:n] = data[off:off + n]
+        self.rx_n = n
+        self.rx_pos = 0
+        self.hold = hold
+
+    def trickle(self, k):
+        self.most = k
+
+    def _waiting(self):
+        k = self.rx_n - self.rx_pos
+        return k if self.most == 0 or k < self.most else self.most
+
     def any(self):
-        HAL_CALLS[H_ANY] += 1
-        return self.rx_n - self.rx_pos
+        self.counts[H_ANY] += 1
+        if self.hold:
+            self.hold -= 1
+            return 0
+        return self._waiting()
 
     def readinto(self, buf, n):
-        HAL_CALLS[H_READ] += 1
-        return MemRx.readinto(self, buf, n)
+        self.counts[H_READ] += 1
+        k = 0 if self.hold else min(self._waiting(), n, len(buf))
+        buf[0:k] = self.rx[self.rx_pos:self.rx_pos + k]
+        self.rx_pos += k
+        return k
 
-    def load(self, data, n, off=0):
-        HAL_CALLS[H_LOAD] += 1
-        MemRx.load(self, data, n, off)
-
-    def write(self, buf, off, n):
-        HAL_CALLS[H_WRITE] += 1
-        self.tx_bytes += n
-        if buf[off + n - 1] == 0xEE:
-            self.writes += 1
-
-    def queue(self, buf, off, n):
-        HAL_CALLS[H_QUEUE] += 1
+    def _sent(self, buf, off, n):
         self.tx_bytes += n
         if buf[off + n - 1] == 0xEE:
             self.writes += 1
         return n
 
+    def write(self, buf, off, n):
+        self.counts[H_WRITE] += 1
+        self._sent(buf, off, n)
+
+    def queue(self, buf, off, n):
+        self.counts[H_QUEUE] += 1
+        self.counts[H_QBYTES] += n
+        return self._sent(buf, off, n)
+
     def drain(self):
-        HAL_CALLS[H_DRAIN] += 1
+        self.counts[H_DRAIN] += 1
         return 0
 
     def de(self, v):
-        HAL_CALLS[H_DE] += 1
+        self.counts[H_DE] += 1
+
+    def sleep_us(self, us):
+        self.counts[H_SLEEP] += 1  # DE delays are waiting, not work
+
+
+def new_port():
+    if memport is not None:
+        return memport.Port(HAL_CALLS)
+    if compat.IS_MICROPYTHON:
+        fail("memport (tools/qemu/cmodules/memport) is not built in: the figures would include Python stand-in ports")
+    return PyPort(HAL_CALLS)
+
+
+class MemPort:
+    """A HAL port over memory (``c``: the memport.Port doing the work). Its HAL methods
+    are the C object's own bound methods, as jig.uartport binds machine.UART's."""
+
+    def __init__(self, baud):
+        c = new_port()
+        self.c = c
+        self.baud = baud
+        self.tx_blocks = True
+        self.echo_free = True  # like the jig's transceivers: /RE tied to DE
+        self.overflows = 0
+        self.any = c.any
+        self.readinto = c.readinto
+        self.write = c.write
+        self.queue = c.queue
+        self.drain = c.drain
+        self.de = c.de
+        self.load = c.load
 
     def hw_de(self, on, pre16, post16):
         return False
@@ -311,9 +369,7 @@ class MemHal(bridge_probe.Hal):
     def __init__(self):
         bridge_probe.Hal.__init__(self)
         self.ticks_us = ticks_us
-
-    def sleep_us(self, us):
-        HAL_CALLS[H_SLEEP] += 1  # DE delays are waiting, not work: left out
+        self.sleep_us = new_port().sleep_us
 
     def open(self, up_baud, down_baud):
         self.up = MemPort(up_baud)
@@ -321,11 +377,11 @@ class MemHal(bridge_probe.Hal):
 
 
 def hal_call_costs():
-    """Instructions per call of each stand-in HAL method (HAL_CALL_NAMES order)."""
-    port = MemPort(115200)
-    hal = MemHal()
+    """Instructions per call of each stand-in HAL method (HAL_CALL_NAMES order), called
+    pre-bound from a loop as the firmware calls them."""
+    port = new_port()
     buf = bytearray(8)
-    data = b"\x00" * 8
+    data = b"\xaa" * 8
     n = 400
 
     any_ = port.any
@@ -334,7 +390,7 @@ def hal_call_costs():
     queue = port.queue
     drain = port.drain
     de = port.de
-    sleep = hal.sleep_us
+    sleep = port.sleep_us
     load = port.load
 
     def loop():
@@ -363,7 +419,7 @@ def hal_call_costs():
                 sleep(1)
         elif k == H_LOAD:
             for _ in range(n):
-                load(data, 1, 0)
+                load(data, 8, 0, 0)
         elif k == H_QUEUE:
             for _ in range(n):
                 queue(data, 0, 8)
@@ -372,6 +428,7 @@ def hal_call_costs():
                 drain()
         return ticks_diff(ticks_us(), t0)
 
+    port.load(data, 8)
     base = loop()
     return [instr(run(k) - base) // n for k in range(len(HAL_CALL_NAMES))]
 
@@ -416,62 +473,71 @@ class BridgeRig:
         self.app = App(hal)
         self.hal = hal
         self.stuck = False
-        # One pass of the board's loop: App.run(1). Its locals are set up at every call
-        # here but once on the board, so measure() takes that set-up out (run(0)).
+        # The board's loop for a given number of passes: App.run(k). Its locals are set
+        # up at every call here but once on the board, so measure() takes that set-up
+        # out (run(0)) for each call, counted in runs.
         self.poll = self.app.run  # bound once: making a bound method allocates
-        self.passes = 0
+        self.runs = 0
 
-    def _until(self, port, target):
-        poll = self.poll
-        k = 0
-        while port.writes < target:
-            poll(1)
-            k += 1
-            if k > 1000:
-                self.stuck = True
-                break
-        self.passes += k
+    def _done(self, port, w0, count):
+        if port.c.writes - w0 != count:
+            self.stuck = True
 
     def forward(self, count):
-        """Request as one burst, forwarded; reply as one burst, relayed."""
+        """Request as one burst, forwarded in the first pass; reply as one burst (held
+        back one any() call: it comes after its request), relayed in the second."""
         up = self.hal.up
         down = self.hal.down
+        run = self.poll
         req = self.request
         rep = self.reply
+        nq = len(req)
+        nr = len(rep)
+        w0 = up.c.writes
         for _ in range(count):
-            up.load(req, len(req))
-            self._until(down, down.writes + 1)
-            down.load(rep, len(rep))
-            self._until(up, up.writes + 1)
+            up.load(req, nq, 0, 0)
+            down.load(rep, nr, 0, 1)
+            run(2)
+        self.runs += count
+        self._done(up, w0, count)
 
     def forward_bytewise(self, count):
-        """The same transaction with every byte arriving on its own: one byte, one pass."""
+        """The same transaction with every byte arriving on its own: one byte a pass,
+        the reply's first byte in the pass after the request's last."""
         up = self.hal.up
         down = self.hal.down
-        poll = self.poll
+        run = self.poll
         req = self.request
         rep = self.reply
+        nq = len(req)
+        nr = len(rep)
+        w0 = up.c.writes
+        up.c.trickle(1)
+        down.c.trickle(1)
         for _ in range(count):
-            for i in range(len(req)):
-                up.load(req, 1, i)
-                poll(1)
-            for i in range(len(rep)):
-                down.load(rep, 1, i)
-                poll(1)
-        self.passes += count * (len(req) + len(rep))
-        if up.writes < count:
-            self.stuck = True
+            up.load(req, nq, 0, 0)
+            down.load(rep, nr, 0, nq)
+            run(nq + nr)
+        up.c.trickle(0)
+        down.c.trickle(0)
+        self.runs += count
+        self._done(up, w0, count)
 
     def answer_local(self, count):
         up = self.hal.up
+        run = self.poll
         wire = self.local
+        n = len(wire)
+        w0 = up.c.writes
         for _ in range(count):
-            up.load(wire, len(wire))
-            self._until(up, up.writes + 1)
+            up.load(wire, n, 0, 0)
+            run(1)
+        self.runs += count
+        self._done(up, w0, count)
 
     def idle(self, count):
-        self.app.run(count)  # the board's loop, nothing arriving
-        self.passes += 1  # (one set-up)
+        self.poll(count)  # the board's loop, nothing arriving
+        self.runs += 1
 
     def setup_cost(self):
         """Instructions of App.run's set-up (run(0)): on the board it runs once."""
@@ -483,16 +549,29 @@ class BridgeRig:
         return instr(ticks_diff(ticks_us(), t0)) // n
 
 
-def measure(fn, count, costs, rig=None):
+def board_hal(d, costs, prices):
+    """What HAL calls d (counts, HAL_CALLS layout) cost on the board: any, readinto,
+    write, queue (per call and per byte) and drain at board_check's prices, the DE
+    pin's value() as the C stand-in's de; sleeps are waiting, loads the rig's."""
+    p_any, p_read, p_write, q1, q8, p_drain = prices
+    per_byte = (q8 - q1) / (CHUNK_PRICED - 1)
+    return (d[H_ANY] * p_any + d[H_READ] * p_read + d[H_WRITE] * p_write + d[H_DRAIN] * p_drain
+            + d[H_DE] * costs[H_DE] + d[H_QUEUE] * q1 + (d[H_QBYTES] - d[H_QUEUE]) * per_byte)
+
+
+CHUNK_PRICED = 8  # board_check's queue(buf, 0, 8)
+
+
+def measure(fn, count, costs, rig=None, prices=None):
     """(firmware instructions per call of fn(1), heap bytes allocated per call, HAL
-    calls per call), with the heap locked: any allocation raises MemoryError, which
-    is reported as a failure. The stand-in HAL's own instructions (``costs``) are
-    taken out."""
+    calls per call, firmware + HAL calls at the board's prices per call or -1), with
+    the heap locked: any allocation raises MemoryError, which is reported as a
+    failure. The stand-in HAL's own instructions (``costs``) are taken out."""
     fn(5)  # warm up: first-use allocations happen here
     setup = rig.setup_cost() if rig is not None else 0
     gc.collect()
     calls0 = HAL_CALLS[:]
-    passes0 = rig.passes if rig is not None else 0
+    runs0 = rig.runs if rig is not None else 0
     m0 = mem_total()
     heap_lock(True)
     try:
@@ -501,25 +580,32 @@ def measure(fn, count, costs, rig=None):
         dt = ticks_diff(ticks_us(), t0)
     except MemoryError:
         heap_lock(False)
-        return -1, -1, 0
+        return -1, -1, 0, -1
     heap_lock(False)
+    m1 = mem_total()
+    d = [HAL_CALLS[k] - calls0[k] for k in range(len(HAL_CALLS))]
     hal = 0
     calls = 0
     for k in range(len(costs)):
-        d = HAL_CALLS[k] - calls0[k]
-        hal += d * costs[k]
+        hal += d[k] * costs[k]
         if k != H_LOAD:
-            calls += d
+            calls += d[k]
     if rig is not None:
-        hal += (rig.passes - passes0) * setup
-    return (instr(dt) - hal) // count, (mem_total() - m0) // count, calls // count
+        hal += (rig.runs - runs0) * setup
+    own = (instr(dt) - hal) // count
+    on_board = -1
+    if prices is not None:
+        on_board = own + int(board_hal(d, costs, prices)) // count
+    return own, (m1 - m0) // count, calls // count, on_board
 
 
-def bench_bridge(transactions=200):
+def bench_bridge(transactions=200, prices=None):
+    """The issue's probes through jig.app.App in both forwarding modes. prices: the
+    board's HAL call costs from board_check (None: not measured, under CPython)."""
     from jig import params
 
     costs = hal_call_costs()
-    result("stand-in HAL instructions per call (taken out below; C methods on the board): "
+    result("stand-in HAL instructions per call (C methods, as on the board; taken out below): "
            + ", ".join(["%s %d" % (HAL_CALL_NAMES[k], costs[k]) for k in range(len(costs))]))
     for mode, name in ((params.CUT_THROUGH, "cut-through"), (params.STORE_AND_FORWARD, "store-and-forward")):
         rig = BridgeRig(mode)
@@ -528,10 +614,10 @@ def bench_bridge(transactions=200):
             fail("bridge %s: the main loop is %s (jig.fastpath.pump is for cut-through on plain ports)"
                  % (name, "jig.fastpath.pump" if fast else "the portable loop"))
         rx = len(rig.request) + len(rig.reply)
-        per_t, heap_t, calls_t = measure(rig.forward, transactions, costs, rig)
-        per_b, heap_b, calls_b = measure(rig.forward_bytewise, transactions // 4, costs, rig)
-        local, heap_l, calls_l = measure(rig.answer_local, transactions, costs, rig)
-        idle, heap_i, calls_i = measure(rig.idle, 1000, costs, rig)
+        per_t, heap_t, calls_t, board_t = measure(rig.forward, transactions, costs, rig, prices)
+        per_b, heap_b, calls_b, board_b = measure(rig.forward_bytewise, transactions // 4, costs, rig, prices)
+        local, heap_l, calls_l, board_l = measure(rig.answer_local, transactions, costs, rig, prices)
+        idle, heap_i, calls_i, board_i = measure(rig.idle, 1000, costs, rig, prices)
         if rig.stuck:
             fail("bridge %s: a transaction did not complete" % name)
         for what, heap in (("forward", heap_t), ("bytewise forward", heap_b), ("local", heap_l), ("idle", heap_i)):
@@ -544,6 +630,10 @@ def bench_bridge(transactions=200):
                "idle pass %d + %d HAL calls; heap allocated per transaction %d / per idle pass %d bytes (heap locked)"
                % (name, "jig.fastpath.pump" if fast else "portable loop", len(rig.request), len(rig.reply), per_t, calls_t, per_b // rx, calls_b // rx, local, calls_l,
                   idle, calls_i, heap_t, heap_i))
+        if prices is not None:
+            result("bridge %s with its HAL calls at the board's prices (board_check): forwarded transaction %d, "
+                   "a byte on its own %d/byte, local GetSlaveInfo %d, idle pass %d instructions"
+                   % (name, board_t, board_b // rx, board_l, board_i))
 
 
 def probe_cross_check(n=200):
@@ -565,13 +655,13 @@ def probe_cross_check(n=200):
 def check_board():
     """jig.board and jig.uartport with stand-in hardware modules (MicroPython only: see board_check)."""
     if not compat.IS_MICROPYTHON:
-        return
+        return None
     try:
         import board_check
     except ImportError:
         result("board_check not frozen in: skipped")
-        return
-    board_check.run(result, fail, instr)
+        return None
+    return board_check.run(result, fail, instr)
 
 
 def main(quick=False):
@@ -585,8 +675,8 @@ def main(quick=False):
     else:
         bench_crc()
         bench_parser()
-        bench_bridge()
+        prices = check_board()
+        bench_bridge(prices=prices)
         probe_cross_check()
-        check_board()
     result("%s" % ("all checks passed" if not failures else "%d FAILED" % len(failures)))
     return len(failures)
