@@ -90,16 +90,17 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 # VM settings), turned into time ASSUMING 400 MHz and one instruction per cycle (the M7
 # is dual-issue but waits on flash and memory; the real ratio is not measured yet).
 # Fitted to the cut-through figures of 2026-11-25 (jig.fastpath.pump, the machine-code
-# hot path, frame pieces queued in the USART FIFO) as a pass cost plus a per-byte cost:
-#   a byte on its own, one byte per pass:    2 326 + 4 HAL calls     = PASS + BYTE
-#   8 + 13 bytes in two bursts (two passes): 18 076 + 20 HAL calls   = 2 PASS + 21 BYTE
-# with a HAL call (machine.UART / Pin C method, the viper queue/drain) at ~400
-# instructions (the board check: any 298, readinto 472, write 514, queue 986 for 8
-# bytes, drain 404). The per-byte share carries the frame events (routing, the reply
-# wait) spread over the bytes. Update after `make test-qemu`.
+# hot path, frame pieces queued in the USART FIFO) as a pass cost plus a per-byte cost,
+# taking the line `make test-qemu` prints with the HAL calls priced as the board's
+# (board_check: machine.UART's C methods any 298, readinto 472, write 514; our viper
+# queue 646 for 1 byte / 984 for 8, drain 404):
+#   a byte on its own, one byte per pass:    3 007              = PASS + BYTE
+#   8 + 13 bytes in two bursts (two passes): 18 187             = 2 PASS + 21 BYTE
+# (firmware alone: 1 268 and 9 795). The per-byte share carries the frame events
+# (routing, the reply wait) spread over the bytes. Update after `make test-qemu`.
 M7_HZ = 400e6
-PASS_INSTR = 2970  # one main-loop pass that read input, without the bytes
-FORWARD_INSTR_PER_BYTE = 960  # each byte read (parse + forward/relay share)
+PASS_INSTR = 2366  # one main-loop pass that read input, without the bytes
+FORWARD_INSTR_PER_BYTE = 641  # each byte read (parse + forward/relay share)
 JIG_CPU_MODEL = (PASS_INSTR / M7_HZ * 1e6, FORWARD_INSTR_PER_BYTE / M7_HZ * 1e6)  # (us/pass, us/byte)
 
 POLL_SLAVE = 2
