@@ -78,6 +78,21 @@ def test_saved_parameters_survive_restart_and_restart_params_apply():
     assert b2.counters["param_errors"] == 0
 
 
+def test_forward_mode_takes_effect_at_restart():
+    """The parsers, DE mode and main loop are built for a mode: a change waits for a restart."""
+    assert P.TABLE[P.P_FORWARD_MODE][6] == P.RESTART  # as the parameter tables say
+    b = SimBench(driver_ids=(2,))
+    assert b.app.bridge.cut_through
+    assert ask(b, F.SET_PARAMETER, bytes([P.P_FORWARD_MODE]) + struct.pack("<i", P.STORE_AND_FORWARD)) == b"\x00"
+    assert ask(b, F.GET_PARAMETER, bytes([P.P_FORWARD_MODE])) == b"\x00" + struct.pack("<i", P.STORE_AND_FORWARD)
+    assert b.app.bridge.cut_through  # the running bridge keeps its mode
+    assert ask(b, F.GET_AXIS_STATUS, slave=2)[0] == F.STATUS_OK
+    assert ask(b, F.SAVE_ALL_PARAMETERS) == b"\x00"
+    b2 = SimBench(driver_ids=(2,), fs=b.fs)
+    assert not b2.app.bridge.cut_through and b2.app.pump is None
+    assert ask(b2, F.GET_AXIS_STATUS, slave=2)[0] == F.STATUS_OK
+
+
 def test_corrupt_parameter_file_counted():
     b = SimBench(driver_ids=(2,))
     path = b.hal.param_path

@@ -56,7 +56,7 @@ TABLE = (
     (9, "safety_timeout_ms", "ms, 0=off", 0, 60000, 0, IMMEDIATE),
     (10, "safety_action", "0=MoveStop 1=EmergencyStop", 0, 1, 0, IMMEDIATE),
     (11, "scan_timeout_ms", "ms", 1, 100, 20, IMMEDIATE),
-    (12, "forward_mode", "0=cut-through 1=store-and-forward", 0, 1, 0, IMMEDIATE),
+    (12, "forward_mode", "0=cut-through 1=store-and-forward", 0, 1, 0, RESTART),
 )
 COUNT = const(13)
 
