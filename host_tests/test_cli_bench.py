@@ -139,6 +139,11 @@ def test_param(run):
     d = run.json("--slave", 1, "param", "list")
     assert d["table"] == "jig" and d["params"][0]["name"] == "jig_slave_id" and d["params"][0]["value"] == 1
     assert run.json("param", "get", "scan_timeout_ms", "--jig", "--slave", 1)["value"] == 20
+    # the jig's restart parameters say so when set; the others do not
+    assert "restart of the jig" in run("--slave", 1, "param", "set", "forward_mode", 1)
+    assert run.json("--slave", 1, "param", "set", "forward_mode", 0)["needs_restart"] is True
+    assert run.json("--slave", 1, "param", "set", "scan_timeout_ms", 20)["needs_restart"] is False
+    assert "restart" not in run("param", "set", 1, 500000)
 
 
 def test_io(run):

@@ -411,8 +411,10 @@ def cmd_param(args):
     with open_master(args) as m:
         m.set_parameter(s, p.number, args.value)
         v = m.get_parameter(s, p.number)
-    emit(args, {"slave": s, "param": p.number, "name": p.name, "value": v},
-         "%d %s = %d%s (RAM; `param save` keeps it)" % (p.number, p.name, v, " " + p.unit if p.unit else ""))
+    restart = which == "jig" and p.effect == "restart"
+    note = "takes effect after `param save` and a restart of the jig" if restart else "`param save` keeps it"
+    emit(args, {"slave": s, "param": p.number, "name": p.name, "value": v, "needs_restart": restart},
+         "%d %s = %d%s (RAM; %s)" % (p.number, p.name, v, " " + p.unit if p.unit else "", note))
     return EXIT_OK
 
 
