@@ -436,7 +436,8 @@ def _set_jig_id(args, s, new):
     text = "0 jig_slave_id = %d (RAM; `param save` keeps it)" % v
     if moved:
         text += "\nthe jig now answers as slave %d, no longer %d: use --slave %d --jig-id %d" % (new, s, new, new)
-    emit(args, {"slave": new, "previous_slave": s, "param": 0, "name": "jig_slave_id", "value": v, "moved": moved},
+    emit(args, {"slave": new, "previous_slave": s, "param": 0, "name": "jig_slave_id", "value": v, "moved": moved,
+                "needs_restart": False},
          text)
     return EXIT_OK
 

@@ -479,8 +479,11 @@ class BridgeRig:
         self.poll = self.app.run  # bound once: making a bound method allocates
         self.runs = 0
 
-    def _done(self, port, w0, count):
-        if port.c.writes - w0 != count:
+    def _done(self, count, w_up, w_down=None):
+        """count frames reached the PC bus (and, given w_down, the driver bus)."""
+        if self.hal.up.c.writes - w_up != count:
+            self.stuck = True
+        if w_down is not None and self.hal.down.c.writes - w_down != count:
             self.stuck = True
 
     def forward(self, count):
@@ -493,13 +496,14 @@ class BridgeRig:
         rep = self.reply
         nq = len(req)
         nr = len(rep)
-        w0 = up.c.writes
+        w_up = up.c.writes
+        w_down = down.c.writes
         for _ in range(count):
             up.load(req, nq, 0, 0)
             down.load(rep, nr, 0, 1)
             run(2)
         self.runs += count
-        self._done(up, w0, count)
+        self._done(count, w_up, w_down)
 
     def forward_bytewise(self, count):
         """The same transaction with every byte arriving on its own: one byte a pass,
@@ -511,29 +515,32 @@ class BridgeRig:
         rep = self.reply
         nq = len(req)
         nr = len(rep)
-        w0 = up.c.writes
+        w_up = up.c.writes
+        w_down = down.c.writes
         up.c.trickle(1)
         down.c.trickle(1)
-        for _ in range(count):
-            up.load(req, nq, 0, 0)
-            down.load(rep, nr, 0, nq)
-            run(nq + nr)
-        up.c.trickle(0)
-        down.c.trickle(0)
+        try:
+            for _ in range(count):
+                up.load(req, nq, 0, 0)
+                down.load(rep, nr, 0, nq)
+                run(nq + nr)
+        finally:
+            up.c.trickle(0)
+            down.c.trickle(0)
         self.runs += count
-        self._done(up, w0, count)
+        self._done(count, w_up, w_down)
 
     def answer_local(self, count):
         up = self.hal.up
         run = self.poll
         wire = self.local
         n = len(wire)
-        w0 = up.c.writes
+        w_up = up.c.writes
         for _ in range(count):
             up.load(wire, n, 0, 0)
             run(1)
         self.runs += count
-        self._done(up, w0, count)
+        self._done(count, w_up)  # (cut through, a stub went to the driver bus too)
 
     def idle(self, count):
         self.poll(count)  # the board's loop, nothing arriving
@@ -559,7 +566,7 @@ def board_hal(d, costs, prices):
             + d[H_DE] * costs[H_DE] + d[H_QUEUE] * q1 + (d[H_QBYTES] - d[H_QUEUE]) * per_byte)
 
 
-CHUNK_PRICED = 8  # board_check's queue(buf, 0, 8)
+CHUNK_PRICED = 8  # board_check.CHUNK: its queue(buf, 0, 8) (board_check imports only on MicroPython)
 
 
 def measure(fn, count, costs, rig=None, prices=None):

@@ -64,7 +64,7 @@ static mp_obj_t memport_make_new(const mp_obj_type_t *type, size_t n_args, size_
         mp_raise_ValueError(MP_ERROR_TEXT("counts: array('i') of 9"));
     }
     memport_obj_t *self = mp_obj_malloc(memport_obj_t, type);
-    self->counts_obj = args[0];
+    self->counts_obj = args[0];  // (an array is never resized here: the pointer stays valid)
     self->counts = info.buf;
     self->rx_n = 0;
     self->rx_pos = 0;
@@ -79,15 +79,16 @@ static mp_obj_t memport_load(size_t n_args, const mp_obj_t *args) {
     memport_obj_t *self = port_of(args[0], K_LOAD);
     mp_buffer_info_t info;
     mp_get_buffer_raise(args[1], &info, MP_BUFFER_READ);
-    size_t n = mp_obj_get_int(args[2]);
-    size_t off = n_args > 3 ? mp_obj_get_int(args[3]) : 0;
-    if (off + n > info.len || n > RX_SIZE) {
+    mp_int_t n = mp_obj_get_int(args[2]);
+    mp_int_t off = n_args > 3 ? mp_obj_get_int(args[3]) : 0;
+    mp_int_t hold = n_args > 4 ? mp_obj_get_int(args[4]) : 0;
+    if (off < 0 || n < 0 || hold < 0 || n > RX_SIZE || (size_t)off > info.len || (size_t)n > info.len - (size_t)off) {
         mp_raise_ValueError(MP_ERROR_TEXT("load: range"));
     }
     memcpy(self->rx, (const uint8_t *)info.buf + off, n);
     self->rx_n = n;
     self->rx_pos = 0;
-    self->hold = n_args > 4 ? mp_obj_get_int(args[4]) : 0;
+    self->hold = hold;
     return mp_const_none;
 }
 static MP_DEFINE_CONST_FUN_OBJ_VAR_BETWEEN(memport_load_obj, 3, 5, memport_load);
