@@ -122,8 +122,8 @@ def _fake_modules():
 
 def run(result, fail, instr):
     """Run the checks; return what the board's HAL calls cost (instructions per call:
-    any, readinto, write, queue of 1 byte, queue of CHUNK bytes, drain) where measured,
-    else None."""
+    any, readinto, write, queue of 1 byte, queue of CHUNK bytes, CHUNK, drain) where
+    measured, else None."""
     saved = {}
     names = ("machine", "stm", "jig.uartport", "jig.board")
     for name in names:
@@ -331,7 +331,7 @@ def _check(uartport, board, crashlog, safeboot, stm, result, fail, instr):
                "queue(buf, 0, 1) %d, queue(buf, 0, %d) %d, drain() %d instructions per call; a full "
                "FIFO / stopped transmitter ends the wait (queue 0, drain -1)" % (q1, CHUNK, q8, qd))
         if c is not None:
-            prices = (c[1], c[2], c[3], q1, q8, qd)
+            prices = (c[1], c[2], c[3], q1, q8, CHUNK, qd)
 
     # 5. Hardware DE on MicroPython integers.
     base = stm.USART2

@@ -8,7 +8,6 @@ cost is part of the instruction counts the suite reports.
 """
 
 from jig import mem
-from jig.compat import ticks_us
 
 
 class MemRx:
@@ -16,25 +15,17 @@ class MemRx:
         self.rx = bytearray(size)
         self.rx_n = 0
         self.rx_pos = 0
-        self.t_last = 0  # tick of the last load (the HAL port's t_last)
-        self.pending = None  # bytes that arrive at the next read (a reply after a request)
 
     def load(self, data, n, off=0):
         """Make data[off:off + n] the bytes waiting to be read (anything unread is dropped)."""
         mem.copy(self.rx, 0, data, off, n)
         self.rx_n = n
         self.rx_pos = 0
-        self.t_last = ticks_us()
 
     def any(self):
         return self.rx_n - self.rx_pos
 
     def readinto(self, buf, n):
-        if self.pending is not None:
-            # Delivered at this read, not when it was queued: a reply comes after
-            # its request, and bytes arriving during a write would count as echo.
-            self.load(self.pending, len(self.pending))
-            self.pending = None
         k = self.rx_n - self.rx_pos
         if k > n:
             k = n

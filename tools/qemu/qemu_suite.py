@@ -489,25 +489,17 @@ class BridgeRig:
     def forward(self, count):
         """Request as one burst, forwarded in the first pass; reply as one burst (held
         back one any() call: it comes after its request), relayed in the second."""
-        up = self.hal.up
-        down = self.hal.down
-        run = self.poll
-        req = self.request
-        rep = self.reply
-        nq = len(req)
-        nr = len(rep)
-        w_up = up.c.writes
-        w_down = down.c.writes
-        for _ in range(count):
-            up.load(req, nq, 0, 0)
-            down.load(rep, nr, 0, 1)
-            run(2)
-        self.runs += count
-        self._done(count, w_up, w_down)
+        self._transaction(count, 0, 1, 2)
 
     def forward_bytewise(self, count):
         """The same transaction with every byte arriving on its own: one byte a pass,
         the reply's first byte in the pass after the request's last."""
+        nq = len(self.request)
+        self._transaction(count, 1, nq, nq + len(self.reply))
+
+    def _transaction(self, count, most, hold, passes):
+        """count request/reply pairs, each in one App.run(passes): the ports hand out at
+        most ``most`` bytes a pass (0: all), the reply shows after ``hold`` any() calls."""
         up = self.hal.up
         down = self.hal.down
         run = self.poll
@@ -517,13 +509,13 @@ class BridgeRig:
         nr = len(rep)
         w_up = up.c.writes
         w_down = down.c.writes
-        up.c.trickle(1)
-        down.c.trickle(1)
+        up.c.trickle(most)
+        down.c.trickle(most)
         try:
             for _ in range(count):
                 up.load(req, nq, 0, 0)
-                down.load(rep, nr, 0, nq)
-                run(nq + nr)
+                down.load(rep, nr, 0, hold)
+                run(passes)
         finally:
             up.c.trickle(0)
             down.c.trickle(0)
@@ -560,13 +552,10 @@ def board_hal(d, costs, prices):
     """What HAL calls d (counts, HAL_CALLS layout) cost on the board: any, readinto,
     write, queue (per call and per byte) and drain at board_check's prices, the DE
     pin's value() as the C stand-in's de; sleeps are waiting, loads the rig's."""
-    p_any, p_read, p_write, q1, q8, p_drain = prices
-    per_byte = (q8 - q1) / (CHUNK_PRICED - 1)
+    p_any, p_read, p_write, q1, qk, k, p_drain = prices
+    per_byte = (qk - q1) / (k - 1)
     return (d[H_ANY] * p_any + d[H_READ] * p_read + d[H_WRITE] * p_write + d[H_DRAIN] * p_drain
             + d[H_DE] * costs[H_DE] + d[H_QUEUE] * q1 + (d[H_QBYTES] - d[H_QUEUE]) * per_byte)
-
-
-CHUNK_PRICED = 8  # board_check.CHUNK: its queue(buf, 0, 8) (board_check imports only on MicroPython)
 
 
 def measure(fn, count, costs, rig=None, prices=None):
