@@ -32,9 +32,9 @@ fi
 
 stamp=.venv/.motorjig-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-    say "installing the project and its test/bench/board/gui extras into .venv"
+    say "installing the project and its test/bench/board/gui/station extras into .venv"
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e '.[test,bench,board,gui]'
+    .venv/bin/python -m pip install -q -e '.[test,bench,board,gui,station]'
     touch "$stamp"
 fi
 

@@ -195,6 +195,12 @@ def build_parser():
     add_param("save", "SaveAllParameters: keep the RAM values after power-off")
     pp = add_param("list", "all parameters with names, units, ranges and current values")
     pp.add_argument("--offline", action="store_true", help="only the table, do not read the slave")
+    pp = add_param("dump", "every parameter of the drive into a parameter-set file (the format of a plan's golden set)")
+    pp.add_argument("file", nargs="?", help="file to write (default or '-': standard output)")
+    pp.add_argument("--rom", action="store_true", help="the values stored in ROM instead of RAM")
+    pp = add_param("load", "write a parameter-set file's values to the drive's RAM (range-checked first)")
+    pp.add_argument("file")
+    pp.add_argument("--save", action="store_true", help="then SaveAllParameters (ROM)")
 
     sp = add("io", cmd_io, "show or set I/O: io [show] | io out --set B --clear B | io in ... | io map PIN [MASK LEVEL]")
     sp.add_argument("action", nargs="?", choices=("show", "out", "in", "map", "read-rom"))
@@ -221,11 +227,22 @@ def build_parser():
     sp = add("stats", cmd_stats, "the jig's own counters (frames, errors, turnaround)")
     sp.add_argument("--reset", action="store_true", help="reset the counters after reading them")
     add("crashlog", cmd_crashlog, "the jig's crash summary (crash counts and the last exception)")
+    sp = add("test", cmd_test, "run a test plan (MotorJig Station): records, JUnit XML, HTML report; "
+                               "exit 0 pass, 1 fail, 2 error")
+    from motorjig.testcmd import add_test_arguments
+
+    add_test_arguments(sp)
     sp = add("gui", cmd_gui, "MotorJig Desk: the bench program as a local web page (prints its URL)")
     from motorjig.desk.server import add_gui_arguments
 
     add_gui_arguments(sp)
     return p
+
+
+def cmd_test(args):
+    from motorjig.testcmd import cmd_test as run
+
+    return run(args)
 
 
 def cmd_gui(args):

@@ -389,6 +389,10 @@ def cmd_param(args):
             lines.append(line.rstrip())
         emit(args, {"slave": s, "table": which, "params": rows}, "\n".join(lines))
         return EXIT_OK
+    if act in ("dump", "load"):
+        if which == "jig":
+            raise UsageError("param %s works on a drive's parameters, not the jig's" % act)
+        return _param_file(args, s, act)
     if act == "save":
         with open_master(args) as m:
             m.save_all_parameters(s)
@@ -415,6 +419,45 @@ def cmd_param(args):
     note = "takes effect after `param save` and a restart of the jig" if restart else "`param save` keeps it"
     emit(args, {"slave": s, "param": p.number, "name": p.name, "value": v, "needs_restart": restart},
          "%d %s = %d%s (RAM; %s)" % (p.number, p.name, v, " " + p.unit if p.unit else "", note))
+    return EXIT_OK
+
+
+def _param_file(args, s, act):
+    """param dump FILE: the drive's RAM (--rom: ROM) values as a parameter-set file;
+    param load FILE: every value of the file to RAM (checked first), --save to ROM too."""
+    from motorjig import paramset
+    from motorjig.tomlsource import SourceError
+
+    if act == "load":
+        try:
+            ps = paramset.load(args.file)
+        except SourceError as exc:
+            raise UsageError(str(exc)) from None
+        with open_master(args) as m:
+            info = m.get_slave_info(s)
+            if ps.slave_type is not None and info.type != ps.slave_type:
+                raise UsageError("%s is for slave type %d, slave %d is type %d (%s)" % (
+                    args.file, ps.slave_type, s, info.type, info.type_name))
+            for number, value in ps.values.items():
+                m.set_parameter(s, number, value)
+            if args.save:
+                m.save_all_parameters(s)
+        emit(args, {"slave": s, "file": args.file, "written": len(ps.values), "saved": args.save},
+             "slave %d: %d parameters from %s written to RAM%s" % (
+                 s, len(ps.values), args.file, " and saved to ROM" if args.save else " (`param save` keeps them)"))
+        return EXIT_OK
+    with open_master(args) as m:
+        info = m.get_slave_info(s)
+        read = m.get_rom_parameter if args.rom else m.get_parameter
+        values = {p.number: read(s, p.number) for p in paramset.TABLE}
+    text = paramset.dumps(values, s, info.type, "ROM" if args.rom else "RAM")
+    if args.file in (None, "-"):
+        sys.stdout.write(text)
+    else:
+        with open(args.file, "w", encoding="utf-8") as f:
+            f.write(text)
+        emit(args, {"slave": s, "file": args.file, "read": len(values), "rom": args.rom},
+             "slave %d: %d parameters (%s) written to %s" % (s, len(values), "ROM" if args.rom else "RAM", args.file))
     return EXIT_OK
 
 

@@ -1,0 +1,455 @@
+"""The station's steps as OpenHTF phases: one small function per step kind, with declared measurements.
+
+``build_phase(step, plan, ctx)`` turns one expanded plan step into an OpenHTF phase:
+the measurements are declared from the plan's limits (limits live in the plan, never
+here), the phase gets the ``MotorJigPlug`` as ``bus``, and ``run_<kind>`` does the
+bus work and sets the values. ``ctx`` is the run's ``RunContext`` (progress lines,
+the operator's confirmation, the wiring).
+
+The trace of a move is sampled with GetAllStatus as fast as the bus allows (one
+round trip: at 115 200 baud about 5 ms through the jig, so >= 100 Hz), timed with the
+station's monotonic clock from just before the move command; durations are known to
+one sampling period.
+"""
+
+import json
+import re
+import time
+
+import openhtf as htf
+from openhtf.util import threads, units
+
+from motorjig.station.plug import MotorJigPlug
+
+PULSE = units.UnitDescriptor("pulse", "pulse", "pulse")
+PPS = units.UnitDescriptor("pps", "pps", "pps")
+S = units.SECOND
+MS = units.MILLISECOND
+US = units.MICROSECOND
+
+DIR_PLUS = 1
+DIR_MINUS = 0
+
+
+def trapezoid_time(distance, speed, acc_ms, dec_ms):
+    """Seconds a move of ``distance`` pulses takes with the trapezoid profile: the axis
+    reaches ``speed`` in acc_ms and stops from it in dec_ms (a triangle when the distance
+    is too short to reach the speed)."""
+    d, v = abs(distance), float(speed)
+    ta, td = acc_ms / 1000.0, dec_ms / 1000.0
+    if d >= v * (ta + td) / 2:
+        return d / v + (ta + td) / 2
+    # triangle: peak speed vp with vp * (ta' + td') / 2 = d, ta'/td' scaled by vp / v
+    vp = (2 * d * v / (ta + td)) ** 0.5
+    return (ta + td) * vp / v
+
+
+# --- declaring measurements -----------------------------------------------------------
+def _m(name, unit=None, doc=""):
+    m = htf.Measurement(name).doc(doc)
+    return m.with_units(unit) if unit is not None else m
+
+
+def _range(name, lo, hi, unit=None, doc=""):
+    return _m(name, unit, doc).in_range(minimum=lo, maximum=hi)
+
+
+def _at_most(name, hi, unit=None, doc=""):
+    return _m(name, unit, doc).in_range(maximum=hi)
+
+
+def _equals(name, value, unit=None, doc=""):
+    return _m(name, unit, doc).equals(value)
+
+
+# --- sampling a move ------------------------------------------------------------------
+class Trace:
+    """Samples (t, command, actual, velocity) of one axis, with the flags of the last one."""
+
+    def __init__(self, t0):
+        self.t0 = t0
+        self.rows = []
+        self.last = None
+        self.peak_error = 0
+
+    def sample(self, m, s):
+        st = m.get_all_status(s)
+        self.rows.append([round(time.monotonic() - self.t0, 4), st.command_pos, st.actual_pos, st.actual_vel])
+        self.peak_error = max(self.peak_error, abs(st.pos_error))
+        self.last = st
+        return st
+
+    def until_stopped(self, m, s, timeout_s):
+        """Sample until the axis stops (or stops with an alarm); False on timeout."""
+        end = time.monotonic() + timeout_s
+        while True:
+            st = self.sample(m, s)
+            if not st.axis.motioning:
+                return True
+            if time.monotonic() > end:
+                return False
+
+    def attachment(self, target=None):
+        return json.dumps({"columns": ["t", "command", "actual", "velocity"],
+                           "units": {"t": "s", "command": "pulse", "actual": "pulse", "velocity": "pps"},
+                           "rows": self.rows, "target": target})
+
+
+def _alarm_code(m, s):
+    return m.get_alarm_type(s).code
+
+
+# --- the steps --------------------------------------------------------------------------
+def measures_identify(step, plan):
+    a = step.args
+    expected = a["slave_type"] if a["slave_type"] is not None else plan.drive.slave_type
+    out = [_equals("slave_type", expected, doc="GetSlaveInfo slave type"),
+           _m("slave_name", doc="GetSlaveInfo text"),
+           _equals("name_ok", True, doc="the text matches %r" % a["name_pattern"])]
+    if a["motor_pattern"] is not None:
+        out += [_m("motor_name", doc="GetMotorInfo text"),
+                _equals("motor_ok", True, doc="the motor text matches %r" % a["motor_pattern"])]
+    return out
+
+
+def run_identify(test, bus, step, ctx):
+    m, s, a = bus.master, bus.slave, step.args
+    info = m.get_slave_info(s)
+    test.measurements["slave_type"] = info.type
+    test.measurements["slave_name"] = info.version
+    test.measurements["name_ok"] = re.search(a["name_pattern"], info.version) is not None
+    if a["motor_pattern"] is not None:
+        motor = m.get_motor_info(s)
+        test.measurements["motor_name"] = motor.text
+        test.measurements["motor_ok"] = re.search(a["motor_pattern"], motor.text) is not None
+
+
+def _param_names(step, plan):
+    ps = step.paramset
+    mem = step.args["memory"]
+    kinds = ("ram", "rom") if mem == "both" else (mem,)
+    return [(k, p, v) for k in kinds for p, v in ps.items()]
+
+
+def measures_parameters(step, plan):
+    return [_equals("%s_%s" % (k, p.name), v, doc="parameter %d (%s) in %s" % (p.number, p.meaning, k.upper()))
+            for k, p, v in _param_names(step, plan)]
+
+
+def run_parameters(test, bus, step, ctx):
+    m, s = bus.master, bus.slave
+    rows = _param_names(step, ctx.plan)
+    if step.args["mode"] == "apply":
+        for p, v in step.paramset.items():
+            m.set_parameter(s, p.number, v)
+        m.save_all_parameters(s)
+    for k, p, _ in rows:
+        read = m.get_rom_parameter if k == "rom" else m.get_parameter
+        test.measurements["%s_%s" % (k, p.name)] = read(s, p.number)
+
+
+def measures_servo(step, plan):
+    return [_equals("servo_on", step.args["on"], doc="the axis status's servo-on flag"),
+            _equals("alarm", 0, doc="GetAlarmType (0: none)")]
+
+
+def run_servo(test, bus, step, ctx):
+    m, s = bus.master, bus.slave
+    m.servo_enable(s, step.args["on"])
+    test.measurements["servo_on"] = m.get_axis_status(s).servo_on
+    test.measurements["alarm"] = _alarm_code(m, s)
+
+
+def measures_alarm_reset(step, plan):
+    return [_equals("alarm", 0, doc="GetAlarmType after the reset (0: none)")]
+
+
+def run_alarm_reset(test, bus, step, ctx):
+    m, s = bus.master, bus.slave
+    m.alarm_reset(s, servo=ctx.drive_is_servo)
+    test.measurements["alarm"] = _alarm_code(m, s)
+
+
+def _move_plan(m, s, a):
+    """(start, target, acc_ms, dec_ms) of a move step, read from the drive where the plan is silent."""
+    start = m.get_command_pos(s)
+    target = a["position"] if a["mode"] == "abs" else start + a["distance"]
+    acc = a["accel_ms"] if a["accel_ms"] is not None else m.get_parameter(s, 3)
+    dec = a["decel_ms"] if a["decel_ms"] is not None else m.get_parameter(s, 4)
+    return start, target, acc, dec
+
+
+def measures_move(step, plan):
+    a = step.args
+    if a["duration_s"] is not None:
+        duration = [_range("duration", a["duration_s"][0], a["duration_s"][1], S,
+                           "time from the move command to standstill")]
+    else:
+        tol = a["duration_tolerance"]
+        duration = [_m("duration", S, "time from the move command to standstill"),
+                    _range("duration_ratio", round(1 - tol, 4), round(1 + tol, 4), None,
+                           "duration / the time the trapezoid profile takes")]
+    return duration + [
+        _m("expected_duration", S, "time the trapezoid profile takes (speed, accel/decel times)"),
+        _at_most("position_error", a["position_error_max"], PULSE, "|target - actual| after the move"),
+        _at_most("following_error", a["following_error_max"], PULSE,
+                 "peak |command - actual| sampled during the move"),
+        _equals("in_position", True, doc="stopped, no error flag, the command position at the target"),
+        _equals("alarm", 0, doc="GetAlarmType after the move (0: none)"),
+        _m("samples", doc="status samples taken during the move"),
+        _m("sample_rate", units.HERTZ, "status samples per second")]
+
+
+def run_move(test, bus, step, ctx):
+    m, s, a = bus.master, bus.slave, step.args
+    start, target, acc, dec = _move_plan(m, s, a)
+    expected = trapezoid_time(target - start, a["speed"], acc, dec)
+    trace = Trace(time.monotonic())
+    custom = a["accel_ms"] is not None or a["decel_ms"] is not None
+    if a["mode"] == "abs":
+        if custom:
+            m.move_abs_ex(s, target, a["speed"], accel_ms=acc, decel_ms=dec)
+        else:
+            m.move_abs(s, target, a["speed"])
+    elif custom:
+        m.move_inc_ex(s, a["distance"], a["speed"], accel_ms=acc, decel_ms=dec)
+    else:
+        m.move_inc(s, a["distance"], a["speed"])
+    done = trace.until_stopped(m, s, a["timeout_s"])
+    t_end = trace.rows[-1][0]
+    if not done:
+        m.move_stop(s)
+    last = trace.last
+    test.measurements["duration"] = round(t_end, 4)
+    if a["duration_s"] is None:
+        test.measurements["duration_ratio"] = round(t_end / expected, 4) if expected > 0 else 0.0
+    test.measurements["expected_duration"] = round(expected, 4)
+    test.measurements["position_error"] = abs(target - last.actual_pos)
+    test.measurements["following_error"] = trace.peak_error
+    test.measurements["in_position"] = bool(done and last.command_pos == target and not last.axis.error_all)
+    test.measurements["alarm"] = _alarm_code(m, s)
+    test.measurements["samples"] = len(trace.rows)
+    test.measurements["sample_rate"] = round(len(trace.rows) / t_end, 1) if t_end > 0 else 0.0
+    test.attach("trace", trace.attachment(target), "application/json")
+
+
+def measures_home(step, plan):
+    lo, hi = step.args["duration_s"]
+    return [_range("duration", lo, hi, S, "time from MoveOrigin to standstill"),
+            _equals("origin_ok", True, doc="the axis status's origin-return-OK flag"),
+            _equals("alarm", 0, doc="GetAlarmType after the search (0: none)")]
+
+
+def run_home(test, bus, step, ctx):
+    m, s = bus.master, bus.slave
+    trace = Trace(time.monotonic())
+    m.move_origin(s)
+    done = trace.until_stopped(m, s, step.args["timeout_s"])
+    if not done:
+        m.move_stop(s)
+        m.wait_motion_done(s, timeout=5.0)
+    test.measurements["duration"] = round(trace.rows[-1][0], 4)
+    test.measurements["origin_ok"] = bool(done and m.get_axis_status(s).origin_ok)
+    test.measurements["alarm"] = _alarm_code(m, s)
+    test.attach("trace", trace.attachment(), "application/json")
+
+
+def _io_entries(step, wiring):
+    """The wired relays and senses this io step checks."""
+    def pick(entries, refs):
+        if refs is None:
+            return list(entries)
+        return [e for e in entries if any(r == e[0] or r == e[2] for r in refs)]
+
+    return pick(wiring.relays, step.args["relays"]), pick(wiring.senses, step.args["senses"])
+
+
+def measures_io(step, plan):
+    relays, senses = _io_entries(step, plan.wiring)
+    out = []
+    for relay, bit, name in relays:
+        what = "drive inputs (wired bits) with relay %d%s " % (relay, " (%s)" % name if name else "")
+        out += [_equals("relay_%d_on" % relay, 1 << bit, doc=what + "on"),
+                _equals("relay_%d_off" % relay, 0, doc=what + "off")]
+    for jig_in, bit, name in senses:
+        what = "jig inputs (wired bits) with drive output %d%s " % (bit, " (%s)" % name if name else "")
+        out += [_equals("sense_%d_on" % jig_in, 1 << jig_in, doc=what + "on"),
+                _equals("sense_%d_off" % jig_in, 0, doc=what + "off")]
+    return out
+
+
+def run_io(test, bus, step, ctx):
+    m, s, jig = bus.master, bus.slave, bus.jig_id
+    wiring = ctx.plan.wiring
+    relays, senses = _io_entries(step, wiring)
+    drive_mask = sum(1 << e[1] for e in wiring.relays)
+    jig_mask = sum(1 << e[0] for e in wiring.senses)
+    settle = step.args["settle_ms"] / 1000.0
+    m.set_io_output(jig, clear_mask=sum(1 << e[0] for e in wiring.relays))
+    for relay, _, _ in relays:
+        for state in ("on", "off"):
+            if state == "on":
+                m.set_io_output(jig, set_mask=1 << relay)
+            else:
+                m.set_io_output(jig, clear_mask=1 << relay)
+            time.sleep(settle)
+            test.measurements["relay_%d_%s" % (relay, state)] = m.get_io_input(s) & drive_mask
+    m.set_io_output(s, clear_mask=sum(1 << e[1] for e in wiring.senses))
+    for jig_in, bit, _ in senses:
+        for state in ("on", "off"):
+            if state == "on":
+                m.set_io_output(s, set_mask=1 << bit)
+            else:
+                m.set_io_output(s, clear_mask=1 << bit)
+            time.sleep(settle)
+            test.measurements["sense_%d_%s" % (jig_in, state)] = m.get_io_input(jig) & jig_mask
+
+
+def _relay_entry(plan, ref):
+    for e in plan.wiring.relays:
+        if ref == e[0] or ref == e[2]:
+            return e
+    raise ValueError("relay %r is not wired" % (ref,))  # the loader has checked it
+
+
+def measures_limit_sensor(step, plan):
+    lo, hi = step.args["stop_time_s"]
+    return [_equals("stopped", True, doc="the axis stopped after the limit input"),
+            _equals("limit_flag", True, doc="the axis status flags the hardware limit"),
+            _range("stop_time", lo, hi, S, "time from the relay switching to standstill")]
+
+
+def run_limit_sensor(test, bus, step, ctx):
+    m, s, jig, a = bus.master, bus.slave, bus.jig_id, step.args
+    relay, drive_input, _ = _relay_entry(ctx.plan, a["relay"])
+    direction = DIR_PLUS if drive_input == 0 else DIR_MINUS
+    trace = Trace(time.monotonic())
+    m.move_velocity(s, a["speed"], direction)
+    try:
+        while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
+            trace.sample(m, s)
+        m.set_io_output(jig, set_mask=1 << relay)
+        t_relay = time.monotonic() - trace.t0
+        stopped = trace.until_stopped(m, s, a["timeout_s"])
+        flags = trace.last.axis
+        test.measurements["stopped"] = stopped
+        test.measurements["limit_flag"] = bool(flags.hw_limit_plus if direction == DIR_PLUS
+                                               else flags.hw_limit_minus)
+        test.measurements["stop_time"] = round(trace.rows[-1][0] - t_relay, 4)
+    finally:
+        m.set_io_output(jig, clear_mask=1 << relay)
+        if trace.last is None or trace.last.axis.motioning:
+            m.move_stop(s)
+    test.attach("trace", trace.attachment(), "application/json")
+
+
+def measures_stop_response(step, plan):
+    lo, hi = step.args["stop_time_s"]
+    return [_equals("stopped", True, doc="the axis came to standstill"),
+            _range("stop_time", lo, hi, S, "time from the stop command to standstill"),
+            _at_most("overshoot", step.args["overshoot_max"], PULSE, "travel after the stop command")]
+
+
+def run_stop_response(test, bus, step, ctx):
+    m, s, a = bus.master, bus.slave, step.args
+    trace = Trace(time.monotonic())
+    m.move_velocity(s, a["speed"], DIR_PLUS)
+    while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
+        trace.sample(m, s)
+    pos_at_stop = trace.rows[-1][1]
+    t_stop = time.monotonic() - trace.t0
+    if a["stop"] == "emergency-stop":
+        m.emergency_stop(s)
+    else:
+        m.move_stop(s)
+    stopped = trace.until_stopped(m, s, 10.0)
+    test.measurements["stopped"] = stopped
+    test.measurements["stop_time"] = round(trace.rows[-1][0] - t_stop, 4)
+    test.measurements["overshoot"] = abs(trace.rows[-1][1] - pos_at_stop)
+    test.attach("trace", trace.attachment(), "application/json")
+    if a["stop"] == "emergency-stop" and a["recover"]:
+        m.servo_enable(s, False)
+        m.servo_enable(s, True)
+
+
+BUS_SUMS = {
+    "crc_errors": ("up_crc_errors", "down_crc_errors"),
+    "stuffing_errors": ("up_stuff_errors", "down_stuff_errors"),
+    "timeouts": ("timeouts",),
+    "overflows": ("up_rx_overflows", "down_rx_overflows"),
+}
+
+
+def measures_bus_health(step, plan):
+    a = step.args
+    out = [_at_most(name, a[name + "_max"], doc="sum of the jig's " + " + ".join(parts))
+           for name, parts in BUS_SUMS.items()]
+    out += [_at_most("turnaround_max", a["turnaround_max_us"], US, "the jig's longest handling time"),
+            _at_most("roundtrip_max", a["roundtrip_max_ms"], MS, "longest request/reply round trip seen here"),
+            _m("roundtrip_avg", MS, "mean round trip"), _m("roundtrip_min", MS, "shortest round trip")]
+    return out
+
+
+def run_bus_health(test, bus, step, ctx):
+    m = bus.master
+    counters = m.read_counters(bus.jig_id)
+    for name, parts in BUS_SUMS.items():
+        test.measurements[name] = sum(counters.get(p, 0) for p in parts)
+    test.measurements["turnaround_max"] = counters.get("turnaround_max_us", 0)
+    rt = m.roundtrips or [0.0]
+    test.measurements["roundtrip_max"] = round(max(rt) * 1000, 3)
+    test.measurements["roundtrip_avg"] = round(sum(rt) / len(rt) * 1000, 3)
+    test.measurements["roundtrip_min"] = round(min(rt) * 1000, 3)
+    test.attach("bus_counters", json.dumps(counters), "application/json")
+
+
+def measures_prompt(step, plan):
+    return [_equals("confirmed", True, doc=step.args["message"])]
+
+
+def run_prompt(test, bus, step, ctx):
+    test.measurements["confirmed"] = bool(ctx.confirm(step.args["message"]))
+
+
+# --- the phase around a step ----------------------------------------------------------------
+def _failed_lines(test, measures):
+    """The phase's failed measurements as 'name = value unit (limits)' texts."""
+    out = []
+    for declared in measures:
+        meas = test.get_measurement(declared.name)
+        if meas.outcome.name == "PASS":
+            continue
+        unit = declared.units.suffix if declared.units is not None and declared.units.suffix else ""
+        value = "unset" if meas.value is None else meas.value
+        limits = ", ".join(str(v) for v in declared.validators) or "a value"
+        out.append("%s = %s%s (%s)" % (declared.name, value, " " + unit if unit else "", limits))
+    return out
+
+
+def build_phase(step, plan, ctx):
+    """One OpenHTF phase for one expanded plan step."""
+    kind = step.kind.replace("-", "_")
+    measures = globals()["measures_" + kind](step, plan)
+    run = globals()["run_" + kind]
+
+    def phase(test, bus):
+        ctx.started(step)
+        try:
+            run(test, bus, step, ctx)
+        except (KeyboardInterrupt, threads.ThreadTerminationError):
+            bus.note_abort()
+            raise
+        except BaseException as exc:
+            bus.note_failure()
+            ctx.finished(step, "ERROR", ["%s: %s" % (type(exc).__name__, exc)])
+            raise
+        failed = _failed_lines(test, measures)
+        if failed:
+            bus.note_failure()
+        ctx.finished(step, "FAIL" if failed else "PASS", failed)
+
+    phase.__name__ = step.name
+    phase.__doc__ = "%s step %r" % (step.kind, step.name)
+    phase = htf.measures(*measures)(phase)
+    phase = htf.plug(bus=MotorJigPlug)(phase)
+    return htf.PhaseOptions(name=step.name)(phase)

@@ -1,0 +1,265 @@
+"""Test-plan files: read, check against ``schema``, and expand into the steps a run executes.
+
+``load_plan(path)`` returns a ``Plan`` or raises ``PlanError`` naming the file, the
+line (where TOML allows it) and the key: an unknown step kind, a missing or
+misspelled key, a value of the wrong type or out of range, a parameter the drive
+does not have, a wiring reference that is not wired. Nothing here touches the bus;
+what only the drive can tell (its variant, its slave type) is checked by the run's
+pre-flight before anything moves (``motorjig.station.runner``).
+
+Repeats and sweeps are expanded here: ``repeat = 3`` gives three steps, a sweep key
+given as a list gives one step per value, each with a unique name
+(``move_speed_20000``, ``move_2``), so every record, JUnit test case and plot is one
+step run.
+"""
+
+import difflib
+import hashlib
+import itertools
+import os
+
+from motorjig import paramset
+from motorjig.station import schema as S
+from motorjig.tomlsource import SourceError, dotted, read_toml
+
+PlanError = SourceError
+
+
+class Drive:
+    """The drive a plan is for; ``protocol``: the variants it may speak, e.g. (6,) or (6, 8)."""
+
+    def __init__(self, slave, protocol, slave_type, jig_id):
+        self.slave, self.protocol, self.slave_type, self.jig_id = slave, protocol, slave_type, jig_id
+
+    def as_dict(self):
+        return {"slave": self.slave, "protocol": list(self.protocol), "slave_type": self.slave_type,
+                "jig_id": self.jig_id}
+
+
+class Step:
+    """One step run: ``kind``, unique ``name``, ``args`` (every key of the kind, defaults filled)."""
+
+    def __init__(self, kind, name, args, index):
+        self.kind, self.name, self.args, self.index = kind, name, args, index
+        self.paramset = None  # parameters steps: the paramset.ParamSet of args["file"]
+
+    def __repr__(self):
+        return "Step(%s %r)" % (self.kind, self.name)
+
+
+class Plan:
+    def __init__(self, path, settings, drive, wiring, steps, digest, paramsets):
+        self.path = path
+        self.name = settings["name"]
+        self.version = settings["version"]
+        self.description = settings["description"]
+        self.stop_on_fail = settings["stop_on_fail"]
+        self.on_end = settings["on_end"]
+        self.reset_jig_counters = settings["reset_jig_counters"]
+        self.drive = drive
+        self.wiring = wiring
+        self.steps = steps
+        self.hash = digest
+        self.paramsets = paramsets  # path -> paramset.ParamSet
+
+
+class _Checker:
+    def __init__(self, path, lines):
+        self.path, self.lines = path, lines
+
+    def error(self, keypath, message):
+        return PlanError(self.path, self.lines.line(keypath), dotted(keypath), message)
+
+    def table(self, data, keypath, keys, what):
+        """The checked values of one table, defaults filled in; unknown keys refused."""
+        if not isinstance(data, dict):
+            raise self.error(keypath, "expected a table")
+        known = {k.name: k for k in keys}
+        for name in data:
+            if name not in known:
+                hint = difflib.get_close_matches(name, list(known), 1)
+                raise self.error(keypath + (name,), "unknown key in %s%s (known: %s)" % (
+                    what, "; did you mean '%s'?" % hint[0] if hint else "", ", ".join(known)))
+        out = {}
+        for k in keys:
+            if k.name not in data:
+                if k.default is S.REQUIRED:
+                    raise self.error(keypath, "%s needs the key '%s' (%s)" % (what, k.name, k.doc))
+                out[k.name] = k.default
+                continue
+            value = data[k.name]
+            if k.sweep and isinstance(value, list):
+                if not value:
+                    raise self.error(keypath + (k.name,), "an empty list sweeps nothing")
+                out[k.name] = [self.value(v, k, keypath + (k.name,)) for v in value]
+            else:
+                out[k.name] = self.value(value, k, keypath + (k.name,))
+        return out
+
+    def value(self, v, k, keypath):
+        def bad(expected):
+            return self.error(keypath, "expected %s, got %r" % (expected, v))
+
+        isnum = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if k.type == "str" and not isinstance(v, str):
+            raise bad("a string")
+        if k.type == "int" and (not isinstance(v, int) or isinstance(v, bool)):
+            raise bad("an integer")
+        if k.type == "num" and not isnum:
+            raise bad("a number")
+        if k.type == "bool" and not isinstance(v, bool):
+            raise bad("true or false")
+        if k.type == "ref" and (isinstance(v, bool) or not isinstance(v, (int, str))):
+            raise bad("a relay number or a wiring name")
+        if k.type == "list" and (not isinstance(v, list)
+                                 or not all(isinstance(x, (int, str)) and not isinstance(x, bool) for x in v)):
+            raise bad("a list of numbers or wiring names")
+        if k.type == "protocols":
+            vs = v if isinstance(v, list) else [v]
+            if not vs or any(x not in k.choices or isinstance(x, bool) for x in vs):
+                raise bad("6, 8 or [6, 8]")
+            return tuple(sorted(set(vs)))
+        if k.type == "range":
+            if (not isinstance(v, list) or len(v) != 2
+                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+                raise bad("[min, max], two numbers")
+            if v[0] > v[1]:
+                raise self.error(keypath, "min %s is above max %s" % (v[0], v[1]))
+            return (v[0], v[1])
+        if k.choices and v not in k.choices:
+            raise self.error(keypath, "expected one of %s, got %r" % (", ".join(repr(c) for c in k.choices), v))
+        if isnum and (k.lo is not None and v < k.lo or k.hi is not None and v > k.hi):
+            raise self.error(keypath, "%r is outside %s..%s" % (v, "" if k.lo is None else k.lo,
+                                                                "" if k.hi is None else k.hi))
+        return v
+
+
+def _wiring(ck, data, drive_slave):
+    if "wiring" not in data:
+        return None
+    from motorjig.wiring import WiringError, parse_wiring
+
+    try:
+        return parse_wiring(data["wiring"], source=ck.path, default_slave=drive_slave)
+    except WiringError as exc:
+        # the message names the key ("wiring.relay[1].drive_input: ..."); add its line
+        text = str(exc)
+        import re
+
+        m = re.search(r"(wiring(?:\.[A-Za-z_]+|\[\d+\])*)", text)
+        line = None
+        if m:
+            parts = ()
+            for name, idx in re.findall(r"([A-Za-z_]+)|\[(\d+)\]", m.group(1)):
+                parts += (name,) if name else (int(idx),)
+            line = ck.lines.line(parts)
+        prefix = str(ck.path) + ": "
+        msg = text[len(prefix):] if text.startswith(prefix) else text
+        raise PlanError(ck.path, line, "", msg) from None
+
+
+def _wired(ck, wiring, keypath, ref, which):
+    """The (number, other_bit, name) wiring entry that ``ref`` names; which = 'relay' or 'sense'."""
+    entries = () if wiring is None else (wiring.relays if which == "relay" else wiring.senses)
+    for entry in entries:
+        if ref == entry[0] or (isinstance(ref, str) and ref == entry[2]):
+            return entry
+    known = ", ".join("%d%s" % (e[0], " (%s)" % e[2] if e[2] else "") for e in entries) or "none"
+    raise ck.error(keypath, "%s %r is not in the plan's [wiring] (wired: %s)" % (which, ref, known))
+
+
+def _check_step(ck, step_path, kind, args, plan_dir, wiring, paramsets):
+    if kind == "move":
+        need, other = ("position", "distance") if args["mode"] == "abs" else ("distance", "position")
+        if args[need] is None:
+            raise ck.error(step_path, "a move with mode = \"%s\" needs the key '%s'" % (args["mode"], need))
+        if args[other] is not None:
+            raise ck.error(step_path + (other,), "not used by mode = \"%s\" (give '%s')" % (args["mode"], need))
+        distances = args["distance"] if isinstance(args["distance"], list) else [args["distance"]]
+        if args["mode"] == "inc" and 0 in distances:
+            raise ck.error(step_path + ("distance",), "a move of distance 0 tests nothing")
+    elif kind == "parameters":
+        path = os.path.join(plan_dir, args["file"])
+        try:
+            paramsets[path] = paramset.load(path)
+        except SourceError as exc:
+            if exc.line is None and exc.key == "" and not os.path.exists(path):
+                raise ck.error(step_path + ("file",), "parameter-set file %s not found" % path) from None
+            raise
+    elif kind == "limit-sensor":
+        relay = _wired(ck, wiring, step_path + ("relay",), args["relay"], "relay")
+        if relay[1] not in (0, 1):
+            raise ck.error(step_path + ("relay",), "relay %d drives drive input %d, not a limit input "
+                                                   "(0 limit +, 1 limit -)" % (relay[0], relay[1]))
+    elif kind == "io":
+        if wiring is None or not (wiring.relays or wiring.senses):
+            raise ck.error(step_path, "an io step needs a [wiring] with relays or senses")
+        for key, which in (("relays", "relay"), ("senses", "sense")):
+            for i, ref in enumerate(args[key] or ()):
+                _wired(ck, wiring, step_path + (key, i), ref, which)
+
+
+def _expand(kind, name, args, index, out, seen):
+    sweeps = [k for k, v in args.items() if isinstance(v, list) and S.kind_keys(kind)[k].sweep]
+    combos = itertools.product(*[args[k] for k in sweeps]) if sweeps else [()]
+    for combo in combos:
+        a = dict(args)
+        label = name
+        for k, v in zip(sweeps, combo):
+            a[k] = v
+            label += "_%s_%s" % (k, v)
+        for r in range(args["repeat"]):
+            n = label + ("_%d" % (r + 1) if args["repeat"] > 1 else "")
+            base, i = n, 2
+            while n in seen:
+                n = "%s_%d" % (base, i)
+                i += 1
+            seen.add(n)
+            out.append(Step(kind, n, a, index))
+
+
+def load_plan(path):
+    """Read, check and expand one plan file."""
+    data, lines, raw = read_toml(path)
+    ck = _Checker(path, lines)
+    known = ("plan", "drive", "wiring", "steps")
+    for name in data:
+        if name not in known:
+            hint = difflib.get_close_matches(name, known, 1)
+            raise ck.error((name,), "unknown table%s (a plan has %s)" % (
+                "; did you mean '%s'?" % hint[0] if hint else "", ", ".join("[%s]" % k for k in known)))
+    if "plan" not in data:
+        raise ck.error((), "no [plan] table (it needs at least name and version)")
+    settings = ck.table(data["plan"], ("plan",), S.PLAN_KEYS, "[plan]")
+    d = ck.table(data.get("drive", {}), ("drive",), S.DRIVE_KEYS, "[drive]")
+    drive = Drive(d["slave"], d["protocol"], d["slave_type"], d["jig_id"])
+    if drive.slave in (drive.jig_id, 99):
+        raise ck.error(("drive", "slave"), "slave %d is the jig or the broadcast id, not a drive" % drive.slave)
+    wiring = _wiring(ck, data, drive.slave)
+    steps_data = data.get("steps")
+    if not isinstance(steps_data, list) or not steps_data:
+        raise ck.error(("steps",), "no steps (add [[steps]] tables)")
+    steps, seen, paramsets = [], set(), {}
+    plan_dir = os.path.dirname(os.path.abspath(path))
+    for i, sd in enumerate(steps_data):
+        sp = ("steps", i)
+        if not isinstance(sd, dict):
+            raise ck.error(sp, "expected a table")
+        kind = sd.get("kind")
+        if kind is None:
+            raise ck.error(sp, "a step needs 'kind' (one of %s)" % ", ".join(S.KINDS))
+        if kind not in S.KINDS:
+            hint = difflib.get_close_matches(str(kind), list(S.KINDS), 1)
+            raise ck.error(sp + ("kind",), "unknown step kind %r%s (known: %s)" % (
+                kind, "; did you mean '%s'?" % hint[0] if hint else "", ", ".join(S.KINDS)))
+        args = ck.table(sd, sp, S.COMMON_STEP_KEYS + S.KINDS[kind].keys, "a %s step" % kind)
+        _check_step(ck, sp, kind, args, plan_dir, wiring, paramsets)
+        first = len(steps)
+        _expand(kind, (args["name"] or kind).replace(" ", "_"), args, i, steps, seen)
+        if kind == "parameters":
+            for st in steps[first:]:
+                st.paramset = paramsets[os.path.join(plan_dir, args["file"])]
+    digest = hashlib.sha256(raw)
+    for ps_path in sorted(paramsets):
+        digest.update(paramsets[ps_path].raw)
+    return Plan(path, settings, drive, wiring, steps, digest.hexdigest(), paramsets)

@@ -1,0 +1,185 @@
+"""Running a plan: the OpenHTF test built from it, the pre-flight, progress, the outputs, the verdict.
+
+``run_plan(plan, port, ...)`` is the one engine of ``jigctl test`` (and of the Desk's
+Test tab): it builds an ``openhtf.Test`` whose phases are the plan's steps
+(``phases.build_phase``), starts it with a pre-flight phase that refuses a drive of
+the wrong variant or type before anything moves and sets the DUT id (the operator's
+serial number, else the drive's own info), and writes, for every run that started:
+
+* ``<base>.json``: OpenHTF's JSON test record (attachments inline: the move traces),
+* ``<base>.xml``: JUnit XML (``station.junit``),
+* ``<base>.html``: the self-contained report (``station.report``).
+
+``<base>`` is ``<plan>_<dut>_<YYYYmmdd-HHMMSS>``. The outcome maps to the exit code
+0 PASS, 1 FAIL, 2 anything else (ERROR, ABORTED, TIMEOUT; a bad plan or no connection
+never gets this far and is also 2).
+"""
+
+import json
+import os
+import re
+import sys
+import time
+
+import openhtf as htf
+from openhtf.output.callbacks import json_factory
+from openhtf.util import configuration, console_output
+
+from motorjig import names as N
+from motorjig.station import junit, report
+from motorjig.station.phases import build_phase
+from motorjig.station.plug import MotorJigPlug
+
+CONF = configuration.CONF
+EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
+SERVO_TYPES = (1, 3, 30, 31, 35, 50)  # slave types of Ezi-SERVO drives (protocol notes 7.5)
+
+
+class PreflightError(Exception):
+    """The drive is not the one the plan is for (variant, type) or does not answer."""
+
+
+def exit_code(outcome):
+    return {"PASS": EXIT_PASS, "FAIL": EXIT_FAIL}.get(outcome, EXIT_ERROR)
+
+
+class RunContext:
+    """What the phases need from the run: the plan, progress, the operator."""
+
+    def __init__(self, plan, out=None, confirm=None, on_event=None):
+        self.plan = plan
+        self.out = out
+        self._confirm = confirm
+        self.on_event = on_event
+        self.drive_is_servo = plan.drive.slave_type in SERVO_TYPES
+        self.record = None
+        self.files = {}
+        self._t_step = 0.0
+        self._n = 0
+
+    def started(self, step):
+        self._t_step = time.monotonic()
+        self._n += 1
+        if self.on_event:
+            self.on_event({"event": "step", "step": step.name, "state": "running"})
+
+    def finished(self, step, verdict, details):
+        dt = time.monotonic() - self._t_step
+        if self.out:
+            self.out("[%2d/%d] %-32s %-5s %6.2f s" % (self._n, len(self.plan.steps), step.name, verdict, dt))
+            for line in details:
+                self.out("        %s" % line)
+        if self.on_event:
+            self.on_event({"event": "step", "step": step.name, "state": verdict.lower(), "details": details})
+
+    def confirm(self, message):
+        if self._confirm is None:
+            raise PreflightError("the plan asks the operator to confirm %r: run on a terminal or with --yes"
+                                 % message)
+        return self._confirm(message)
+
+
+def console_confirm(message, stdin=sys.stdin, out=sys.stderr):
+    """Ask on the terminal; Enter or y confirms."""
+    out.write("\n>>> %s\n    press Enter when done (n + Enter: not done): " % message)
+    out.flush()
+    answer = stdin.readline()
+    if not answer:
+        raise PreflightError("no answer to %r (input closed)" % message)
+    return answer.strip().lower() in ("", "y", "yes")
+
+
+def _preflight(plan, serial):
+    d = plan.drive
+
+    @htf.PhaseOptions(name="preflight")
+    @htf.plug(bus=MotorJigPlug)
+    def preflight(test, bus):
+        """Is the drive there, of the plan's variant and type? Sets the DUT id."""
+        m, s = bus.master, bus.slave
+        variant = m.detect_variant(s)
+        if variant is None:
+            raise PreflightError("slave %d does not answer (check the cable, --port, --baud and [drive] slave)" % s)
+        if variant not in d.protocol:
+            raise PreflightError("the plan is for a %s drive, but slave %d answers as Ver%d: nothing was "
+                                 "moved" % (" or ".join("Ver%d" % v for v in d.protocol), s, variant))
+        m.ver8 = variant == 8  # from here on every frame in the drive's variant, no probing
+        info = m.get_slave_info(s)
+        if info.type != d.slave_type:
+            raise PreflightError("the plan is for slave type %d (%s), but slave %d is type %d (%s): nothing was "
+                                 "moved" % (d.slave_type, N.slave_type_name(d.slave_type), s, info.type,
+                                            info.type_name))
+        test.test_record.metadata["drive"] = {"slave": s, "protocol": variant, "slave_type": info.type,
+                                              "name": info.version}
+        test.dut_id = serial or "slave%d-%s" % (s, re.sub(r"[^A-Za-z0-9.]+", "-", info.version).strip("-"))
+        if plan.reset_jig_counters:
+            m.reset_counters(bus.jig_id)
+        m.roundtrips.clear()
+
+    return preflight
+
+
+def build_test(plan, ctx, operator=None, station=None):
+    phases = [build_phase(step, plan, ctx) for step in plan.steps]
+    test = htf.Test(*phases, test_name=plan.name, test_version=plan.version, plan_hash=plan.hash,
+                    plan_file=os.path.abspath(plan.path), operator=operator or "")
+    test.configure(stop_on_first_failure=plan.stop_on_fail, default_dut_id="unknown")
+    return test
+
+
+def _base_name(record, plan):
+    when = time.strftime("%Y%m%d-%H%M%S", time.localtime(record["start_time_millis"] / 1000.0))
+    safe = lambda t: re.sub(r"[^A-Za-z0-9._-]+", "-", str(t)).strip("-") or "x"  # noqa: E731
+    return "%s_%s_%s" % (safe(plan.name), safe(record.get("dut_id") or "unknown"), when)
+
+
+def _writer(ctx, out_dir):
+    def write(test_record):
+        as_json = json_factory.convert_test_record_to_json(test_record)
+        text = "".join(json_factory.stream_json(as_json, indent=2))
+        record = json.loads(text)
+        base = os.path.join(out_dir, _base_name(record, ctx.plan))
+        os.makedirs(out_dir, exist_ok=True)
+        for ext, content in (("json", text), ("xml", junit.junit_xml(record)), ("html", report.html_report(record))):
+            path = "%s.%s" % (base, ext)
+            with open(path, "w", encoding="utf-8") as f:
+                f.write(content)
+            ctx.files[ext] = path
+        ctx.record = record
+
+    return write
+
+
+def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, out_dir=".", out=print,
+             confirm=None, timeout_ms=100, on_event=None):
+    """Run ``plan`` on the drive behind ``port``; returns the RunContext (``record``, ``files``)."""
+    ctx = RunContext(plan, out, confirm, on_event)
+    load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": plan.drive.slave,
+            "motorjig_jig_id": plan.drive.jig_id, "motorjig_timeout_ms": timeout_ms,
+            "motorjig_on_end": plan.on_end}
+    if station:
+        load["station_id"] = station
+    CONF.load(**load)
+    console_output.CLI_QUIET = True  # our own progress lines instead of OpenHTF's banner
+    test = build_test(plan, ctx, operator, station)
+    test.add_output_callbacks(_writer(ctx, out_dir))
+    try:
+        test.execute(test_start=_preflight(plan, serial))
+    except KeyboardInterrupt:
+        pass  # OpenHTF has aborted the run, torn the plug down and written the record
+    return ctx
+
+
+def summary(ctx):
+    """The run in a few plain values (what --json prints)."""
+    r = ctx.record or {}
+    steps = []
+    for ph in r.get("phases", []):
+        ms = {name: {"value": m.get("measured_value"), "outcome": m.get("outcome"),
+                     "limits": m.get("validators", [])} for name, m in ph.get("measurements", {}).items()}
+        steps.append({"name": ph["name"], "outcome": ph.get("outcome"), "measurements": ms})
+    details = [d.get("description") for d in r.get("outcome_details", [])]
+    return {"verdict": r.get("outcome", "ERROR"), "dut_id": r.get("dut_id"), "plan": ctx.plan.name,
+            "plan_version": ctx.plan.version, "plan_hash": ctx.plan.hash, "station": r.get("station_id"),
+            "operator": r.get("metadata", {}).get("operator"), "details": details, "files": ctx.files,
+            "steps": steps}

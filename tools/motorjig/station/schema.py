@@ -1,0 +1,208 @@
+"""The test-plan format, as data: every table, step kind and key with its type and meaning.
+
+This is the one source of the plan format. ``motorjig.station.plan`` checks plan
+files against it, and ``render_reference()`` writes the format's reference in
+docs/station.md from it (a test keeps the two equal), so the documentation cannot
+drift from what the loader accepts.
+
+A key is ``Key(name, type, default, doc, ...)``; ``default`` is ``REQUIRED`` for a
+key that must be given. Types:
+
+* ``str``, ``int``, ``num`` (int or float), ``bool``
+* ``range``: ``[min, max]``, two numbers, min <= max (a limit)
+* ``ref``: a relay or jig-input reference, its number or its ``name`` in the wiring
+* ``choice``: one of ``choices``
+* ``protocols``: 6, 8, or a list of them (the variants a drive may speak)
+
+A key with ``sweep=True`` may also be given as a list of values: the step then runs
+once per value (``speed = [1000, 20000, 50000]``). Every step may repeat
+(``repeat = 3``).
+"""
+
+from collections import namedtuple
+
+REQUIRED = object()
+
+Key = namedtuple("Key", "name type default doc choices lo hi sweep")
+Key.__new__.__defaults__ = ((), None, None, False)
+
+
+def key(name, type_, default, doc, choices=(), lo=None, hi=None, sweep=False):
+    return Key(name, type_, default, doc, tuple(choices), lo, hi, sweep)
+
+
+Kind = namedtuple("Kind", "name doc keys measurements")
+
+I32 = (-0x80000000, 0x7FFFFFFF)
+SPEED = (1, 2500000)
+
+# --- the plan's tables ---------------------------------------------------------------
+PLAN_KEYS = (
+    key("name", "str", REQUIRED, "the plan's name (the test name in every record)"),
+    key("version", "str", REQUIRED, "the plan's version, e.g. \"1.2\""),
+    key("description", "str", "", "what the plan is for"),
+    key("stop_on_fail", "bool", True, "end the run at the first failed step"),
+    key("on_end", "choice", "stop-servo-off",
+        "what a run that fails, errors or is interrupted does to the axis at the end: MoveStop "
+        "(EmergencyStop when interrupted) and servo off, or nothing",
+        choices=("stop-servo-off", "none")),
+    key("reset_jig_counters", "bool", True,
+        "reset the jig's bus counters when the run starts, so bus-health covers this run only"),
+)
+
+DRIVE_KEYS = (
+    key("slave", "int", 2, "the drive's slave id", lo=0, hi=15),
+    key("protocol", "protocols", (6,), "the drive's protocol variant: 6 (Ver6), 8 (Ver8) or [6, 8] (either); a "
+        "drive of another variant is refused before anything moves", choices=(6, 8)),
+    key("slave_type", "int", 20, "the slave type the drive must report (20 Ezi-STEP Plus-R ST)", lo=0, hi=255),
+    key("jig_id", "int", 1, "the jig's own slave id (its counters and relays)", lo=0, hi=15),
+)
+
+COMMON_STEP_KEYS = (
+    key("kind", "choice", REQUIRED, "the step kind (below)"),
+    key("name", "str", None, "the step's name in the records (default: its kind; made unique)"),
+    key("repeat", "int", 1, "run the step this many times", lo=1, hi=1000),
+)
+
+_MOVE_LIMITS = (
+    key("duration_s", "range", None, "limits of the move's duration, seconds"),
+    key("duration_tolerance", "num", 0.15,
+        "without duration_s: the duration must be within this fraction of the time the trapezoid "
+        "profile takes (distance, speed, accel/decel times)", lo=0, hi=10),
+    key("position_error_max", "int", 0, "largest allowed |target - actual position| after the move, pulses",
+        lo=0),
+    key("following_error_max", "int", 0,
+        "largest allowed |command - actual position| sampled during the move, pulses", lo=0),
+    key("timeout_s", "num", 30.0, "give up waiting for the axis after this many seconds", lo=0.1, hi=3600),
+)
+
+STEP_KINDS = (
+    Kind("identify", "GetSlaveInfo and GetMotorInfo: the slave type and the name/version text.", (
+        key("slave_type", "int", None, "expected slave type (default: the plan's drive.slave_type)", lo=0, hi=255),
+        key("name_pattern", "str", ".*", "regular expression the GetSlaveInfo text must match (re.search)"),
+        key("motor_pattern", "str", None, "regular expression for the GetMotorInfo text (not checked if absent)"),
+    ), ("slave_type", "name_ok", "motor_ok")),
+    Kind("parameters", "RAM and ROM parameters against a parameter-set file (the format of `jigctl param "
+         "dump`): verify them, or write them, save to ROM and verify.", (
+        key("file", "str", REQUIRED, "the parameter-set file, relative to the plan file"),
+        key("mode", "choice", "verify", "verify: compare; apply: write RAM, SaveAllParameters, compare",
+            choices=("verify", "apply")),
+        key("memory", "choice", "both", "which values are compared", choices=("ram", "rom", "both")),
+    ), ("ram_<name>", "rom_<name>")),
+    Kind("servo", "Switch the drive on or off; no alarm afterwards.", (
+        key("on", "bool", True, "servo on (true) or off (false)"),
+    ), ("servo_on", "alarm")),
+    Kind("alarm-reset", "Clear the drive's alarm (Ezi-STEP: assert then release); no alarm afterwards.", (),
+         ("alarm",)),
+    Kind("move", "A move with the trapezoid profile, sampled through the jig; the trace (time, command, "
+         "actual, velocity) goes into the record.", (
+        key("mode", "choice", "inc", "abs: to a position; inc: by a distance", choices=("abs", "inc")),
+        key("position", "int", None, "abs: the target position, pulses", lo=I32[0], hi=I32[1], sweep=True),
+        key("distance", "int", None, "inc: the distance, pulses (may be negative)", lo=I32[0], hi=I32[1],
+            sweep=True),
+        key("speed", "int", REQUIRED, "speed, pps", lo=SPEED[0], hi=SPEED[1], sweep=True),
+        key("accel_ms", "int", None, "acceleration time, ms (default: the drive's parameter 3); sent with the "
+            "Ex move frame", lo=1, hi=9999, sweep=True),
+        key("decel_ms", "int", None, "deceleration time, ms (default: the drive's parameter 4)", lo=1, hi=9999,
+            sweep=True),
+    ) + _MOVE_LIMITS, ("duration", "position_error", "following_error", "in_position", "alarm")),
+    Kind("home", "Origin search per the drive's parameters 17-24: done within limits, origin flag set.", (
+        key("duration_s", "range", (0.0, 30.0), "limits of the search's duration, seconds"),
+        key("timeout_s", "num", 60.0, "give up (MoveStop) after this many seconds", lo=0.1, hi=3600),
+    ), ("duration", "origin_ok", "alarm")),
+    Kind("io", "Through the wiring: each jig relay on and off, read the drive's inputs; each wired drive "
+         "output on and off, read the jig's inputs.", (
+        key("relays", "list", None, "the relays to check (numbers or wiring names; default: every wired relay)"),
+        key("senses", "list", None, "the jig inputs to check (default: every wired one)"),
+        key("settle_ms", "int", 20, "wait after switching before reading, ms", lo=0, hi=10000),
+    ), ("relay_<n>_on", "relay_<n>_off", "sense_<n>_on", "sense_<n>_off")),
+    Kind("limit-sensor", "Start a move towards a limit and assert the limit input through the wiring: the "
+         "drive must stop and flag the limit.", (
+        key("relay", "ref", REQUIRED, "the relay wired to the drive's limit input (number or wiring name)"),
+        key("speed", "int", 5000, "speed of the move, pps", lo=SPEED[0], hi=SPEED[1], sweep=True),
+        key("after_ms", "int", 100, "assert the relay this long after the move started, ms", lo=0, hi=60000),
+        key("stop_time_s", "range", (0.0, 0.5), "limits of the time from the relay to standstill, seconds"),
+        key("timeout_s", "num", 10.0, "give up after this many seconds", lo=0.1, hi=3600),
+    ), ("stopped", "limit_flag", "stop_time")),
+    Kind("stop-response", "Start a move, send MoveStop or EmergencyStop, measure the time to standstill and "
+         "the overshoot (pulses travelled after the stop).", (
+        key("stop", "choice", "move-stop", "the stop sent", choices=("move-stop", "emergency-stop")),
+        key("speed", "int", 20000, "speed of the move, pps", lo=SPEED[0], hi=SPEED[1], sweep=True),
+        key("after_ms", "int", 200, "send the stop this long after the move started, ms", lo=0, hi=60000),
+        key("stop_time_s", "range", (0.0, 0.5), "limits of the time to standstill, seconds"),
+        key("overshoot_max", "int", 100000, "largest allowed travel after the stop, pulses", lo=0),
+        key("recover", "bool", True, "after an emergency stop: servo off and on again, so later steps can move"),
+    ), ("stop_time", "overshoot", "stopped")),
+    Kind("bus-health", "The jig's own counters over the run and the round trips seen by the station.", (
+        key("crc_errors_max", "int", 0, "CRC errors on either bus", lo=0),
+        key("stuffing_errors_max", "int", 0, "stuffing errors on either bus", lo=0),
+        key("timeouts_max", "int", 0, "forwarded requests that got no reply", lo=0),
+        key("overflows_max", "int", 0, "receive-buffer overflows", lo=0),
+        key("turnaround_max_us", "int", 5000, "the jig's longest handling time, us", lo=0),
+        key("roundtrip_max_ms", "num", 50.0, "the longest request/reply round trip through the jig, ms", lo=0),
+    ), ("crc_errors", "stuffing_errors", "timeouts", "overflows", "turnaround_max", "roundtrip_max",
+        "roundtrip_avg", "roundtrip_min")),
+    Kind("prompt", "An operator instruction, confirmed on the console or in the Desk (`--yes` confirms "
+         "unattended).", (
+        key("message", "str", REQUIRED, "what the operator must do"),
+    ), ("confirmed",)),
+)
+
+KINDS = {k.name: k for k in STEP_KINDS}
+
+
+def kind_keys(kind):
+    """Every key a step of this kind accepts, name -> Key."""
+    return {k.name: k for k in COMMON_STEP_KEYS + KINDS[kind].keys}
+
+
+# --- the reference in docs/station.md ---------------------------------------------------
+def _default_text(k):
+    if k.default is REQUIRED:
+        return "**required**"
+    if k.default is None:
+        return "-"
+    if isinstance(k.default, bool):
+        return "`%s`" % str(k.default).lower()
+    if isinstance(k.default, tuple):
+        return "`[%s]`" % ", ".join(str(v) for v in k.default)
+    if isinstance(k.default, str):
+        return '`"%s"`' % k.default
+    return "`%s`" % k.default
+
+
+def _type_text(k):
+    t = k.type
+    if k.type == "protocols":
+        t = "`6` / `8` / `[6, 8]`"
+    elif k.choices and t in ("choice", "int"):
+        t = " / ".join('`"%s"`' % c if isinstance(c, str) else "`%s`" % c for c in k.choices)
+    elif k.lo is not None or k.hi is not None:
+        t = "%s %s..%s" % (t, "" if k.lo is None else k.lo, "" if k.hi is None else k.hi)
+    if k.sweep:
+        t += " (or a list: sweep)"
+    return t
+
+
+def _table(keys):
+    rows = ["| key | type | default | meaning |", "| --- | --- | --- | --- |"]
+    for k in keys:
+        rows.append("| `%s` | %s | %s | %s |" % (k.name, _type_text(k), _default_text(k), k.doc))
+    return rows
+
+
+def render_reference(wiring_schema=None):
+    """The plan format's reference as markdown (docs/station.md between its markers)."""
+    out = ["### `[plan]`", ""] + _table(PLAN_KEYS)
+    out += ["", "### `[drive]`", ""] + _table(DRIVE_KEYS)
+    if wiring_schema is not None:
+        out += ["", "### `[wiring]`", "", wiring_schema, ""]
+    out += ["", "### `[[steps]]`: keys of every step", ""] + _table(COMMON_STEP_KEYS)
+    for k in STEP_KINDS:
+        out += ["", "#### `kind = \"%s\"`" % k.name, "", k.doc, ""]
+        if k.keys:
+            out += _table(k.keys)
+        else:
+            out.append("No keys of its own.")
+        out += ["", "Measurements: " + ", ".join("`%s`" % m for m in k.measurements) + "."]
+    return "\n".join(out) + "\n"

@@ -1,0 +1,115 @@
+"""jigctl test: run a test plan with MotorJig Station, or check one (``--check``).
+
+    jigctl test PLAN --port URL [--serial SN] [--operator NAME] [--out DIR] [--yes] [--json]
+    jigctl test --check PLAN [--port URL]
+
+One progress line per step as it runs, then the verdict and the files written.
+Exit status: 0 pass, 1 fail, 2 error (a bad plan, no connection, a drive of the wrong
+variant, an aborted run). ``--check`` reads and checks the plan without touching the
+bus; with ``--port`` it also asks the drive (read only: its variant and slave type)
+whether the plan is for it.
+"""
+
+import json
+import os
+import sys
+
+from motorjig.errors import JigError, PortError
+
+EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
+
+
+def add_test_arguments(sp):
+    sp.add_argument("plan", help="the plan file (TOML), e.g. plans/smoke.toml")
+    sp.add_argument("--check", action="store_true",
+                    help="only check the plan (with --port: also that the drive is the plan's variant and type)")
+    sp.add_argument("--serial", help="the DUT's serial number (default: from the drive's own info)")
+    sp.add_argument("--operator", default=os.environ.get("USER", ""), help="who runs the test (default: $USER)")
+    sp.add_argument("--station", help="station name in the records (default: this computer's name)")
+    sp.add_argument("--out", default="results", help="folder for the record, JUnit XML and HTML report "
+                                                     "(default ./results)")
+    sp.add_argument("--yes", "-y", action="store_true", help="confirm every operator prompt (unattended runs)")
+
+
+def _say(args, text):
+    if not args.json:
+        print(text, flush=True)
+
+
+def _err(text):
+    sys.stderr.write("jigctl: error: %s\n" % text)
+    return EXIT_ERROR
+
+
+def _check_drive(args, plan):
+    """Read only: the drive's variant and slave type against the plan's."""
+    from motorjig.master import Master
+
+    with Master(args.port, baud=args.baud, timeout=args.timeout / 1000.0) as m:
+        s = plan.drive.slave
+        variant = m.detect_variant(s)
+        if variant is None:
+            return "slave %d does not answer" % s
+        if variant not in plan.drive.protocol:
+            return "the plan is for a %s drive, but slave %d answers as Ver%d" % (
+                " or ".join("Ver%d" % v for v in plan.drive.protocol), s, variant)
+        info = m.get_slave_info(s)
+        if info.type != plan.drive.slave_type:
+            return "the plan is for slave type %d, but slave %d is type %d (%s)" % (
+                plan.drive.slave_type, s, info.type, info.type_name)
+    return None
+
+
+def cmd_test(args):
+    try:
+        from motorjig.station import plan as P
+    except ImportError as exc:
+        return _err("the station needs the 'station' extra (%s): pip install 'motorjig[station]'" % exc)
+    try:
+        plan = P.load_plan(args.plan)
+    except P.PlanError as exc:
+        return _err(str(exc))
+    if args.check:
+        if args.port:
+            try:
+                problem = _check_drive(args, plan)
+            except JigError as exc:
+                return _err(str(exc))
+            if problem:
+                return _err("%s: %s" % (args.plan, problem))
+        if args.json:
+            print(json.dumps({"plan": plan.name, "version": plan.version, "hash": plan.hash, "ok": True,
+                              "steps": [s.name for s in plan.steps]}))
+        else:
+            print("%s: plan %r version %s is valid: %d steps (%s)%s" % (
+                args.plan, plan.name, plan.version, len(plan.steps), ", ".join(s.name for s in plan.steps),
+                "; the drive is the plan's" if args.port else ""))
+        return EXIT_PASS
+    if not args.port:
+        return _err("no port: give --port (or set JIGCTL_PORT)")
+    from motorjig.master import Master
+
+    try:
+        Master(args.port, baud=args.baud).close()  # a wrong port name is said plainly, before OpenHTF starts
+    except PortError as exc:
+        return _err(str(exc))
+    from motorjig.station import runner
+
+    confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
+    _say(args, "plan %s %s (%s), drive slave %d, %s" % (plan.name, plan.version, plan.hash[:12],
+                                                         plan.drive.slave, args.port))
+    ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial, operator=args.operator,
+                          station=args.station, out_dir=args.out, out=None if args.json else print,
+                          confirm=confirm, timeout_ms=args.timeout)
+    result = runner.summary(ctx)
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print("%s  %s  dut %s" % (result["verdict"], plan.name, result["dut_id"]))
+        for d in result["details"]:
+            if d:
+                print("  " + d)
+        for ext in ("html", "xml", "json"):
+            if ext in ctx.files:
+                print("  %-4s %s" % (ext, ctx.files[ext]))
+    return runner.exit_code(result["verdict"])
