@@ -37,8 +37,9 @@ def _say(args, text):
 
 
 def _err(text):
-    sys.stderr.write("jigctl: error: %s\n" % text)
-    return EXIT_ERROR
+    from motorjig.commands import fail
+
+    return fail(EXIT_ERROR, text)
 
 
 def _check_drive(args, plan):

@@ -17,6 +17,7 @@ The output validates against junit.xsd beside this module.
 """
 
 import os
+import re
 import xml.etree.ElementTree as ET
 
 from .report import (failed_measurements, format_value, measurement_text, outcome_details_text, phase_exception,
@@ -24,6 +25,9 @@ from .report import (failed_measurements, format_value, measurement_text, outcom
 
 RUN_CASE = "test run"
 SCHEMA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "junit.xsd")
+# Characters XML 1.0 cannot carry at all (ElementTree writes them as they are, and every
+# parser then rejects the file): an exception text with a NUL or an ANSI colour code.
+_NOT_XML = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
 
 
 def _properties(record):
@@ -110,5 +114,5 @@ def junit_xml(record):
     root = ET.Element("testsuites", name=plan, time=total, **{k: str(v) for k, v in counts.items()})
     root.append(suite)
     ET.indent(root)
-    return ET.tostring(root, encoding="unicode", xml_declaration=False).join(
-        ('<?xml version="1.0" encoding="UTF-8"?>\n', "\n"))
+    text = _NOT_XML.sub("\ufffd", ET.tostring(root, encoding="unicode"))
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + text + "\n"

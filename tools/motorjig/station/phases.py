@@ -434,6 +434,7 @@ def build_phase(step, plan, ctx):
 
     def phase(test, bus):
         ctx.started(step)
+        n0 = len(bus.master.roundtrips)
         try:
             run(test, bus, step, ctx)
         except (KeyboardInterrupt, threads.ThreadTerminationError):
@@ -441,12 +442,12 @@ def build_phase(step, plan, ctx):
             raise
         except BaseException as exc:
             bus.note_failure()
-            ctx.finished(step, "ERROR", ["%s: %s" % (type(exc).__name__, exc)])
+            ctx.finished(step, "ERROR", ["%s: %s" % (type(exc).__name__, exc)], sum(bus.master.roundtrips[n0:]))
             raise
         failed = _failed_lines(test, measures)
         if failed:
             bus.note_failure()
-        ctx.finished(step, "FAIL" if failed else "PASS", failed)
+        ctx.finished(step, "FAIL" if failed else "PASS", failed, sum(bus.master.roundtrips[n0:]))
 
     phase.__name__ = step.name
     phase.__doc__ = "%s step %r" % (step.kind, step.name)

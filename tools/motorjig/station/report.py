@@ -127,13 +127,13 @@ def outcome_details_text(record):
 # --- SVG plots ----------------------------------------------------------------------------------
 
 def _axis(lo, hi, pad, count=6):
-    """(axis_lo, axis_hi, ticks): the data range widened by pad (a fraction), ticks on a 1-2-2.5-5 step inside it."""
+    """(axis_lo, axis_hi, ticks): the data range widened by pad (a fraction), ticks on a 1-2-5 step inside it."""
     if not hi > lo:
         lo, hi = lo - 1, hi + 1
     lo, hi = lo - pad * (hi - lo), hi + pad * (hi - lo)
     raw = (hi - lo) / count
     mag = 10 ** math.floor(math.log10(raw))
-    step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw * 0.999)
+    step = next(m * mag for m in (1, 2, 5, 10) if m * mag >= raw * 0.999)
     first, last = math.ceil(lo / step - 1e-9), math.floor(hi / step + 1e-9)
     return lo, hi, [i * step for i in range(first, last + 1)]
 
@@ -175,7 +175,8 @@ def svg_plot(title, x, series, x_label, y_label, hline=None, width=560, height=2
                % (top + ph / 2, html.escape(y_label)))
     legend = []
     if hline:
-        out.append('<line class="target" x1="%d" x2="%d" y1="%.1f" y2="%.1f"/>' % (left, left + pw, sy(hline[1]), sy(hline[1])))
+        ty = sy(hline[1])
+        out.append('<line class="target" x1="%d" x2="%d" y1="%.1f" y2="%.1f"/>' % (left, left + pw, ty, ty))
         legend.append((hline[0], "target"))
     for label, ys, css in series:
         points = " ".join("%.1f,%.1f" % (sx(a), sy(b)) for a, b in zip(x, ys) if a is not None and b is not None)
@@ -191,6 +192,10 @@ def svg_plot(title, x, series, x_label, y_label, hline=None, width=560, height=2
     return "\n".join(out)
 
 
+def _is_number(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def trace_plots(trace):
     """The position and velocity plots of a move phase's trace attachment."""
     cols = list(trace.get("columns") or [])
@@ -201,15 +206,14 @@ def trace_plots(trace):
         if name not in cols:
             return None
         i = cols.index(name)
-        return [r[i] if i < len(r) and isinstance(r[i], (int, float)) and not isinstance(r[i], bool) else None
-                for r in rows]
+        return [r[i] if i < len(r) and _is_number(r[i]) else None for r in rows]
 
     t = column("t") or []
     t_label = "time (%s)" % units.get("t", "s")
     pos = [(name.capitalize(), column(name), name) for name in ("command", "actual") if column(name)]
     pos_unit = units.get("actual") or units.get("command") or ""
     target = trace.get("target")
-    hline = ("Target", target) if isinstance(target, (int, float)) and not isinstance(target, bool) else None
+    hline = ("Target", target) if _is_number(target) else None
     plots = [svg_plot("Position", t, pos, t_label, "position (%s)" % pos_unit, hline)]
     vel = column("velocity")
     if vel:
@@ -222,7 +226,8 @@ def trace_plots(trace):
 
 CSS = """
 *{box-sizing:border-box}
-body{margin:0;font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,"DejaVu Sans",Arial,sans-serif;color:#202124;background:#f4f5f7}
+body{margin:0;color:#202124;background:#f4f5f7;
+ font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,"DejaVu Sans",Arial,sans-serif}
 main{max-width:1180px;margin:0 auto;padding:0 24px 32px}
 .banner{display:flex;align-items:center;gap:28px;padding:18px 28px;color:#fff}
 .banner.pass{background:#137333}.banner.fail{background:#c5221f}.banner.warn{background:#f9ab00;color:#202124}
@@ -240,8 +245,10 @@ tr.phase td{background:#f8f9fa;font-weight:600;border-top:2px solid #dadce0}
 tr.meas td:first-child{padding-left:26px}
 tr.meas.fail td{background:#fce8e6;color:#a50e0e;font-weight:600}
 td.num{text-align:right;font-variant-numeric:tabular-nums;font-family:ui-monospace,"DejaVu Sans Mono",monospace}
-.badge{display:inline-block;min-width:54px;text-align:center;padding:1px 8px;border-radius:10px;font-size:12px;font-weight:700;color:#fff}
-.badge.PASS{background:#137333}.badge.FAIL{background:#c5221f}.badge.ERROR,.badge.ABORTED,.badge.TIMEOUT{background:#f9ab00;color:#202124}
+.badge{display:inline-block;min-width:54px;text-align:center;padding:1px 8px;border-radius:10px;
+ font-size:12px;font-weight:700;color:#fff}
+.badge.PASS{background:#137333}.badge.FAIL{background:#c5221f}
+.badge.ERROR,.badge.ABORTED,.badge.TIMEOUT{background:#f9ab00;color:#202124}
 .badge.SKIP,.badge.UNSET{background:#9aa0a6}
 .muted{color:#5f6368;font-weight:400}
 .plots{display:grid;grid-template-columns:1fr 1fr;gap:10px}
@@ -253,7 +260,8 @@ svg .grid{stroke:#e8eaed;stroke-width:1}svg .frame{fill:none;stroke:#9aa0a6;stro
 svg .series{fill:none;stroke-linejoin:round;stroke-linecap:round}
 svg .command{stroke:#8ab4f8;stroke-width:4}svg .actual{stroke:#d93025;stroke-width:1.6}
 svg .velocity{stroke:#188038;stroke-width:1.8}svg .target{stroke:#3c4043;stroke-width:1.3;stroke-dasharray:6 4}
-pre{white-space:pre-wrap;word-break:break-word;background:#fff8e1;border:1px solid #f9ab00;border-radius:4px;padding:8px 10px;margin:6px 0;font:12px/1.4 ui-monospace,"DejaVu Sans Mono",monospace}
+pre{white-space:pre-wrap;word-break:break-word;background:#fff8e1;border:1px solid #f9ab00;border-radius:4px;
+ padding:8px 10px;margin:6px 0;font:12px/1.4 ui-monospace,"DejaVu Sans Mono",monospace}
 table.counters{width:auto;min-width:360px}
 footer{color:#5f6368;font-size:12px;margin-top:14px}
 """
@@ -280,7 +288,8 @@ def _info(record):
     items = [
         ("DUT serial", _e(record.get("dut_id")), "dut"),
         ("Plan", "%s <span class=\"muted\">v%s</span>" % (_e(meta.get("test_name")), _e(meta.get("test_version"))), "plan"),
-        ("Plan hash", '<span title="%s">%s</span>' % (_e(plan_hash), _e(plan_hash[:12]) + ("&hellip;" if len(plan_hash) > 12 else "")), "hash"),
+        ("Plan hash", '<span title="%s">%s%s</span>'
+         % (_e(plan_hash), _e(plan_hash[:12]), "&hellip;" if len(plan_hash) > 12 else ""), "hash"),
         ("Operator", _e(meta.get("operator")), "operator"),
         ("Station", _e(record.get("station_id")), "station"),
         ("Plan file", _e(meta.get("plan_file")), "plan-file"),
@@ -302,14 +311,17 @@ def _phase_table(phases):
         rows.append('<tr class="phase" data-phase="%s"><td>%s</td><td colspan="3" class="muted">%s</td>'
                     '<td class="num">%s</td><td>%s</td></tr>'
                     % (_e(p.get("name")), _e(p.get("name")), _e(note),
-                       duration_text(seconds(p.get("start_time_millis"), p.get("end_time_millis"))), _badge(p.get("outcome"))))
+                       duration_text(seconds(p.get("start_time_millis"), p.get("end_time_millis"))),
+                       _badge(p.get("outcome"))))
         for m in meas:
             outcome = m.get("outcome", "UNSET")
             value = format_value(m["measured_value"]) if "measured_value" in m else "not measured"
-            rows.append('<tr class="meas%s" data-measurement="%s" data-outcome="%s"><td>%s</td><td class="num">%s</td>'
-                        '<td>%s</td><td>%s</td><td></td><td>%s</td></tr>'
+            short = value if len(value) <= 60 else value[:57] + "..."  # a dimensioned measurement's whole table
+            align = "num" if _is_number(m.get("measured_value")) else "text"
+            rows.append('<tr class="meas%s" data-measurement="%s" data-outcome="%s"><td>%s</td>'
+                        '<td class="%s" title="%s">%s</td><td>%s</td><td>%s</td><td></td><td>%s</td></tr>'
                         % (" fail" if outcome != "PASS" else "", _e(m.get("name")), _e(outcome), _e(m.get("name")),
-                           _e(value), _e(unit_text(m)), _e(limits_text(m)), _badge(outcome)))
+                           align, _e(value), _e(short), _e(unit_text(m)), _e(limits_text(m)), _badge(outcome)))
     return ('<table class="phases" data-testid="phases"><thead><tr><th>Phase / measurement</th><th>Value</th>'
             '<th>Unit</th><th>Limits</th><th>Time</th><th>Result</th></tr></thead><tbody>%s</tbody></table>'
             % "\n".join(rows))

@@ -56,6 +56,7 @@ class RunContext:
         self.files = {}
         self._t_step = 0.0
         self._n = 0
+        self.timings = []
 
     def started(self, step):
         self._t_step = time.monotonic()
@@ -63,8 +64,11 @@ class RunContext:
         if self.on_event:
             self.on_event({"event": "step", "step": step.name, "state": "running"})
 
-    def finished(self, step, verdict, details):
+    def finished(self, step, verdict, details, bus_s=0.0):
+        """A step ended: its progress line; ``timings`` keeps (name, seconds in the step, seconds
+        of them waiting for replies) for the benchmark."""
         dt = time.monotonic() - self._t_step
+        self.timings.append((step.name, dt, bus_s))
         if self.out:
             self.out("[%2d/%d] %-32s %-5s %6.2f s" % (self._n, len(self.plan.steps), step.name, verdict, dt))
             for line in details:
@@ -121,9 +125,14 @@ def _preflight(plan, serial):
 
 def build_test(plan, ctx, operator=None, station=None):
     phases = [build_phase(step, plan, ctx) for step in plan.steps]
-    test = htf.Test(*phases, test_name=plan.name, test_version=plan.version, plan_hash=plan.hash,
-                    plan_file=os.path.abspath(plan.path), operator=operator or "")
-    test.configure(stop_on_first_failure=plan.stop_on_fail, default_dut_id="unknown")
+    # OpenHTF reads its own flags from sys.argv here (-v, --config-file, ...): jigctl's are not for it
+    argv, sys.argv = sys.argv, sys.argv[:1]
+    try:
+        test = htf.Test(*phases, test_name=plan.name, test_version=plan.version, plan_hash=plan.hash,
+                        plan_file=os.path.abspath(plan.path), operator=operator or "")
+        test.configure(stop_on_first_failure=plan.stop_on_fail, default_dut_id="unknown")
+    finally:
+        sys.argv = argv
     return test
 
 
