@@ -50,7 +50,14 @@ def timeout_table():
     return "\n".join(rows)
 
 
+def station_plan_format():
+    from motorjig.station.schema import render_reference
+
+    return render_reference().rstrip("\n")
+
+
 TABLES = {
+    "docs/station.md": {"plan-format": station_plan_format},
     "docs/bridge.md": {"bridge-states": bridge_table, "timeouts": timeout_table},
     "docs/parameters.md": {"params": param_table},
     "docs/diagnostics.md": {"counters": counter_table},

@@ -66,15 +66,19 @@ def _equals(name, value, unit=None, doc=""):
 class Trace:
     """Samples (t, command, actual, velocity) of one axis, with the flags of the last one."""
 
-    def __init__(self, t0):
+    def __init__(self, t0, ctx=None, step=None):
         self.t0 = t0
+        self.ctx, self.step = ctx, step
         self.rows = []
         self.last = None
         self.peak_error = 0
 
     def sample(self, m, s):
         st = m.get_all_status(s)
-        self.rows.append([round(time.monotonic() - self.t0, 4), st.command_pos, st.actual_pos, st.actual_vel])
+        row = [round(time.monotonic() - self.t0, 4), st.command_pos, st.actual_pos, st.actual_vel]
+        self.rows.append(row)
+        if self.ctx is not None:
+            self.ctx.sample(self.step, row)
         self.peak_error = max(self.peak_error, abs(st.pos_error))
         self.last = st
         return st
@@ -204,7 +208,7 @@ def run_move(test, bus, step, ctx):
     m, s, a = bus.master, bus.slave, step.args
     start, target, acc, dec = _move_plan(m, s, a)
     expected = trapezoid_time(target - start, a["speed"], acc, dec)
-    trace = Trace(time.monotonic())
+    trace = Trace(time.monotonic(), ctx, step)
     custom = a["accel_ms"] is not None or a["decel_ms"] is not None
     if a["mode"] == "abs":
         if custom:
@@ -242,7 +246,7 @@ def measures_home(step, plan):
 
 def run_home(test, bus, step, ctx):
     m, s = bus.master, bus.slave
-    trace = Trace(time.monotonic())
+    trace = Trace(time.monotonic(), ctx, step)
     m.move_origin(s)
     done = trace.until_stopped(m, s, step.args["timeout_s"])
     if not done:
@@ -323,7 +327,7 @@ def run_limit_sensor(test, bus, step, ctx):
     m, s, jig, a = bus.master, bus.slave, bus.jig_id, step.args
     relay, drive_input, _ = _relay_entry(ctx.plan, a["relay"])
     direction = DIR_PLUS if drive_input == 0 else DIR_MINUS
-    trace = Trace(time.monotonic())
+    trace = Trace(time.monotonic(), ctx, step)
     m.move_velocity(s, a["speed"], direction)
     try:
         while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
@@ -352,7 +356,7 @@ def measures_stop_response(step, plan):
 
 def run_stop_response(test, bus, step, ctx):
     m, s, a = bus.master, bus.slave, step.args
-    trace = Trace(time.monotonic())
+    trace = Trace(time.monotonic(), ctx, step)
     m.move_velocity(s, a["speed"], DIR_PLUS)
     while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
         trace.sample(m, s)
@@ -412,18 +416,22 @@ def run_prompt(test, bus, step, ctx):
 
 
 # --- the phase around a step ----------------------------------------------------------------
-def _failed_lines(test, measures):
-    """The phase's failed measurements as 'name = value unit (limits)' texts."""
+def _results(test, measures):
+    """Every measurement of the phase: (name, value, unit, limits, outcome), in declaration order."""
     out = []
     for declared in measures:
         meas = test.get_measurement(declared.name)
-        if meas.outcome.name == "PASS":
-            continue
         unit = declared.units.suffix if declared.units is not None and declared.units.suffix else ""
-        value = "unset" if meas.value is None else meas.value
-        limits = ", ".join(str(v) for v in declared.validators) or "a value"
-        out.append("%s = %s%s (%s)" % (declared.name, value, " " + unit if unit else "", limits))
+        limits = ", ".join(str(v) for v in declared.validators)
+        out.append((declared.name, meas.value, unit, limits, meas.outcome.name))
     return out
+
+
+def _failed_lines(results):
+    """The failed ones as 'name = value unit (limits)' texts."""
+    return ["%s = %s%s (%s)" % (name, "unset" if value is None else value, " " + unit if unit else "",
+                                limits or "a value")
+            for name, value, unit, limits, outcome in results if outcome != "PASS"]
 
 
 def build_phase(step, plan, ctx):
@@ -442,12 +450,14 @@ def build_phase(step, plan, ctx):
             raise
         except BaseException as exc:
             bus.note_failure()
-            ctx.finished(step, "ERROR", ["%s: %s" % (type(exc).__name__, exc)], sum(bus.master.roundtrips[n0:]))
+            ctx.finished(step, "ERROR", ["%s: %s" % (type(exc).__name__, exc)], sum(bus.master.roundtrips[n0:]),
+                         _results(test, measures))
             raise
-        failed = _failed_lines(test, measures)
+        results = _results(test, measures)
+        failed = _failed_lines(results)
         if failed:
             bus.note_failure()
-        ctx.finished(step, "FAIL" if failed else "PASS", failed, sum(bus.master.roundtrips[n0:]))
+        ctx.finished(step, "FAIL" if failed else "PASS", failed, sum(bus.master.roundtrips[n0:]), results)
 
     phase.__name__ = step.name
     phase.__doc__ = "%s step %r" % (step.kind, step.name)

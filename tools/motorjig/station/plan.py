@@ -17,6 +17,7 @@ import difflib
 import hashlib
 import itertools
 import os
+import re
 
 from motorjig import paramset
 from motorjig.station import schema as S
@@ -142,20 +143,9 @@ def _wiring(ck, data, drive_slave):
     try:
         return parse_wiring(data["wiring"], source=ck.path, default_slave=drive_slave)
     except WiringError as exc:
-        # the message names the key ("wiring.relay[1].drive_input: ..."); add its line
-        text = str(exc)
-        import re
-
-        m = re.search(r"(wiring(?:\.[A-Za-z_]+|\[\d+\])*)", text)
-        line = None
-        if m:
-            parts = ()
-            for name, idx in re.findall(r"([A-Za-z_]+)|\[(\d+)\]", m.group(1)):
-                parts += (name,) if name else (int(idx),)
-            line = ck.lines.line(parts)
-        prefix = str(ck.path) + ": "
-        msg = text[len(prefix):] if text.startswith(prefix) else text
-        raise PlanError(ck.path, line, "", msg) from None
+        # exc.key is a dotted path such as "wiring.relay[1].drive_input": find its line
+        parts = tuple(name or int(idx) for name, idx in re.findall(r"([A-Za-z_]+)|\[(\d+)\]", exc.key or ""))
+        raise PlanError(ck.path, ck.lines.line(parts) if parts else None, exc.key or "", exc.reason) from None
 
 
 def _wired(ck, wiring, keypath, ref, which):

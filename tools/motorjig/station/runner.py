@@ -57,6 +57,8 @@ class RunContext:
         self._t_step = 0.0
         self._n = 0
         self.timings = []
+        self.test = None
+        self.aborted = False
 
     def started(self, step):
         self._t_step = time.monotonic()
@@ -64,9 +66,9 @@ class RunContext:
         if self.on_event:
             self.on_event({"event": "step", "step": step.name, "state": "running"})
 
-    def finished(self, step, verdict, details, bus_s=0.0):
-        """A step ended: its progress line; ``timings`` keeps (name, seconds in the step, seconds
-        of them waiting for replies) for the benchmark."""
+    def finished(self, step, verdict, details, bus_s=0.0, results=()):
+        """A step ended: its progress line and event; ``timings`` keeps (name, seconds in the
+        step, seconds of them waiting for replies) for the benchmark."""
         dt = time.monotonic() - self._t_step
         self.timings.append((step.name, dt, bus_s))
         if self.out:
@@ -74,7 +76,23 @@ class RunContext:
             for line in details:
                 self.out("        %s" % line)
         if self.on_event:
-            self.on_event({"event": "step", "step": step.name, "state": verdict.lower(), "details": details})
+            self.on_event({"event": "step", "step": step.name, "state": verdict.lower(), "details": details,
+                           "seconds": dt, "measurements": [
+                               {"name": n, "value": v, "unit": u, "limits": lim, "outcome": o}
+                               for n, v, u, lim, o in results]})
+
+    def sample(self, step, row):
+        """A status sample of a moving step: (t, command, actual, velocity), for live plots."""
+        if self.on_event:
+            self.on_event({"event": "sample", "step": step.name, "row": row})
+
+    def abort(self):
+        """Abort the run from another thread (the Desk's Abort): the running step is stopped,
+        the axis gets an emergency stop and the servo goes off."""
+        self.aborted = True
+        test = self.test
+        if test is not None:
+            test.abort_from_sig_int()  # despite its name: aborts the executor, from any thread
 
     def confirm(self, message):
         if self._confirm is None:
@@ -172,11 +190,30 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
     console_output.CLI_QUIET = True  # our own progress lines instead of OpenHTF's banner
     test = build_test(plan, ctx, operator, station)
     test.add_output_callbacks(_writer(ctx, out_dir))
+    ctx.test = test
     try:
         test.execute(test_start=_preflight(plan, serial))
     except KeyboardInterrupt:
         pass  # OpenHTF has aborted the run, torn the plug down and written the record
+    finally:
+        ctx.test = None
+    if (ctx.aborted or (ctx.record or {}).get("outcome") == "ABORTED") and plan.on_end != "none":
+        _emergency_stop(port, baud, plan.drive.slave, timeout_ms)
     return ctx
+
+
+def _emergency_stop(port, baud, slave, timeout_ms):
+    """After an abort: EmergencyStop and servo off once more, on a connection of its own (the
+    plug's tearDown did it already unless the abort came between two steps)."""
+    from motorjig.errors import JigError
+    from motorjig.master import Master
+
+    try:
+        with Master(port, baud=baud, timeout=timeout_ms / 1000.0) as m:
+            m.emergency_stop(slave)
+            m.servo_enable(slave, False)
+    except (JigError, OSError):
+        pass  # the connection is gone: the record says how the run ended
 
 
 def summary(ctx):

@@ -191,12 +191,27 @@ def _table(keys):
     return rows
 
 
-def render_reference(wiring_schema=None):
+def _wiring_tables():
+    """The [wiring] tables from motorjig.wiring.WIRING_SCHEMA, the one source its parser checks."""
+    from motorjig.wiring import WIRING_SCHEMA
+
+    out = []
+    for table, fields in WIRING_SCHEMA.items():
+        header = "[[%s]]" % table if table != "wiring" else "[wiring]"
+        out += ["", "#### `%s`" % header, "", "| key | type | required | meaning |", "| --- | --- | --- | --- |"]
+        for f in fields:
+            kind = "array of tables `[[wiring.%s]]`" % f.key if f.kind == "tables" else f.kind
+            if f.lo is not None:
+                kind += " %s..%s" % (f.lo, f.hi)
+            out.append("| `%s` | %s | %s | %s |" % (f.key, kind, "yes" if f.required else "no", f.meaning))
+    return out
+
+
+def render_reference():
     """The plan format's reference as markdown (docs/station.md between its markers)."""
     out = ["### `[plan]`", ""] + _table(PLAN_KEYS)
     out += ["", "### `[drive]`", ""] + _table(DRIVE_KEYS)
-    if wiring_schema is not None:
-        out += ["", "### `[wiring]`", "", wiring_schema, ""]
+    out += ["", "### `[wiring]`: the fixture (also read by `python -m motorjig.sim --wiring`)"] + _wiring_tables()
     out += ["", "### `[[steps]]`: keys of every step", ""] + _table(COMMON_STEP_KEYS)
     for k in STEP_KINDS:
         out += ["", "#### `kind = \"%s\"`" % k.name, "", k.doc, ""]

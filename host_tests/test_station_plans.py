@@ -1,0 +1,200 @@
+"""Plan files: the shipped plans load, and every kind of bad plan is refused by `jigctl test --check`
+with a message that names the file, the line and the key -- before anything touches the bus."""
+
+import os
+import re
+
+import pytest
+
+from motorjig import cli, paramset
+from motorjig.station import plan as P
+from motorjig.station import schema
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PLANS = os.path.join(ROOT, "plans")
+
+GOOD = """\
+[plan]
+name = "t"
+version = "1"
+
+[drive]
+slave = 2
+
+[[steps]]
+kind = "servo"
+on = true
+
+[[steps]]
+kind = "move"
+distance = 1000
+speed = 5000
+"""
+
+
+def check(capsys, path, *extra):
+    capsys.readouterr()
+    rc = cli.main(["test", "--check", str(path)] + list(extra))
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def write(tmp_path, text, name="plan.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def refused(capsys, tmp_path, text, line, key, words):
+    """--check exits 2 with one sentence: path:line: key: ... words ..."""
+    path = write(tmp_path, text)
+    rc, out, err = check(capsys, path)
+    assert rc == 2, (out, err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    prefix = "jigctl: %s%s: " % (path, ":%d" % line if line else "")
+    assert err.startswith(prefix), (prefix, err)
+    if key:
+        assert err[len(prefix):].startswith(key + ": "), err
+    for w in words:
+        assert w in err, (w, err)
+    return err
+
+
+@pytest.mark.parametrize("name", ["smoke.toml", "ezi-step-eol.toml"])
+def test_shipped_plans_check_out(capsys, name):
+    rc, out, err = check(capsys, os.path.join(PLANS, name))
+    assert rc == 0, err
+    assert "is valid" in out
+
+
+def test_the_eol_plan_expands_its_sweep_into_three_moves():
+    plan = P.load_plan(os.path.join(PLANS, "ezi-step-eol.toml"))
+    moves = [s for s in plan.steps if s.kind == "move" and s.index == 5]
+    assert [s.args["speed"] for s in moves] == [2000, 20000, 50000]
+    assert [s.name for s in moves] == ["move_speed_2000", "move_speed_20000", "move_speed_50000"]
+    assert len({s.name for s in plan.steps}) == len(plan.steps)
+    assert plan.drive.protocol == (6, 8)
+    assert re.fullmatch(r"[0-9a-f]{64}", plan.hash)
+
+
+def test_repeat_gives_numbered_steps(tmp_path):
+    plan = P.load_plan(write(tmp_path, GOOD.replace('on = true', 'on = true\nrepeat = 3')))
+    assert [s.name for s in plan.steps] == ["servo_1", "servo_2", "servo_3", "move"]
+
+
+def test_the_hash_covers_the_parameter_set(tmp_path):
+    (tmp_path / "golden.toml").write_text("[parameters]\naxis_acc_time = 100\n")
+    text = GOOD + '\n[[steps]]\nkind = "parameters"\nfile = "golden.toml"\n'
+    first = P.load_plan(write(tmp_path, text)).hash
+    (tmp_path / "golden.toml").write_text("[parameters]\naxis_acc_time = 101\n")
+    assert P.load_plan(write(tmp_path, text)).hash != first
+
+
+def test_unknown_step_kind(capsys, tmp_path):
+    err = refused(capsys, tmp_path, GOOD.replace('kind = "servo"', 'kind = "sevro"'), 9, "steps[0].kind",
+                  ["unknown step kind 'sevro'", "did you mean 'servo'"])
+    assert "limit-sensor" in err  # the known kinds are listed
+
+
+def test_missing_key(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("speed = 5000\n", ""), 12, "steps[1]",
+            ["a move step needs the key 'speed'"])
+
+
+def test_misspelled_key(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("speed = 5000", "sped = 5000"), 15, "steps[1].sped",
+            ["unknown key", "did you mean 'speed'"])
+
+
+def test_misspelled_table(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("[drive]", "[drvie]"), 5, "drvie", ["unknown table", "'drive'"])
+
+
+def test_value_of_the_wrong_type(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("speed = 5000", 'speed = "fast"'), 15, "steps[1].speed",
+            ["expected an integer", "'fast'"])
+
+
+def test_value_out_of_range(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("speed = 5000", "speed = 9000000"), 15, "steps[1].speed",
+            ["outside 1..2500000"])
+
+
+def test_a_move_of_distance_zero(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("distance = 1000", "distance = 0"), 14, "steps[1].distance",
+            ["distance 0"])
+
+
+def test_not_toml_at_all(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("[[steps]]\nkind", "[[steps]\nkind", 1), 8, "", ["not valid TOML"])
+
+
+def test_a_missing_file(capsys, tmp_path):
+    rc, out, err = check(capsys, tmp_path / "nope.toml")
+    assert rc == 2 and "nope.toml: cannot read" in err and "Traceback" not in err
+
+
+def test_a_parameter_the_drive_does_not_have(capsys, tmp_path):
+    (tmp_path / "golden.toml").write_text("[parameters]\naxis_acc_time = 100\naxis_jerk = 5\n")
+    path = write(tmp_path, GOOD + '\n[[steps]]\nkind = "parameters"\nfile = "golden.toml"\n')
+    rc, out, err = check(capsys, path)
+    assert rc == 2
+    assert err.startswith("jigctl: %s:3: parameters.axis_jerk: the drive has no such parameter" % (tmp_path / "golden.toml"))
+
+
+def test_a_parameter_number_the_drive_does_not_have(capsys, tmp_path):
+    (tmp_path / "golden.toml").write_text("[parameters]\n40 = 1\n")
+    path = write(tmp_path, GOOD + '\n[[steps]]\nkind = "parameters"\nfile = "golden.toml"\n')
+    rc, out, err = check(capsys, path)
+    assert rc == 2 and ":2: parameters.40: the drive has no such parameter" in err
+
+
+def test_a_parameter_value_out_of_range(capsys, tmp_path):
+    (tmp_path / "golden.toml").write_text("[parameters]\naxis_acc_time = 0\n")
+    path = write(tmp_path, GOOD + '\n[[steps]]\nkind = "parameters"\nfile = "golden.toml"\n')
+    rc, out, err = check(capsys, path)
+    assert rc == 2 and ":2: parameters.axis_acc_time: parameter 3 (axis_acc_time) must be between 1 and 9999" in err
+
+
+def test_a_missing_parameter_set(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD + '\n[[steps]]\nkind = "parameters"\nfile = "gone.toml"\n', 19,
+            "steps[2].file", ["gone.toml not found"])
+
+
+def test_a_limit_step_on_a_relay_that_is_not_wired(capsys, tmp_path):
+    text = GOOD + ('\n[[wiring.relay]]\nrelay = 0\ndrive_input = 0\nname = "limit+"\n'
+                   '\n[[steps]]\nkind = "limit-sensor"\nrelay = "limit-"\n')
+    refused(capsys, tmp_path, text, 24, "steps[2].relay", ["'limit-' is not in the plan's [wiring]", "0 (limit+)"])
+
+
+def test_a_bad_wiring_entry(capsys, tmp_path):
+    text = GOOD + '\n[[wiring.relay]]\nrelay = 0\ndrive_input = "x"\n'
+    refused(capsys, tmp_path, text, 19, "wiring.relay[0].drive_input", ["expected an integer", "'x'"])
+
+
+def test_a_protocol_that_is_neither(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("slave = 2", "slave = 2\nprotocol = 7"), 7, "drive.protocol",
+            ["6, 8 or [6, 8]"])
+
+
+def test_the_jig_is_not_a_drive(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("slave = 2", "slave = 1"), 6, "drive.slave", ["the jig"])
+
+
+def test_the_docs_reference_is_the_schema():
+    """docs/station.md's plan reference is generated from the schema the loader checks against."""
+    from motorjig.sim import doctables
+
+    with open(os.path.join(ROOT, "docs", "station.md")) as f:
+        text = f.read()
+    assert doctables.expected("docs/station.md", text) == text, "python -m motorjig.sim.doctables --write"
+    for kind in schema.KINDS:
+        assert '`kind = "%s"`' % kind in text
+
+
+def test_param_set_files_round_trip(tmp_path):
+    values = {1: 400000, 3: 250, 13: -5000}
+    path = tmp_path / "set.toml"
+    path.write_text(paramset.dumps(values, slave=2, slave_type=20))
+    ps = paramset.load(str(path))
+    assert ps.values == values and ps.slave_type == 20
