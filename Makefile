@@ -30,6 +30,7 @@ check-mpy: setup ## compile every firmware module with mpy-cross -march=armv7emd
 bench: setup ## print parser and bridge performance figures
 	@$(PY) tools/bench_parser.py
 	@$(PY) tools/bench_bridge.py
+	@$(PY) tools/bench_station.py
 
 sim: setup ## start the virtual bench (pty + TCP) and run the demo: make sim SIM_ARGS="--tcp-port 5000"
 	@$(PY) -m motorjig.sim $(SIM_ARGS)

@@ -360,8 +360,9 @@ def run_stop_response(test, bus, step, ctx):
     m.move_velocity(s, a["speed"], DIR_PLUS)
     while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
         trace.sample(m, s)
-    pos_at_stop = trace.rows[-1][1]
     t_stop = time.monotonic() - trace.t0
+    t, pos, _, vel = trace.rows[-1]
+    pos_at_stop = pos + vel * (t_stop - t)  # the last sample carried forward to the stop command
     if a["stop"] == "emergency-stop":
         m.emergency_stop(s)
     else:
@@ -369,7 +370,7 @@ def run_stop_response(test, bus, step, ctx):
     stopped = trace.until_stopped(m, s, 10.0)
     test.measurements["stopped"] = stopped
     test.measurements["stop_time"] = round(trace.rows[-1][0] - t_stop, 4)
-    test.measurements["overshoot"] = abs(trace.rows[-1][1] - pos_at_stop)
+    test.measurements["overshoot"] = int(round(abs(trace.rows[-1][1] - pos_at_stop)))
     test.attach("trace", trace.attachment(), "application/json")
     if a["stop"] == "emergency-stop" and a["recover"]:
         m.servo_enable(s, False)

@@ -19,11 +19,12 @@ import json
 import os
 import re
 import sys
+import threading
 import time
 
 import openhtf as htf
 from openhtf.output.callbacks import json_factory
-from openhtf.util import configuration, console_output
+from openhtf.util import configuration, console_output, threads
 
 from motorjig import names as N
 from motorjig.station import junit, report
@@ -191,15 +192,27 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
     test = build_test(plan, ctx, operator, station)
     test.add_output_callbacks(_writer(ctx, out_dir))
     ctx.test = test
+    hook, threading.excepthook = threading.excepthook, _quiet_abort(threading.excepthook)
     try:
         test.execute(test_start=_preflight(plan, serial))
     except KeyboardInterrupt:
         pass  # OpenHTF has aborted the run, torn the plug down and written the record
     finally:
         ctx.test = None
+        threading.excepthook = hook
     if (ctx.aborted or (ctx.record or {}).get("outcome") == "ABORTED") and plan.on_end != "none":
         _emergency_stop(port, baud, plan.drive.slave, timeout_ms)
     return ctx
+
+
+def _quiet_abort(hook):
+    """A threading.excepthook that says nothing of the phase thread OpenHTF stops on an abort
+    (the record says the run was aborted; a traceback on the operator's terminal would not help)."""
+    def excepthook(args):
+        if not issubclass(args.exc_type, threads.ThreadTerminationError):
+            hook(args)
+
+    return excepthook
 
 
 def _emergency_stop(port, baud, slave, timeout_ms):
