@@ -242,3 +242,19 @@ def test_the_plug_and_phases_in_a_users_own_openhtf_script(tmp_path):
     rec = records[0]
     assert rec.outcome.name == "PASS" and rec.dut_id == "SN1234"
     assert [p.name for p in rec.phases][-3:] == ["servo_on", "out", "back"]
+
+
+def test_a_parameters_step_in_apply_mode_writes_saves_and_verifies(tmp_path):
+    (tmp_path / "golden.toml").write_text("[drive]\nslave_type = 20\n[parameters]\naxis_acc_time = 222\n"
+                                          "org_speed = 7000\n")
+    plan = tmp_path / "apply.toml"
+    plan.write_text('[plan]\nname = "apply"\nversion = "1"\n[drive]\nslave = 2\n'
+                    '[[steps]]\nkind = "parameters"\nmode = "apply"\nfile = "golden.toml"\n')
+    with bench(wiring=False) as b:
+        ctx, rec = run(str(plan), b.tcp_url, tmp_path)
+        drive = b.sim.drivers[DRIVE]
+        assert (drive.ram[3], drive.rom[3], drive.ram[17], drive.rom[17]) == (222, 222, 7000, 7000)
+    assert rec["outcome"] == "PASS"
+    ms = phase(rec, "parameters")["measurements"]
+    assert set(ms) == {"ram_axis_acc_time", "rom_axis_acc_time", "ram_org_speed", "rom_org_speed"}
+    assert ms["rom_org_speed"]["measured_value"] == 7000

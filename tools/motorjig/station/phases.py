@@ -458,6 +458,8 @@ def build_phase(step, plan, ctx):
         failed = _failed_lines(results)
         if failed:
             bus.note_failure()
+            # the report's banner says why the run failed: the first failing step's measurements
+            test.test_record.metadata.setdefault("verdict_reason", "%s: %s" % (step.name, "; ".join(failed)))
         ctx.finished(step, "FAIL" if failed else "PASS", failed, sum(bus.master.roundtrips[n0:]), results)
 
     phase.__name__ = step.name
