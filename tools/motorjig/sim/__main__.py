@@ -1,17 +1,22 @@
 """python -m motorjig.sim: the virtual bench, interactive.
 
 Starts the simulated jig and drivers in real time, prints the jig's protocol and
-each driver's variant, the pseudo-terminal path and the pyserial TCP URL of the PC
-side, runs a short demo session (scan with variant detection -> servo on -> move
--> status) through that TCP port, then keeps serving until Ctrl-C (or --duration
-seconds). Each driver is Ver6 or Ver8 on its own: --drivers 2,3:v8.
+each driver's variant, the wiring and the injected faults, the pseudo-terminal path
+and the pyserial TCP URL of the PC side, runs a short demo session (scan with variant
+detection -> servo on -> move -> status) through that TCP port, then keeps serving
+until Ctrl-C (or --duration seconds). Each driver is Ver6 or Ver8 on its own:
+--drivers 2,3:v8. --wiring connects the jig's relays and inputs to a drive's I/O,
+--fault makes drives fail the way real ones do.
 """
 
 import argparse
 import sys
+import textwrap
 import time
 
+from ..wiring import WiringError, load_wiring
 from .bench import Bench
+from .driver import FAULTS, parse_fault_spec
 
 
 class DriverSpec(tuple):
@@ -54,8 +59,20 @@ def _protocol(text):
     return int(t)
 
 
+def _fault_help():
+    lines = ["faults (--fault [ID:]NAME[=VALUE]; without ID: the wired drive, else every driver):"]
+    for name, (value, default, what) in FAULTS.items():
+        spec = name + ("=" + value if value else "")
+        text = what + (" (default %s)" % default if default is not None else "")
+        lines.append(textwrap.fill(text, 96, initial_indent="  %-18s " % spec, subsequent_indent=" " * 21))
+    lines.append("e.g. --fault step-out=20000 --fault 3:alarm=4@50 --fault param=3:250 --fault no-origin")
+    lines.append("wiring file: a [wiring] table (a test plan or a wiring-only file), see docs/sim.md")
+    return "\n".join(lines)
+
+
 def parse_args(argv):
-    ap = argparse.ArgumentParser(prog="python -m motorjig.sim", description=__doc__.split("\n\n")[1])
+    ap = argparse.ArgumentParser(prog="python -m motorjig.sim", description=__doc__.split("\n\n")[1],
+                                 epilog=_fault_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--drivers", type=_drivers, default=_drivers("2,3"), metavar="IDS",
                     help="simulated driver ids, each optionally :v6 (default) or :v8, e.g. 2,3:v8 (default 2,3)")
     ap.add_argument("--jig-protocol", type=_protocol, default=6, metavar="{6,8}",
@@ -65,7 +82,48 @@ def parse_args(argv):
     ap.add_argument("--no-demo", action="store_true", help="skip the scripted demo session")
     ap.add_argument("--no-pty", action="store_true", help="do not create a pseudo-terminal")
     ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: run until Ctrl-C)")
+    ap.add_argument("--wiring", metavar="FILE",
+                    help="wire the jig's relays and inputs to a drive's I/O: a TOML file with a [wiring] table")
+    ap.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                    help="make a drive fail: [ID:]NAME[=VALUE], repeatable (the list below)")
     return ap.parse_args(argv)
+
+
+def check_setup(args):
+    """The wiring and the faults of the command line: (wiring or None, [(id, name, value)]).
+    ValueError with a one-line message for the user."""
+    wiring = None
+    if args.wiring:
+        try:
+            wiring = load_wiring(args.wiring)
+        except WiringError as exc:
+            raise ValueError("--wiring: %s" % exc) from None
+        if wiring.slave is not None and wiring.slave not in args.drivers:
+            raise ValueError("--wiring: %s: wiring.slave %d is not one of the --drivers (%s)"
+                             % (args.wiring, wiring.slave, ",".join(str(i) for i in args.drivers)))
+    faults = []
+    for spec in args.fault:
+        try:
+            slave, name, value = parse_fault_spec(spec)
+        except ValueError as exc:
+            raise ValueError("--fault %s: %s" % (spec, exc)) from None
+        if slave is not None and slave not in args.drivers:
+            raise ValueError("--fault %s: no driver %d (--drivers %s)"
+                             % (spec, slave, ",".join(str(i) for i in args.drivers)))
+        faults.append((slave, name, value))
+    return wiring, faults
+
+
+def describe_setup(sim, out=print):
+    """Print the bench's wiring and the faults that are on."""
+    if sim.wiring is None:
+        out("  wiring: none")
+    else:
+        out("  wiring (%s): drive %d" % (sim.wiring.source, sim.wired_slave))
+        for line in sim.wiring.describe() or ["(no wires)"]:
+            out("    " + line)
+    active = ["driver %d: %s" % (i, ", ".join(d.active_faults())) for i, d in sim.drivers.items() if d.active_faults()]
+    out("  faults: %s" % ("; ".join(active) if active else "none"))
 
 
 def demo(url, ids, out=print):
@@ -111,8 +169,13 @@ def main(argv=None):
     if not 0 <= args.tcp_port <= 65535:
         print("error: --tcp-port must be 0..65535", file=sys.stderr)
         return 2
+    try:
+        wiring, faults = check_setup(args)
+    except ValueError as exc:
+        print("error: %s" % exc, file=sys.stderr)
+        return 2
     bench = Bench(driver_ids=tuple(args.drivers), baud=args.baud, tcp_port=args.tcp_port, pty=not args.no_pty,
-                  jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8)
+                  jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8, wiring=wiring, faults=faults)
     try:
         bench.start()
     except OSError as exc:
@@ -123,6 +186,7 @@ def main(argv=None):
         drivers = ", ".join("%d (Ver%d)" % (i, 8 if i in args.drivers.ver8 else 6) for i in args.drivers)
         print("MotorJig virtual bench: jig = slave 1 (protocol Ver%d), drivers %s, %d baud"
               % (args.jig_protocol, drivers, args.baud))
+        describe_setup(bench.sim)
         if bench.pty_path:
             print("  pty: %s" % bench.pty_path)
         print("  tcp: %s" % bench.tcp_url)

@@ -16,6 +16,11 @@ The jig is the real firmware (``jig.app.App``) on ``SimHAL``; its main loop is
 polled whenever bytes reach one of its ports and whenever ``App.wait_us`` says a
 deadline is due.
 
+``wiring`` (a ``motorjig.wiring.Wiring`` or a TOML file with a ``[wiring]`` table)
+connects the jig's relays to one drive's inputs and that drive's outputs to the
+jig's inputs, evaluated whenever either side reads them; ``faults`` and
+``set_fault`` make drives fail (``SimDriver.set_fault``).
+
 In real time the bench runs on ``PacedClock``: simulated time follows the wall
 clock but never jumps over a pending event, so a stall of the host (a garbage
 collection, a busy machine) delays the whole simulated world alike instead of
@@ -35,6 +40,7 @@ from jig import params as P
 from jig.app import App
 from jig.parser import FrameParser
 
+from ..wiring import Wiring, load_wiring
 from .clock import PacedClock, VirtualClock
 from .driver import SimDriver
 from .hal import SimFS, SimHAL
@@ -155,13 +161,16 @@ class SimBench:
     drivers (to measure what the jig costs). ``stream_chunk``: bytes per delivery
     to the jig's ports while a frame arrives (see ``link``). ``cpu_model`` =
     (µs per main-loop pass that read input, µs per byte read): the jig's CPU time
-    on the virtual timeline (see ``hal``); default (0, 0).
+    on the virtual timeline (see ``hal``); default (0, 0). ``wiring``: the jig's I/O
+    wired to a drive (a ``Wiring`` or a TOML file; its slave, else the first driver).
+    ``faults``: (slave or None, name, value) each, as ``set_fault``.
     """
 
     def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
                  echo_down=False, record=True, servo_on=False, start_us=None, jig_ver8=None,
-                 ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0), fastpath=None):
+                 ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0), fastpath=None,
+                 wiring=None, faults=()):
         """``ver8``: the default variant of the jig and every driver. ``jig_ver8``
         (None: ``ver8``) sets the jig's protocol parameter; ``ver8_drivers`` (None:
         every driver follows ``ver8``) lists the ids of the Ver8 drivers, all others
@@ -200,11 +209,15 @@ class SimBench:
             self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, i in ver8_drivers,
                                         servo_on=servo_on)
         self._sync = 0
+        self.wiring = None
+        self.wired_slave = None
         if direct:
-            if jig_params or any(cpu_model):
-                raise ValueError("direct=True has no jig: jig_params and cpu_model do not apply")
+            if jig_params or any(cpu_model) or wiring is not None:
+                raise ValueError("direct=True has no jig: jig_params, cpu_model and wiring do not apply")
             self.fs = fs
             self.hal = self.runner = self.app = None
+            for slave, name, value in faults:
+                self.set_fault(name, value, slave)
             return
         self.fs = fs if fs is not None else SimFS()
         self.hal = SimHAL(self.clock, self.up_bus, self.down_bus, self.fs, rxsize=rxsize,
@@ -214,6 +227,26 @@ class SimBench:
         self.runner = JigRunner(self.clock, self.hal, DEFAULT_FASTPATH if fastpath is None else fastpath)
         self.app = self.runner.app
         self._sync = 0
+        if wiring is not None:
+            self._connect(wiring)
+        for slave, name, value in faults:
+            self.set_fault(name, value, slave)
+
+    def _connect(self, wiring):
+        """Wire the jig's relays to the drive's inputs and its outputs to the jig's inputs."""
+        if not isinstance(wiring, Wiring):
+            wiring = load_wiring(wiring)
+        slave = wiring.slave if wiring.slave is not None else next(iter(self.drivers))
+        if slave not in self.drivers:
+            raise ValueError("%s: wiring.slave %d is not a driver on this bench (drivers: %s)"
+                             % (wiring.source, slave, ", ".join(str(i) for i in self.drivers)))
+        drive = self.drivers[slave]
+        hal = self.hal
+        drive.connect_inputs(lambda: wiring.drive_inputs(hal.outputs), wiring.drive_input_mask)
+        hal.input_source = lambda: wiring.jig_inputs(drive.out_bits())
+        hal.output_hooks.append(drive.update)  # the drive's past ran with the relays as they were
+        self.wiring = wiring
+        self.wired_slave = slave
 
     def write_params(self, settings):
         """Store a parameter file (as SaveAllParameters would) for the next boot."""
@@ -240,6 +273,20 @@ class SimBench:
             d.clear_faults()
         if self.hal is not None:
             self.hal.up.node.corrupt(0)
+
+    def set_fault(self, name, value=None, slave=None):
+        """``SimDriver.set_fault`` on driver ``slave``; None: the wired drive, else every driver."""
+        if slave is not None:
+            if slave not in self.drivers:
+                raise ValueError("no driver %d on this bench (drivers: %s)"
+                                 % (slave, ", ".join(str(i) for i in self.drivers)))
+            targets = [self.drivers[slave]]
+        elif self.wired_slave is not None:
+            targets = [self.drivers[self.wired_slave]]
+        else:
+            targets = list(self.drivers.values())
+        for d in targets:
+            d.set_fault(name, value)
 
     def corrupt_to_pc(self, frames=1):
         """Flip a bit in each of the next ``frames`` transmissions of the jig to the PC

@@ -2,14 +2,34 @@
 
 Answers every frame type of the protocol notes with the documented response
 layout (unknown types: status 0x80, wrong request length: 0x82), after a
-configurable turnaround delay. Motion follows a trapezoidal profile (start speed,
-max speed, accel/decel times from parameters 2-4) evaluated in 1 ms steps of the
-bus's clock, so positions and the axis status flags (moving, accelerating,
-constant speed, decelerating, direction, in-position, servo on, limits, alarm,
-e-stop, pause) evolve over time. Alarms, limit positions and communication
-faults (silence, garbage, late or wrong-id replies, bad CRC, a forced status such
-as 0xAA "your request arrived corrupted") can be injected.
-RAM and ROM parameters 0-28 (SaveAllParameters copies RAM to ROM).
+configurable turnaround delay. RAM and ROM parameters 0-28 (SaveAllParameters
+copies RAM to ROM).
+
+Motion: a trapezoidal profile (start speed param 2; accel/decel times from params
+3/4, or from the option block of the Ex moves 0x80-0x82) integrated in 1 ms steps of
+the bus's clock; ``profile_time`` gives the time the model takes for a move. The
+axis status flags (moving, accelerating, constant speed, decelerating, direction,
+in-position, servo on, limits, alarm, e-stop, pause, origin search) evolve with it.
+
+Homing (0x33) is a motion: the axis runs in the homing direction (param 21: 0 = +,
+1 = -) at param 17 with param 19 acc/dec until its origin input (bit 2) reads
+active, decelerates to a stop, and its command position becomes param 23. The
+origin sensor is a flag on a rotary axis (``rev_pulses`` per turn, ``origin_pos`` /
+``origin_width``, in mechanical pulses; ``mech`` is where the shaft is), so a
+homing always finds it within one turn unless it is broken (fault ``no-origin``).
+
+Inputs (§7.2) a drive acts on: Limit+ / Limit- (bits 0/1) stop a move in their
+direction (param 15: 0 at once, 1 decelerating) and flag FF_HW_PLUS / FF_HW_MINUS;
+Stop (bit 13) stops like MoveStop; Origin (bit 2) ends a homing. The effective
+input word is SetIOInput's bits OR-ed with the physical ones: the origin sensor,
+the ``limit_plus``/``limit_minus`` trip points, and the jig's relays where the bench
+wired them (``connect_inputs``), less broken wires (fault ``dead-input``).
+
+Faults: communication (silence, garbage, late or wrong-id replies, bad CRC, a
+forced status such as 0xAA "your request arrived corrupted") as attributes, and
+``set_fault(name, value)`` for those of a failing drive (``FAULTS``: step-out, an
+alarm mid-move, a sluggish motor, a dead input, a wrong parameter, a missing origin
+sensor); ``clear_faults()`` switches all of them off.
 
 Each drive speaks Ver6 or Ver8 (``ver8``), independently of the others on the bus.
 A Ver8 drive reads every frame the Ver8 way: it CRC-checks the whole body and takes
@@ -25,6 +45,7 @@ codes whose layout the notes do not give (0x24, 0x25, 0x27, 0x28, 0x44, 0x4F)
 are answered with 0x80 by a Ver8 drive (``VER8_UNMODELLED``).
 """
 
+import math
 import random
 import struct
 
@@ -67,6 +88,12 @@ FF_CONST = 1 << 31
 OUT_ALARM = 1 << 2
 OUT_RUNSTOP = 1 << 3
 
+# Input bits the drive acts on (§7.2)
+IN_LIMIT_PLUS = 1 << 0
+IN_LIMIT_MINUS = 1 << 1
+IN_ORIGIN = 1 << 2
+IN_STOP = 1 << 13
+
 # Request data lengths (-1: several allowed, checked in the handler)
 REQ_LEN = {
     0x01: 0, 0x05: 0, 0x07: 0, 0x10: 0, 0x11: 1, 0x12: 5, 0x13: 1,
@@ -103,8 +130,45 @@ for _t in VER8_UNMODELLED:
 STEP_MS = 1.0  # motion integration step
 
 
+def profile_time(distance, speed, acc_ms, dec_ms, start_speed=1):
+    """Seconds the simulated drive's model takes to move ``distance`` pulses at ``speed`` pps.
+
+    The model (``Motion``): the axis starts at the start speed vs = min(start_speed, speed),
+    accelerates at speed / acc time, runs at speed, decelerates at speed / dec time back
+    to vs exactly at the target, and stops. With v = speed, ta, td in seconds and D =
+    |distance|, that takes
+
+        D / v + (ta + td) * (v - vs)**2 / (2 * v**2)            if D >= (ta + td) * (v**2 - vs**2) / (2 * v)
+
+    (with vs = 1 pps: D / v + (ta + td) / 2 to within 0.05 %), and for a shorter move a
+    triangle that peaks at vp = sqrt(vs**2 + 2 * D * v / (ta + td)):
+
+        (vp - vs) * (ta + td) / v
+
+    Speeds below 1 pps and times below 1 ms count as 1, as in the drive. The simulated
+    move ends at the first 1 ms step at or after this time (up to 2 ms later).
+    """
+    d = abs(distance)
+    if d == 0:
+        return 0.0
+    v = float(max(1, speed))
+    vs = float(max(1, min(start_speed, speed)))
+    t_ramps = (max(1, acc_ms) + max(1, dec_ms)) / 1000.0
+    if d >= t_ramps * (v * v - vs * vs) / (2 * v):
+        return d / v + t_ramps * (v - vs) ** 2 / (2 * v * v)
+    vp = math.sqrt(vs * vs + 2 * d * v / t_ramps)
+    return (vp - vs) * t_ramps / v
+
+
 class Motion:
-    """Trapezoidal single-axis motion integrated in fixed steps."""
+    """Trapezoidal single-axis motion integrated in fixed steps (``profile_time``).
+
+    Each step moves by the mean of the speeds at its start and end. A position move
+    never ends a step faster than the braking curve to the start speed allows; on the
+    curve it decelerates at the rate that lands it at the start speed exactly on the
+    target (the set one, to rounding), then stops there. So a move lasts
+    ``profile_time`` rounded up to the next step (+ at most one step).
+    """
 
     def __init__(self):
         self.pos = 0.0
@@ -133,6 +197,7 @@ class Motion:
             self.vel = self.vstart * direction
 
     def stop(self, dec_ms):
+        """Decelerate from the present speed to standstill in dec_ms."""
         if self.moving:
             self.stopping = True
             speed = max(abs(self.vel), 1.0)
@@ -144,54 +209,197 @@ class Motion:
         self.vel = 0.0
         self.phase = 0
 
+    def _arrive(self):
+        self.pos = float(self.target)
+        self.halt()
+
+    def _toward_vmax(self, s, dt):
+        """The speed after dt on the way to vmax (accelerating, or slowing after a lower override)."""
+        if s < self.vmax:
+            self.phase = 1
+            return min(s + self.acc * dt, self.vmax)
+        if s > self.vmax:
+            self.phase = 3
+            return max(s - self.dec * dt, self.vmax)
+        self.phase = 2
+        return s
+
     def step(self, dt):
         if not self.moving:
             return
-        speed = abs(self.vel)
+        s = abs(self.vel)
         d = self.direction
         if self.stopping:
-            speed -= self.dec * dt
+            s1 = s - self.dec * dt
             self.phase = 3
-            if speed <= 0:
-                self.pos += d * 0.5 * abs(self.vel) * dt
-                self.halt()
-                self.pos = float(round(self.pos))
-                return
-        elif self.target is not None:
-            remaining = (self.target - self.pos) * d
-            if remaining <= 0:
-                self.pos = float(self.target)
+            if s1 <= 0:
+                self.pos = float(round(self.pos + d * s * s / (2 * self.dec)))
                 self.halt()
                 return
-            brake = speed * speed / (2 * self.dec)
-            if self.phase == 3 or remaining <= brake + speed * dt:
-                speed = max(speed - self.dec * dt, self.vstart, 0.02 * self.vmax)
-                self.phase = 3
-            elif speed < self.vmax:
-                speed = min(speed + self.acc * dt, self.vmax)
-                self.phase = 1
-            else:
-                speed = self.vmax
-                self.phase = 2
-            if remaining <= speed * dt:
-                self.pos = float(self.target)
-                self.halt()
-                return
+        elif self.target is None:
+            s1 = self._toward_vmax(s, dt)
         else:
-            if speed < self.vmax:
-                speed = min(speed + self.acc * dt, self.vmax)
-                self.phase = 1
-            elif speed > self.vmax:
-                speed = max(speed - self.dec * dt, self.vmax)
+            left = (self.target - self.pos) * d
+            if left <= 0:
+                self._arrive()
+                return
+            vs = self.vstart
+            # (the tolerance keeps an axis that reached the braking curve on it)
+            if s * s - vs * vs >= 2 * self.dec * left * (1 - 1e-9):
+                s1 = s - (s * s - vs * vs) / (2 * left) * dt
                 self.phase = 3
+                if s1 <= vs:
+                    self._arrive()
+                    return
             else:
-                self.phase = 2
-        self.vel = speed * d
-        self.pos += self.vel * dt
+                s1 = self._toward_vmax(s, dt)
+                # End the step no faster than the braking curve allows (a steep ramp up
+                # would overshoot it by a whole step's speed gain, then brake too hard).
+                b = self.dec * dt
+                on_curve = (math.sqrt(b * b + 4 * (vs * vs + 2 * self.dec * left - b * s)) - b) / 2
+                if on_curve < s1:
+                    if on_curve <= vs:  # it reaches the target within this step
+                        self._arrive()
+                        return
+                    s1 = on_curve
+                    self.phase = 3
+            if (s + s1) / 2 * dt >= left:
+                self._arrive()
+                return
+        self.pos += d * (s + s1) / 2 * dt
+        self.vel = d * s1
+
+
+# --- faults of a failing drive: set_fault(name, value) ----------------------------
+# name -> (value it takes, default, what it does); the one list set_fault, the CLI's
+# --fault and the docs go by.
+FAULTS = {
+    "step-out": ("PPS", 20000, "above PPS the motor loses steps: the actual position falls behind "
+                               "(GetPosError grows and stays)"),
+    "alarm": ("CODE[@MS]", "1@30", "MS ms after a move starts (homing and jogs too) the drive raises alarm "
+                                   "CODE (§7.4; 1 over-current, 4 overload) mid-move: halt, servo off"),
+    "sluggish": ("FACTOR", 1.5, "every move takes FACTOR times its profile time (the motor runs slow)"),
+    "dead-input": ("BIT", None, "a broken wire: physical input BIT (0..31) always reads 0 (repeatable)"),
+    "param": ("NUM:VALUE", None, "RAM and ROM parameter NUM read VALUE (repeatable)"),
+    "no-origin": ("", None, "the origin sensor never reads active: homing runs on until stopped or a limit"),
+    "silent": ("", None, "never answers"),
+    "garbage": ("", None, "answers 3-19 random bytes"),
+    "bad-crc": ("", None, "its replies fail their CRC"),
+    "late": ("US", None, "answers US microseconds later than its turnaround"),
+    "wrong-id": ("ID", None, "answers with slave id ID"),
+}
+_SWITCHES = ("no-origin", "silent", "garbage", "bad-crc")
+
+
+def _number(value, cast, what):
+    if isinstance(value, bool):
+        raise ValueError("expected %s, got %r" % (what, value))
+    try:
+        return cast(value)
+    except (TypeError, ValueError):
+        raise ValueError("expected %s, got %r" % (what, value)) from None
+
+
+def parse_fault(name, value=None):
+    """The checked value of fault ``name`` (``FAULTS``): None means its default. Numbers
+    may be given as text (the CLI). ValueError with a one-line reason otherwise.
+
+    step-out -> int pps; alarm -> (code, ms); sluggish -> float; dead-input -> int bit;
+    param -> (number, value); late -> float µs; wrong-id -> int; the switches
+    (no-origin, silent, garbage, bad-crc) -> True or False.
+    """
+    if name not in FAULTS:
+        raise ValueError("unknown fault %r (known: %s)" % (name, ", ".join(FAULTS)))
+    try:
+        return _fault_value(name, value)
+    except ValueError as exc:
+        raise ValueError("%s: %s" % (name, exc)) from None
+
+
+def _fault_value(name, value):
+    if name in _SWITCHES:
+        if value is None or value is True:
+            return True
+        if value is False:
+            return False
+        raise ValueError("takes no value, got %r" % (value,))
+    if value is None:
+        value = FAULTS[name][1]
+        if value is None:
+            raise ValueError("needs a value: %s=%s" % (name, FAULTS[name][0]))
+    if name == "step-out":
+        pps = _number(value, int, "a speed in pps > 0")
+        if pps <= 0:
+            raise ValueError("expected a speed in pps > 0, got %d" % pps)
+        return pps
+    if name == "alarm":
+        if isinstance(value, tuple):
+            code, ms = value
+        else:
+            code, _, ms = str(value).partition("@")
+            ms = ms or 30
+        code = _number(code, int, "CODE or CODE@MS (an alarm code 1..16, §7.4; MS a time in ms)")
+        ms = _number(ms, float, "CODE@MS with MS a time in ms")
+        if not 1 <= code <= 16 or not 0 <= ms < float("inf"):
+            raise ValueError("expected CODE 1..16 (§7.4) and MS >= 0, got %d@%g" % (code, ms))
+        return code, ms
+    if name == "sluggish":
+        factor = _number(value, float, "a factor >= 1")
+        if not 1.0 <= factor < float("inf"):
+            raise ValueError("expected a factor >= 1, got %g" % factor)
+        return factor
+    if name == "dead-input":
+        bit = _number(value, int, "an input bit 0..31")
+        if not 0 <= bit <= 31:
+            raise ValueError("expected an input bit 0..31, got %d" % bit)
+        return bit
+    if name == "param":
+        if isinstance(value, tuple):
+            num, val = value
+        else:
+            num, sep, val = str(value).partition(":")
+            if not sep:
+                raise ValueError("expected NUM:VALUE, e.g. 3:250, got %r" % (value,))
+        num = _number(num, int, "NUM:VALUE with NUM a parameter number 0..28")
+        val = _number(val, int, "NUM:VALUE with VALUE an integer")
+        if not 0 <= num <= 28:
+            raise ValueError("parameter number must be 0..28, got %d" % num)
+        lo, hi = PARAM_RANGE[num]
+        if not lo <= val <= hi:
+            raise ValueError("parameter %d must be %d..%d, got %d" % (num, lo, hi, val))
+        return num, val
+    if name == "late":
+        us = _number(value, float, "a delay in µs >= 0")
+        if not 0 <= us < float("inf"):
+            raise ValueError("expected a delay in µs >= 0, got %g" % us)
+        return us
+    # wrong-id
+    sid = _number(value, int, "a slave id 0..255")
+    if not 0 <= sid <= 255:
+        raise ValueError("expected a slave id 0..255, got %d" % sid)
+    return sid
+
+
+def parse_fault_spec(spec):
+    """``[ID:]NAME[=VALUE]`` (the CLI's --fault) -> (id or None, name, checked value).
+    ``3:alarm=4@50``, ``param=3:250``, ``no-origin``. ValueError with the reason."""
+    head, eq, value = spec.strip().partition("=")
+    slave, colon, name = head.partition(":")
+    if not colon:
+        slave, name = None, head
+    else:
+        try:
+            slave = int(slave)
+        except ValueError:
+            raise ValueError("expected [ID:]NAME[=VALUE], e.g. 3:alarm=4@50; %r is not a driver id" % slave) from None
+        if not 0 <= slave <= 15:
+            raise ValueError("driver id must be 0..15, got %d" % slave)
+    name = name.strip()
+    return slave, name, parse_fault(name, value.strip() if eq else None)
 
 
 class SimDriver:
-    """One simulated drive. Set the fault attributes to misbehave."""
+    """One simulated drive. Set the fault attributes, or ``set_fault``, to misbehave."""
 
     def __init__(self, clock, bus, slave_id, turnaround_us=300.0, ver8=False, slave_type=20,
                  name=None, servo_on=False, seed=None):
@@ -212,20 +420,34 @@ class SimDriver:
         self.rom = list(PARAM_DEFAULT)
         self.motion = Motion()
         self.t_motion = clock.now
+        self.t_move_start = clock.now  # when the present (or last) move started
+        self.move_dec_ms = self.ram[4]  # its decel time (MoveStop, Stop input, limits)
+        self.ignore_stop_input = False  # its Ex option bit 0
         self.servo_on = servo_on
         self.alarm = 0
         self.estop = False
         self.paused = False
         self.origin_ok = False
+        self.homing = None  # None, "search" (running towards the origin sensor), "found" (stopping on it)
         self.outputs = 0
-        self.inputs = 0  # 32 bits in Ver6, 64 in Ver8
+        self.inputs = 0  # set by SetIOInput: 32 bits in Ver6, 64 in Ver8
         self.io_map = {}
         self.pos_table = {}
-        self.limit_plus = None  # position of the + limit sensor (None: none)
+        # Trip points in command position: the axis halts exactly there moving towards
+        # them (FF_HW_*), and the limit input reads active beyond them. None: none.
+        self.limit_plus = None
         self.limit_minus = None
         self.limit_hit = 0
-        self.actual_offset = 0
+        self.actual_offset = 0.0  # actual position - command position (SetActualPos, step-out)
         self.alarm_reset_held = False
+        # the mechanics: a rotary axis with an origin flag, in pulses
+        self.mech = 0.0  # where the shaft is (counts motion only, never a position reset)
+        self.rev_pulses = 10000  # one turn (param 0 = 9: 10000 pulses/rev); None: a linear axis
+        self.origin_pos = 2500  # the origin sensor's centre: a quarter turn on from power-up
+        self.origin_width = 500  # it reads active within +-width/2 of its centre
+        # physical inputs wired to the jig (connect_inputs): a source of bits and their mask
+        self.wire_source = None
+        self.wire_mask = 0
         # faults
         self.silent = False  # never answer
         self.garbage = False  # answer random bytes instead
@@ -236,6 +458,14 @@ class SimDriver:
         # (0xAA: "your request arrived corrupted"); None: off. See force().
         self.force_status = None
         self.force_frames = None  # requests left to answer so (None: until cleared)
+        # faults of a failing drive (set_fault; FAULTS)
+        self.step_out_pps = None  # speed above which steps are lost (None: off)
+        self.alarm_at = None  # (code, ms): alarm raised ms after a move starts (None: off)
+        self.sluggish = 1.0  # motion time runs this many times slower
+        self.dead_inputs = 0  # mask of physical inputs that always read 0
+        self.no_origin = False  # the origin sensor never reads active
+        self.param_faults = {}  # number -> the value set_fault forced into RAM and ROM
+        self._param_saved = {}  # number -> (RAM, ROM) before it, for clear_faults
         self.rng = random.Random(seed if seed is not None else slave_id)
         # statistics
         self.requests = 0
@@ -246,21 +476,33 @@ class SimDriver:
 
     # --- motion ---------------------------------------------------------------
     def update(self):
+        """Run the motion up to the clock's present, 1 ms step by step."""
         now = self.clock.now
-        dt_us = now - self.t_motion
         m = self.motion
+        step_us = STEP_MS * 1000.0
+        while m.moving and not self.paused and self.t_motion + step_us <= now:
+            self.t_motion += step_us
+            self._step(STEP_MS / 1000.0)
         if not m.moving or self.paused:
             self.t_motion = now
-            return
-        steps = int(dt_us // (STEP_MS * 1000))
-        for _ in range(steps):
-            m.step(STEP_MS / 1000.0)
-            self._check_limits()
-            if not m.moving:
-                break
-        self.t_motion += steps * STEP_MS * 1000 if m.moving else dt_us
+
+    def _step(self, dt):
+        m = self.motion
+        p0 = m.pos
+        m.step(dt / self.sluggish)  # sluggish: the motor's time runs slower than the clock
+        self._check_limits()
+        dp = m.pos - p0
+        moved = dp
+        if self.step_out_pps is not None and abs(dp) > self.step_out_pps * dt:
+            moved = math.copysign(self.step_out_pps * dt, dp)
+            self.actual_offset -= dp - moved  # the steps above the threshold are lost
+        self.mech += moved
+        if m.moving:
+            self._check_inputs()
+        if m.moving and self.alarm_at is not None and self.t_motion - self.t_move_start >= self.alarm_at[1] * 1000.0:
+            self._raise_alarm(self.alarm_at[0])
         if not m.moving:
-            self.t_motion = now
+            self._motion_ended()
 
     def _check_limits(self):
         m = self.motion
@@ -273,6 +515,84 @@ class SimDriver:
             m.halt()
             self.limit_hit = FF_HW_MINUS
 
+    def _check_inputs(self):
+        """What a moving drive does about its inputs: limits, Stop, the origin sensor."""
+        m = self.motion
+        bits = self.effective_inputs()
+        if m.direction > 0 and bits & IN_LIMIT_PLUS:
+            self._limit_stop(FF_HW_PLUS)
+        elif m.direction < 0 and bits & IN_LIMIT_MINUS:
+            self._limit_stop(FF_HW_MINUS)
+        elif bits & IN_STOP and not m.stopping and not self.ignore_stop_input:
+            self.homing = None
+            m.stop(self.move_dec_ms)
+        elif self.homing == "search" and bits & IN_ORIGIN:
+            self.homing = "found"
+            m.stop(self.move_dec_ms)
+
+    def _limit_stop(self, flag):
+        """A hardware limit input: param 15 hard_limit_stop_method 0 stops at once, 1 decelerates."""
+        m = self.motion
+        self.limit_hit |= flag
+        self.homing = None
+        if self.ram[15] == 0:
+            m.halt()
+        elif not m.stopping:
+            m.stop(self.move_dec_ms)
+
+    def _motion_ended(self):
+        if self.homing == "found":
+            self.motion.pos = float(self.ram[23])  # org_position_set
+            self.actual_offset = 0.0
+            self.origin_ok = True
+        self.homing = None
+
+    def _halt(self):
+        self.motion.halt()
+        self.homing = None
+
+    def _raise_alarm(self, code):
+        self.alarm = code
+        self._halt()
+        self.servo_on = False
+
+    # --- inputs ---------------------------------------------------------------------
+    def at_origin(self):
+        """True while the shaft is at the origin sensor (``origin_pos`` +- ``origin_width``/2)."""
+        off = self.mech - self.origin_pos
+        if self.rev_pulses:
+            half = self.rev_pulses / 2.0
+            off = (off + half) % self.rev_pulses - half
+        return abs(off) <= self.origin_width / 2.0
+
+    def sensor_inputs(self):
+        """Input bits of the drive's own sensors: origin, and the limit trip points."""
+        bits = 0
+        pos = self.motion.pos
+        if self.limit_plus is not None and pos >= self.limit_plus:
+            bits |= IN_LIMIT_PLUS
+        if self.limit_minus is not None and pos <= self.limit_minus:
+            bits |= IN_LIMIT_MINUS
+        if not self.no_origin and self.at_origin():
+            bits |= IN_ORIGIN
+        return bits
+
+    def connect_inputs(self, source, mask):
+        """Wire the input bits in ``mask`` to ``source()`` (the jig's relays through the
+        bench's wiring), read whenever the drive looks at its inputs. A wired bit reads
+        only its wire: the drive's own sensor for that bit is not connected."""
+        self.wire_source = source
+        self.wire_mask = mask
+
+    def effective_inputs(self):
+        """The input word the drive reads: SetIOInput's bits OR the physical ones
+        (sensors, wires to the jig) less the dead ones."""
+        physical = self.sensor_inputs() & ~self.wire_mask
+        if self.wire_source is not None:
+            physical |= self.wire_source() & self.wire_mask
+        return self.inputs | (physical & ~self.dead_inputs)
+
+    # --- status ---------------------------------------------------------------------
     def flags(self):
         self.update()
         m = self.motion
@@ -294,6 +614,8 @@ class SimDriver:
             f |= FF_SERVO_ON
         if self.paused:
             f |= FF_PAUSED
+        if self.homing:
+            f |= FF_ORIGIN_RETURNING
         if self.origin_ok:
             f |= FF_ORIGIN_OK
         if self.alarm_reset_held:
@@ -301,6 +623,8 @@ class SimDriver:
         return f
 
     def out_bits(self):
+        """The output word: SetIOOutput's bits, alarm (bit 2), run/stop (bit 3)."""
+        self.update()
         o = self.outputs
         if self.alarm:
             o |= OUT_ALARM
@@ -310,13 +634,67 @@ class SimDriver:
 
     def inject_alarm(self, code=3):
         self.update()
-        self.alarm = code
-        self.motion.halt()
-        self.servo_on = False
+        self._raise_alarm(code)
 
-    # --- communication --------------------------------------------------------
+    # --- faults ---------------------------------------------------------------------
+    def set_fault(self, name, value=None):
+        """Make the drive fail like a real one (``FAULTS``; values as ``parse_fault``,
+        None: the default). ValueError for an unknown name or a bad value."""
+        v = parse_fault(name, value)
+        self.update()  # the fault starts now, not at the last request
+        if name == "step-out":
+            self.step_out_pps = v
+        elif name == "alarm":
+            self.alarm_at = v
+        elif name == "sluggish":
+            self.sluggish = v
+        elif name == "dead-input":
+            self.dead_inputs |= 1 << v
+        elif name == "param":
+            num, val = v
+            self._param_saved.setdefault(num, (self.ram[num], self.rom[num]))
+            self.ram[num] = self.rom[num] = val
+            self.param_faults[num] = val
+        elif name == "no-origin":
+            self.no_origin = v
+        elif name == "silent":
+            self.silent = v
+        elif name == "garbage":
+            self.garbage = v
+        elif name == "bad-crc":
+            self.bad_crc = v
+        elif name == "late":
+            self.late_us = v
+        elif name == "wrong-id":
+            self.wrong_id = v
+
+    def active_faults(self):
+        """The faults that are on, as ``NAME[=VALUE]`` specs (what --fault takes)."""
+        out = []
+        if self.step_out_pps is not None:
+            out.append("step-out=%d" % self.step_out_pps)
+        if self.alarm_at is not None:
+            out.append("alarm=%d@%g" % self.alarm_at)
+        if self.sluggish != 1.0:
+            out.append("sluggish=%g" % self.sluggish)
+        out += ["dead-input=%d" % b for b in range(64) if self.dead_inputs >> b & 1]
+        out += ["param=%d:%d" % kv for kv in sorted(self.param_faults.items())]
+        for name, on in (("no-origin", self.no_origin), ("silent", self.silent), ("garbage", self.garbage),
+                         ("bad-crc", self.bad_crc)):
+            if on:
+                out.append(name)
+        if self.late_us:
+            out.append("late=%g" % self.late_us)
+        if self.wrong_id is not None:
+            out.append("wrong-id=%d" % self.wrong_id)
+        if self.force_status is not None:
+            out.append("force=0x%02X" % self.force_status)
+        return out
+
     def clear_faults(self):
-        """Every fault switch off, limit sensors removed (alarms and motion stay)."""
+        """Every fault off: the switches, set_fault's faults (a forced parameter gets its
+        RAM and ROM values back), the limit trip points. Alarms and motion stay."""
+        self.update()
         self.force(None)
         self.silent = False
         self.garbage = False
@@ -325,7 +703,18 @@ class SimDriver:
         self.bad_crc = False
         self.limit_plus = None
         self.limit_minus = None
+        self.step_out_pps = None
+        self.alarm_at = None
+        self.sluggish = 1.0
+        self.dead_inputs = 0
+        self.no_origin = False
+        for num, (ram, rom) in self._param_saved.items():
+            self.ram[num] = ram
+            self.rom[num] = rom
+        self._param_saved = {}
+        self.param_faults = {}
 
+    # --- communication --------------------------------------------------------
     def force(self, status, frames=None):
         """Answer the next ``frames`` addressed requests (None: all, until ``force(None)``)
         with just ``status``, without executing them. Broadcasts are not affected."""
@@ -418,12 +807,25 @@ class SimDriver:
             return False
         return True
 
-    def _start(self, target, speed, direction):
+    def _start(self, target, speed, direction, acc_ms=None, dec_ms=None, ignore_stop=False):
+        """Start a move (target None: run at speed); acc/dec None: parameters 3/4."""
         self.limit_hit = 0
         self.paused = False
+        self.homing = None
         r = self.ram
-        self.motion.start(target, speed, direction, r[3], r[4], r[2])
-        self.t_motion = self.clock.now
+        acc_ms = r[3] if acc_ms is None else acc_ms
+        self.move_dec_ms = r[4] if dec_ms is None else dec_ms
+        self.ignore_stop_input = ignore_stop
+        self.motion.start(target, speed, direction, acc_ms, self.move_dec_ms, r[2])
+        self.t_motion = self.t_move_start = self.clock.now
+
+    @staticmethod
+    def _ex_time(flags, bit, ms):
+        """An Ex option's time if its flag bit is set (None: the parameter's), or -1 if
+        outside the parameters' range 1..9999 ms."""
+        if not flags & bit:
+            return None
+        return ms if 1 <= ms <= 9999 else -1
 
     # info / parameters
     def _h01(self, d):
@@ -474,7 +876,7 @@ class SimDriver:
         return 0
 
     def _h22(self, d):
-        return self._ok(self._in_fmt(), self.inputs)
+        return self._ok(self._in_fmt(), self.effective_inputs())
 
     def _h23(self, d):
         return self._ok("I", self.out_bits())
@@ -510,7 +912,7 @@ class SimDriver:
                 self.estop = False
             self.servo_on = True
         else:
-            self.motion.halt()
+            self._halt()
             self.servo_on = False
         return 0
 
@@ -532,28 +934,32 @@ class SimDriver:
 
     # motion
     def _h31(self, d):
-        self.motion.stop(self.ram[4])
+        self.homing = None  # a stop ends an origin search without an origin
+        self.motion.stop(self.move_dec_ms)
         return 0
 
     def _h32(self, d):
-        self.motion.halt()
+        self._halt()
         self.estop = True
         return 0
 
     def _h33(self, d):
+        """Origin search: run towards the origin sensor (param 21 org_dir: 0 +, 1 -) at
+        param 17 with param 19 acc/dec; stopping on it sets param 23 and FF_ORIGIN_OK."""
         if not self._can_move():
             return F.STATUS_MOTION_REFUSED
-        self.motion.halt()
-        self.motion.pos = 0.0
-        self.origin_ok = True
+        r = self.ram
+        self.origin_ok = False
+        self._start(None, r[17], -1 if r[21] else 1, r[19], r[19])
+        self.homing = "search"
         return 0
 
-    def _move_abs(self, target, speed):
+    def _move_abs(self, target, speed, acc_ms=None, dec_ms=None, ignore_stop=False):
         if not self._can_move():
             return F.STATUS_MOTION_REFUSED
         if target == round(self.motion.pos):
             return 0
-        self._start(target, speed, 1 if target > self.motion.pos else -1)
+        self._start(target, speed, 1 if target > self.motion.pos else -1, acc_ms, dec_ms, ignore_stop)
         return 0
 
     def _h34(self, d):
@@ -610,16 +1016,17 @@ class SimDriver:
 
     # status
     def _positions(self):
+        """(command, actual, error, velocity); a sluggish motor really runs slower."""
         self.update()
         cmd = int(round(self.motion.pos))
-        act = cmd + self.actual_offset
-        return cmd, act, cmd - act, int(round(self.motion.vel))
+        act = cmd + int(round(self.actual_offset))
+        return cmd, act, cmd - act, int(round(self.motion.vel / self.sluggish))
 
     def _h40(self, d):
         return self._ok("I", self.flags())
 
     def _h41(self, d):
-        return self._ok(self._in_fmt() + "II", self.inputs, self.out_bits(), self.flags())
+        return self._ok(self._in_fmt() + "II", self.effective_inputs(), self.out_bits(), self.flags())
 
     def _h42(self, d):
         cmd, act, err, vel = self._positions()
@@ -628,8 +1035,8 @@ class SimDriver:
 
     def _h43(self, d):
         cmd, act, err, vel = self._positions()
-        return self._ok(self._in_fmt() + "IIiiiiI", self.inputs, self.out_bits(), self.flags(), cmd, act, err,
-                        vel, 0)
+        return self._ok(self._in_fmt() + "IIiiiiI", self.effective_inputs(), self.out_bits(), self.flags(), cmd,
+                        act, err, vel, 0)
 
     def _h50(self, d):
         (self.motion.pos,) = struct.unpack("<i", d)
@@ -655,7 +1062,7 @@ class SimDriver:
 
     def _h56(self, d):
         self.motion.pos = 0.0
-        self.actual_offset = 0
+        self.actual_offset = 0.0
         return 0
 
     def _h58(self, d):
@@ -739,12 +1146,37 @@ class SimDriver:
     def _h79(self, d):
         return self._ok("B", 0)
 
+    def _motion_option(self, d):
+        """MOTION_OPTION_EX at data offset 8 (§5.8): (acc_ms, dec_ms, ignore_stop), None
+        for a time the parameters give; None for the whole if a time is out of range."""
+        flags, acc, dec = struct.unpack_from("<IHH", d, 8)
+        acc, dec = self._ex_time(flags, 2, acc), self._ex_time(flags, 4, dec)
+        if acc == -1 or dec == -1:
+            return None
+        return acc, dec, bool(flags & 1)
+
     def _h80(self, d):
-        return self._move_abs(*struct.unpack_from("<iI", d))
+        pos, speed = struct.unpack_from("<iI", d)
+        opt = self._motion_option(d)
+        if opt is None:
+            return F.STATUS_DATA_ERROR
+        return self._move_abs(pos, speed, *opt)
 
     def _h81(self, d):
         dist, speed = struct.unpack_from("<iI", d)
-        return self._move_abs(int(round(self.motion.pos)) + dist, speed)
+        opt = self._motion_option(d)
+        if opt is None:
+            return F.STATUS_DATA_ERROR
+        return self._move_abs(int(round(self.motion.pos)) + dist, speed, *opt)
 
     def _h82(self, d):
-        return self._h37(d[0:5])
+        """MoveVelocityEx: VELOCITY_OPTION_EX at data offset 5, flag bit 1: u16 acc/dec time."""
+        speed, direction = struct.unpack_from("<IB", d)
+        flags, accdec = struct.unpack_from("<IH", d, 5)
+        t = self._ex_time(flags, 2, accdec)
+        if t == -1:
+            return F.STATUS_DATA_ERROR
+        if not self._can_move():
+            return F.STATUS_MOTION_REFUSED
+        self._start(None, speed, 1 if direction else -1, t, t, bool(flags & 1))
+        return 0

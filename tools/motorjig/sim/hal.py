@@ -15,6 +15,11 @@ bytes in a main-loop pass advances the clock by the per-pass cost, and every rea
 by the per-byte cost times the bytes it returned, so whatever the pass does with
 them (forwarding, answering) happens that much later. Bytes keep arriving
 meanwhile. Default (0, 0): the CPU is infinitely fast.
+
+The jig's I/O can be wired to a simulated drive (``SimBench(wiring=...)``):
+``input_source`` adds bits to what ``get_inputs`` returns, computed when it is
+read, and ``output_hooks`` run before the outputs (relays) change, so a drive
+wired to them first catches up to the present with the relays as they were.
 """
 
 from jig.ringbuf import RingBuffer
@@ -152,7 +157,9 @@ class SimHAL:
         self.echo_down = echo_down
         self.record = record
         self.outputs = 0
-        self.inputs = 0
+        self.inputs = 0  # buttons; tests set it
+        self.input_source = None  # fn() -> more input bits, read when the inputs are (the wiring)
+        self.output_hooks = []  # fn() called before the outputs change
         self.wdt_feeds = 0
         self.beats = 0
         self.up = None
@@ -177,13 +184,17 @@ class SimHAL:
         self.clock.run_until(self.clock.now + us)
 
     def set_outputs(self, mask):
+        for fn in self.output_hooks:
+            fn()
         self.outputs = mask
 
     def get_outputs(self):
         return self.outputs
 
     def get_inputs(self):
-        return self.inputs
+        if self.input_source is None:
+            return self.inputs
+        return self.inputs | self.input_source()
 
     def heartbeat(self, on):
         self.beats += 1

@@ -1,0 +1,215 @@
+"""How a test jig's relays and inputs are wired to one drive's I/O, read from TOML.
+
+A ``[wiring]`` table, which a test plan file contains too (so a plan or a
+wiring-only file will do)::
+
+    [wiring]
+    slave = 2                 # optional: the drive wired to the jig
+    [[wiring.relay]]          # jig relay k = the jig's output bit k (SetIOOutput on slave 1)
+    relay = 0
+    drive_input = 0           # the drive input bit it drives (§7.2)
+    name = "limit+"           # optional label
+    [[wiring.sense]]          # a drive output bit reaching the jig's input k (GetIOInput on slave 1)
+    jig_input = 0
+    drive_output = 15         # §7.1
+    name = "user out 0"
+
+``WIRING_SCHEMA`` describes every key (type, range, meaning); the parser checks
+against it and nothing else, so a docs generator can render the same table. Unknown
+keys are errors, so a misspelling never passes silently. Each problem raises
+``WiringError`` naming the file and the key: ``plan.toml: wiring.relay[1].drive_input:
+expected an integer 0..31, got 'x'`` (array indexes count from 0).
+
+Only the standard library: ``tomllib`` (Python 3.11+), else the ``tomli`` package.
+"""
+
+from collections import namedtuple
+
+try:
+    import tomllib
+except ImportError:  # Python < 3.11
+    try:
+        import tomli as tomllib
+    except ImportError:
+        tomllib = None
+
+
+class WiringError(ValueError):
+    """A problem in a wiring: ``source: key: reason``."""
+
+    def __init__(self, source, key, reason):
+        self.source, self.key, self.reason = source, key, reason
+        super().__init__("%s: %s: %s" % (source, key, reason) if key else "%s: %s" % (source, reason))
+
+
+# kind: "integer" (lo..hi), "string", or "tables" (an array of tables, [[wiring.KEY]],
+# whose keys are the WIRING_SCHEMA entry "wiring.KEY")
+Field = namedtuple("Field", "key kind lo hi required meaning")
+
+WIRING_SCHEMA = {
+    "wiring": (
+        Field("slave", "integer", 0, 15, False,
+              "the drive wired to the jig (default: the plan's [drive] slave, else the bench's first driver)"),
+        Field("relay", "tables", None, None, False, "a jig relay wired to a drive input"),
+        Field("sense", "tables", None, None, False, "a drive output wired to a jig input"),
+    ),
+    "wiring.relay": (
+        Field("relay", "integer", 0, 15, True, "jig relay k = the jig's output bit k (SetIOOutput on slave 1)"),
+        Field("drive_input", "integer", 0, 31, True,
+              "the drive input bit it drives (§7.2: 0 Limit+, 1 Limit-, 2 Origin, 13 Stop, 26-31 User IN 0-5)"),
+        Field("name", "string", None, None, False, "a label (test plans may name the relay by it)"),
+    ),
+    "wiring.sense": (
+        Field("jig_input", "integer", 0, 15, True, "jig input k = the jig's input bit k (GetIOInput on slave 1)"),
+        Field("drive_output", "integer", 0, 31, True,
+              "the drive output bit that reaches it (§7.1: 2 Alarm, 3 Run/Stop, 15-23 User OUT 0-8)"),
+        Field("name", "string", None, None, False, "a label (test plans may name the input by it)"),
+    ),
+}
+
+
+class Wiring:
+    """``slave`` (None: not given), ``relays`` ((relay, drive_input, name), ...),
+    ``senses`` ((jig_input, drive_output, name), ...); name is "" when not given."""
+
+    def __init__(self, slave=None, relays=(), senses=(), source="<wiring>"):
+        self.slave = slave
+        self.relays = tuple(relays)
+        self.senses = tuple(senses)
+        self.source = source
+
+    @property
+    def drive_input_mask(self):
+        """The drive input bits some relay drives."""
+        mask = 0
+        for _, bit, _ in self.relays:
+            mask |= 1 << bit
+        return mask
+
+    @property
+    def jig_input_mask(self):
+        """The jig input bits some drive output reaches."""
+        mask = 0
+        for k, _, _ in self.senses:
+            mask |= 1 << k
+        return mask
+
+    def drive_inputs(self, jig_outputs):
+        """The drive input bits the relays set in ``jig_outputs`` (a mask of the jig's outputs) drive."""
+        mask = 0
+        for relay, bit, _ in self.relays:
+            if jig_outputs >> relay & 1:
+                mask |= 1 << bit
+        return mask
+
+    def jig_inputs(self, drive_outputs):
+        """The jig input bits the drive's outputs ``drive_outputs`` (a mask) set."""
+        mask = 0
+        for k, bit, _ in self.senses:
+            if drive_outputs >> bit & 1:
+                mask |= 1 << k
+        return mask
+
+    def describe(self):
+        """One line per wire, for people."""
+        lines = []
+        for relay, bit, name in self.relays:
+            lines.append("jig relay %d -> drive input %d%s" % (relay, bit, " (%s)" % name if name else ""))
+        for k, bit, name in self.senses:
+            lines.append("drive output %d -> jig input %d%s" % (bit, k, " (%s)" % name if name else ""))
+        return lines
+
+    def __repr__(self):
+        return "Wiring(slave=%r, relays=%r, senses=%r)" % (self.slave, self.relays, self.senses)
+
+
+def _kind_text(f):
+    if f.kind == "integer":
+        return "an integer %d..%d" % (f.lo, f.hi)
+    if f.kind == "string":
+        return "a string"
+    return "an array of tables ([[wiring.%s]])" % f.key
+
+
+def _check(source, path, table, section):
+    """The values of ``table`` per WIRING_SCHEMA[section]: {key: value}, absent optional keys None."""
+    fields = WIRING_SCHEMA[section]
+    if not isinstance(table, dict):
+        raise WiringError(source, path, "expected a table, got %r" % (table,))
+    known = [f.key for f in fields]
+    for key in table:
+        if key not in known:
+            raise WiringError(source, "%s.%s" % (path, key), "unknown key (known: %s)" % ", ".join(known))
+    out = {}
+    for f in fields:
+        where = "%s.%s" % (path, f.key)
+        if f.key not in table:
+            if f.required:
+                raise WiringError(source, where, "missing: %s is required" % _kind_text(f))
+            out[f.key] = None
+            continue
+        v = table[f.key]
+        if f.kind == "integer":
+            ok = isinstance(v, int) and not isinstance(v, bool) and f.lo <= v <= f.hi
+        elif f.kind == "string":
+            ok = isinstance(v, str)
+        else:
+            ok = isinstance(v, list) and all(isinstance(x, dict) for x in v)
+        if not ok:
+            got = "a table" if isinstance(v, dict) else repr(v)
+            raise WiringError(source, where, "expected %s, got %s" % (_kind_text(f), got))
+        out[f.key] = v
+    return out
+
+
+def parse_wiring(table, source="<wiring>", default_slave=None):
+    """A ``Wiring`` from the already parsed ``[wiring]`` table (a dict). ``default_slave``:
+    the slave when the table names none (a plan's [drive] slave). WiringError on any problem."""
+    top = _check(source, "wiring", table, "wiring")
+    slave = top["slave"] if top["slave"] is not None else default_slave
+    relays, senses = [], []
+    for key, section, out, own, other in (("relay", "wiring.relay", relays, "relay", "drive_input"),
+                                          ("sense", "wiring.sense", senses, "jig_input", "drive_output")):
+        names = {}
+        used = {}
+        for i, item in enumerate(top[key] or ()):
+            where = "wiring.%s[%d]" % (key, i)
+            v = _check(source, where, item, section)
+            k = v[own]
+            if k in used:
+                raise WiringError(source, "%s.%s" % (where, own), "%s %d is already wired in wiring.%s[%d]"
+                                  % (own.replace("_", " "), k, key, used[k]))
+            used[k] = i
+            name = v["name"] or ""
+            if name:
+                if name in names:
+                    raise WiringError(source, where + ".name", "name %r is already used by wiring.%s[%d]"
+                                      % (name, key, names[name]))
+                names[name] = i
+            out.append((k, v[other], name))
+    return Wiring(slave, relays, senses, source)
+
+
+def load_wiring(path):
+    """The wiring of a TOML file: its ``[wiring]`` table, with its ``[drive] slave`` (a test
+    plan's) as the default slave. WiringError (naming the file) on any problem."""
+    source = str(path)
+    if tomllib is None:
+        raise WiringError(source, "", "reading TOML needs Python 3.11+ (tomllib) or the tomli package "
+                                      "(pip install tomli)")
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except OSError as exc:
+        raise WiringError(source, "", "cannot read it: %s" % (exc.strerror or exc)) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise WiringError(source, "", "not valid TOML: %s" % exc) from None
+    if "wiring" not in data:
+        raise WiringError(source, "", "no [wiring] table")
+    slave = None
+    drive = data.get("drive")
+    if isinstance(drive, dict) and "slave" in drive:
+        slave = drive["slave"]
+        if not isinstance(slave, int) or isinstance(slave, bool) or not 0 <= slave <= 15:
+            raise WiringError(source, "drive.slave", "expected an integer 0..15, got %r" % (slave,))
+    return parse_wiring(data["wiring"], source, slave)
