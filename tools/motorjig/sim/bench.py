@@ -27,13 +27,11 @@ collection, a busy machine) delays the whole simulated world alike instead of
 letting the jig's reply timeout expire before a simulated drive had its turn.
 """
 
-import heapq
 import os
 import queue
 import select
 import socket
 import threading
-import time
 
 from jig import frame as F
 from jig import params as P
