@@ -81,7 +81,7 @@ def test_the_eol_plan_passes_on_a_healthy_drive(tmp_path, ver8):
     assert rec["outcome"] == "PASS", [(p["name"], failed_measurements(p)) for p in failed_phases(rec)]
     assert rec["dut_id"] == "SN-OK-1" and rec["metadata"]["operator"] == "ci"
     names = [p["name"] for p in rec["phases"]]
-    for name in ("move_speed_2000", "move_speed_20000", "move_speed_50000", "home", "io", "limit-sensor",
+    for name in ("move_speed_5000", "move_speed_20000", "move_speed_50000", "home", "io", "limit-sensor",
                  "stop-response", "emergency_stop", "bus-health", "servo_off"):
         assert name in names
     assert not st.servo_on  # the plan's last step
@@ -90,8 +90,8 @@ def test_the_eol_plan_passes_on_a_healthy_drive(tmp_path, ver8):
 FAULTS = [
     # (fault, value, the step that must catch it, measurements that must fail there)
     ("step-out", 20000, "move_speed_50000", {"following_error", "position_error"}),
-    ("alarm", "1@30", "move_speed_2000", {"alarm"}),
-    ("sluggish", 1.5, "move_speed_2000", {"duration_ratio"}),
+    ("alarm", "1@30", "move_speed_5000", {"alarm"}),
+    ("sluggish", 1.5, "move_speed_5000", {"duration_ratio"}),
     ("param", "3:250", "parameters", {"ram_axis_acc_time", "rom_axis_acc_time"}),
     ("no-origin", None, "home", {"origin_ok"}),
     ("dead-input", 26, "io", {"relay_2_on"}),
@@ -135,14 +135,14 @@ def test_a_ver8_plan_on_a_ver6_drive_is_refused_before_anything_moves(tmp_path, 
 def test_a_connection_lost_mid_run_ends_it_as_error_with_the_record(tmp_path):
     b = bench()
     b.start()
-    threading.Timer(1.2, b.stop).start()  # during move_speed_2000 (2.1 s)
+    threading.Timer(1.2, b.stop).start()  # during move_speed_5000 (2.1 s)
     try:
         ctx, rec = run(EOL, b.tcp_url, tmp_path)
     finally:
         b.stop()
     assert rec["outcome"] == "ERROR"
     last = rec["phases"][-1]
-    assert last["name"] == "move_speed_2000" and last["outcome"] == "ERROR"
+    assert last["name"] == "move_speed_5000" and last["outcome"] == "ERROR"
     assert phase(rec, "identify")["outcome"] == "PASS"
     with open(ctx.files["json"]) as f:
         assert json.load(f)["outcome"] == "ERROR"
@@ -189,7 +189,7 @@ def test_jigctl_test_prints_a_line_per_step_and_exits_1_on_a_failure(tmp_path):
     assert any("parameters" in ln and "FAIL" in ln for ln in lines), p.stdout
     assert any("ram_axis_acc_time = 250 (x == 100)" in ln for ln in lines), p.stdout
     assert any(ln.startswith("FAIL  ezi-step-eol  dut SN7") for ln in lines), p.stdout
-    assert lines[-3].startswith("  html ") and lines[-3].endswith(".html"), p.stdout
+    assert any(ln.startswith("  html ") and ln.endswith(".html") for ln in lines), p.stdout
 
 
 def test_jigctl_test_with_a_wrong_port_is_one_sentence(tmp_path):

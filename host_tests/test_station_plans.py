@@ -70,8 +70,8 @@ def test_shipped_plans_check_out(capsys, name):
 def test_the_eol_plan_expands_its_sweep_into_three_moves():
     plan = P.load_plan(os.path.join(PLANS, "ezi-step-eol.toml"))
     moves = [s for s in plan.steps if s.kind == "move" and s.index == 5]
-    assert [s.args["speed"] for s in moves] == [2000, 20000, 50000]
-    assert [s.name for s in moves] == ["move_speed_2000", "move_speed_20000", "move_speed_50000"]
+    assert [s.args["speed"] for s in moves] == [5000, 20000, 50000]
+    assert [s.name for s in moves] == ["move_speed_5000", "move_speed_20000", "move_speed_50000"]
     assert len({s.name for s in plan.steps}) == len(plan.steps)
     assert plan.drive.protocol == (6, 8)
     assert re.fullmatch(r"[0-9a-f]{64}", plan.hash)
