@@ -1,0 +1,150 @@
+"""Wireshark extcap: the ``motorjig-sniff`` interface, a Plus-R bus through a listen-only adapter.
+
+Wireshark runs this program (the launcher ``jigctl capture --install-extcap``
+writes) in the steps of the extcap interface::
+
+    --extcap-interfaces                          the interface list
+    --extcap-interface motorjig-sniff --extcap-dlts     its link type (USER0, the dissector's)
+    --extcap-interface motorjig-sniff --extcap-config   its options: port/URL, baud, bus, timeout
+    --extcap-interface motorjig-sniff --capture --fifo PATH --port URL [--baud N] ...
+
+and the capture writes pcapng into the fifo (the same writer as ``jigctl capture
+-w``) until Wireshark closes it or stops the program. In tshark the options are
+preferences: ``-o extcap.motorjig_sniff.port:/dev/ttyUSB1`` (also ``baud``, ``bus``,
+``interbytetimeout``).
+"""
+
+import argparse
+import select
+import signal
+import sys
+
+from motorjig.capture import pcapng
+from motorjig.capture import record as R
+from motorjig.capture.sniff import DEFAULT_INTERBYTE_MS, Sniffer, open_port
+from motorjig.errors import JigError
+from motorjig.master import BAUD_RATES, DEFAULT_BAUD
+
+INTERFACE = "motorjig-sniff"
+
+
+def _version():
+    try:
+        from importlib.metadata import version
+
+        return version("motorjig")
+    except Exception:
+        return "0.1.0"
+
+
+def interfaces():
+    return ["extcap {version=%s}{display=MotorJig}" % _version(),
+            "interface {value=%s}{display=MotorJig: FASTECH Plus-R bus (listen-only RS-485 adapter)}" % INTERFACE]
+
+
+def dlts():
+    return ["dlt {number=%d}{name=USER0}{display=FASTECH Plus-R, PC bus (MotorJig records)}" % pcapng.LINKTYPES["pc"],
+            "dlt {number=%d}{name=USER1}{display=FASTECH Plus-R, driver bus (MotorJig records)}"
+            % pcapng.LINKTYPES["drivers"]]
+
+
+def config():
+    lines = ["arg {number=0}{call=--port}{display=Port or URL}{type=string}{required=true}"
+             "{tooltip=The listen-only adapter (/dev/ttyUSB1, COM7) or a pyserial URL (socket://host:port)}"]
+    lines.append("arg {number=1}{call=--baud}{display=Baud rate}{type=selector}{tooltip=The bus's baud rate}")
+    for b in BAUD_RATES:
+        lines.append("value {arg=1}{value=%d}{display=%d}{default=%s}" % (b, b, "true" if b == DEFAULT_BAUD else "false"))
+    lines.append("arg {number=2}{call=--bus}{display=Bus}{type=selector}{tooltip=Which bus the adapter listens on}")
+    lines.append("value {arg=2}{value=pc}{display=PC bus}{default=true}")
+    lines.append("value {arg=2}{value=drivers}{display=driver bus}{default=false}")
+    lines.append("arg {number=3}{call=--interbyte-timeout}{display=Inter-byte timeout [ms]}{type=double}"
+                 "{default=%g}{tooltip=Silence that ends a frame; keep it above the adapter's latency}"
+                 % DEFAULT_INTERBYTE_MS)
+    return lines
+
+
+def parser():
+    ap = argparse.ArgumentParser(prog=INTERFACE, description="Wireshark extcap for a FASTECH Plus-R bus (MotorJig).")
+    ap.add_argument("--extcap-interfaces", action="store_true", help="list the interfaces")
+    ap.add_argument("--extcap-interface", help="the interface to work on")
+    ap.add_argument("--extcap-dlts", action="store_true", help="list the interface's link types")
+    ap.add_argument("--extcap-config", action="store_true", help="list the interface's options")
+    ap.add_argument("--extcap-version", help="the Wireshark version asking (ignored)")
+    ap.add_argument("--extcap-capture-filter", help="a capture filter (not supported: ignored)")
+    ap.add_argument("--capture", action="store_true", help="capture into --fifo")
+    ap.add_argument("--fifo", help="where Wireshark reads the pcapng stream")
+    ap.add_argument("--port", help="the listen-only adapter or a pyserial URL")
+    ap.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="baud rate (default %d)" % DEFAULT_BAUD)
+    ap.add_argument("--bus", choices=R.BUS_NAMES, default="pc", help="which bus it is (default pc)")
+    ap.add_argument("--interbyte-timeout", type=float, default=DEFAULT_INTERBYTE_MS,
+                    help="inter-byte timeout in ms (default %g)" % DEFAULT_INTERBYTE_MS)
+    return ap
+
+
+def _fail(text):
+    sys.stderr.write("%s: %s.\n" % (INTERFACE, text.rstrip(".")))
+    return 1
+
+
+def _reader_alive(stream):
+    """A check that the fifo still has a reader: a quiet bus writes nothing, so a closed
+    fifo would otherwise go unnoticed until the next frame."""
+    try:
+        poller = select.poll()
+        poller.register(stream.fileno(), 0)  # POLLERR / POLLHUP are reported anyway
+    except (AttributeError, OSError, ValueError):  # no poll() (Windows)
+        return None
+    return lambda: not poller.poll(0)
+
+
+def capture(args):
+    if not args.fifo:
+        return _fail("no --fifo given")
+    if not args.port:
+        return _fail("no port given: set the interface's Port or URL option")
+    if args.baud not in BAUD_RATES:
+        return _fail("baud rate %d is not one the drives support" % args.baud)
+    try:
+        port = open_port(args.port, args.baud)
+    except JigError as exc:
+        return _fail(str(exc))
+    sniffer = Sniffer(port, args.port, args.baud, interbyte_timeout_ms=args.interbyte_timeout)
+    # Wireshark ends a capture with SIGTERM: leave the loop and close the stream.
+    signal.signal(signal.SIGTERM, lambda *_: sniffer.stop())
+    bus = R.make_bus(args.bus, args.baud, args.port)
+    try:
+        with open(args.fifo, "wb") as fifo:
+            writer = pcapng.Writer(fifo, [bus], flush_each=True)
+            try:
+                sniffer.run([writer.write], alive=_reader_alive(fifo))
+            finally:
+                sniffer.finish([writer.write])
+    except (BrokenPipeError, KeyboardInterrupt):
+        pass  # Wireshark closed the fifo, or the user stopped the capture
+    except JigError as exc:
+        return _fail(str(exc))
+    finally:
+        port.close()
+    return 0
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
+    if args.extcap_interfaces:
+        print("\n".join(interfaces()))
+        return 0
+    if args.extcap_interface and args.extcap_interface != INTERFACE:
+        return _fail("unknown interface %r (this program has %s)" % (args.extcap_interface, INTERFACE))
+    if args.extcap_dlts:
+        print("\n".join(dlts()))
+        return 0
+    if args.extcap_config:
+        print("\n".join(config()))
+        return 0
+    if args.capture:
+        return capture(args)
+    return _fail("nothing to do (Wireshark calls this with --extcap-interfaces, --extcap-config or --capture)")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

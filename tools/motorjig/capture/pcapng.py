@@ -1,0 +1,196 @@
+"""pcapng files of Plus-R records (standard library only).
+
+Layout (pcapng, little-endian, every block 32-bit aligned)::
+
+    SHB   section header, shb_userappl = the writer
+    IDB   one per bus: link type LINKTYPE_USER0 (147) for the PC bus, USER1 (148)
+          for the driver bus (the dissector registers on both and tells the
+          buses apart by it), snaplen 0, if_name ("pc", "drivers"),
+          if_description ("PC bus, 115200 baud, ..."),
+          if_speed = baud, if_tsresol = 6 (µs)
+    EPB   one per record: interface = the record's bus, timestamp in µs, the
+          wire bytes, opt_comment = the verdict ("parser: bad_crc (...)"),
+          epb_flags = direction (1 inbound, 2 outbound; absent when unknown)
+          plus the link-layer error bit of the verdict (CRC error, too long,
+          too short, wrong inter-frame gap = timeout, symbol error = stuffing)
+
+``Writer`` writes one stream (a file, or standard output for ``wireshark -k -i -``,
+flushed after every packet); ``RotatingWriter`` starts a new file when one
+reaches ``max_size`` bytes and keeps the newest ``files`` of them.
+"""
+
+import os
+import struct
+
+from motorjig.capture import record as R
+
+#: link type per bus: LINKTYPE_USER0 / USER1, where the dissector registers itself
+#: (wiretap's USER0 / USER1): the bus is known from it in every pass, where the
+#: interface's name is not (a Lua field is empty while no tree is built)
+LINKTYPES = {"pc": 147, "drivers": 148}
+LINKTYPE = LINKTYPES["pc"]
+
+SHB, IDB, EPB = 0x0A0D0D0A, 0x00000001, 0x00000006
+BYTE_ORDER_MAGIC = 0x1A2B3C4D
+OPT_END, OPT_COMMENT = 0, 1
+SHB_USERAPPL = 4
+IF_NAME, IF_DESCRIPTION, IF_SPEED, IF_TSRESOL = 2, 3, 8, 9
+EPB_FLAGS = 2
+
+# epb_flags bits 24..31: link-layer-dependent errors
+FLAG_CRC_ERROR = 1 << 24
+FLAG_TOO_LONG = 1 << 25
+FLAG_TOO_SHORT = 1 << 26
+FLAG_INTERFRAME_GAP = 1 << 27
+FLAG_SYMBOL_ERROR = 1 << 31
+VERDICT_FLAGS = {
+    R.BAD_CRC: FLAG_CRC_ERROR, R.OVERLONG: FLAG_TOO_LONG, R.SHORT: FLAG_TOO_SHORT,
+    R.TIMEOUT: FLAG_INTERFRAME_GAP, R.BAD_STUFFING: FLAG_SYMBOL_ERROR,
+}
+
+
+def _pad(data):
+    return data + b"\0" * (-len(data) % 4)
+
+
+def _option(code, value):
+    return struct.pack("<HH", code, len(value)) + _pad(value)
+
+
+def _options(opts):
+    if not opts:
+        return b""
+    return b"".join(_option(c, v) for c, v in opts) + _option(OPT_END, b"")
+
+
+def _block(kind, body):
+    body = _pad(body)
+    length = 12 + len(body)
+    return struct.pack("<II", kind, length) + body + struct.pack("<I", length)
+
+
+def section_header(application):
+    return _block(SHB, struct.pack("<IHHq", BYTE_ORDER_MAGIC, 1, 0, -1)
+                  + _options([(SHB_USERAPPL, application.encode("utf-8"))]))
+
+
+def interface_description(bus, linktype=None):
+    if linktype is None:
+        linktype = LINKTYPES.get(bus.name, LINKTYPE)
+    opts = [(IF_NAME, bus.name.encode("utf-8")), (IF_DESCRIPTION, bus.description.encode("utf-8"))]
+    if bus.baud:
+        opts.append((IF_SPEED, struct.pack("<Q", bus.baud)))
+    opts.append((IF_TSRESOL, b"\x06"))
+    return _block(IDB, struct.pack("<HHI", linktype, 0, 0) + _options(opts))
+
+
+def packet(rec):
+    """The EPB of one Record."""
+    flags = rec.direction | VERDICT_FLAGS.get(rec.verdict, 0)
+    opts = [(OPT_COMMENT, R.comment(rec.verdict).encode("utf-8"))]
+    if flags:
+        opts.append((EPB_FLAGS, struct.pack("<I", flags)))
+    n = len(rec.data)
+    head = struct.pack("<IIIII", rec.bus, (rec.t_us >> 32) & 0xFFFFFFFF, rec.t_us & 0xFFFFFFFF, n, n)
+    return _block(EPB, head + _pad(rec.data) + _options(opts))
+
+
+def application_name():
+    try:
+        from importlib.metadata import version
+
+        v = version("motorjig")
+    except Exception:  # running from the source tree
+        v = "unknown"
+    return "MotorJig jigctl capture %s" % v
+
+
+class Writer:
+    """pcapng onto one binary stream; ``flush_each`` for pipes (live viewing)."""
+
+    def __init__(self, stream, buses, flush_each=False, application=None):
+        self.stream = stream
+        self.buses = tuple(buses)
+        self.flush_each = flush_each
+        self.size = 0
+        self.packets = 0
+        head = section_header(application or application_name())
+        head += b"".join(interface_description(b) for b in self.buses)
+        self._put(head)
+
+    def _put(self, data):
+        self.stream.write(data)
+        self.size += len(data)
+
+    def write(self, rec):
+        if not 0 <= rec.bus < len(self.buses):
+            raise ValueError("record for bus %d, but the capture has %d" % (rec.bus, len(self.buses)))
+        self.write_block(packet(rec))
+
+    def write_block(self, block):
+        self._put(block)
+        self.packets += 1
+        if self.flush_each:
+            self.stream.flush()
+
+    def flush(self):
+        self.stream.flush()
+
+    def close(self):
+        self.stream.close()
+
+
+def ring_name(path, index):
+    """bus.pcapng, 3 -> bus_00003.pcapng"""
+    stem, ext = os.path.splitext(path)
+    return "%s_%05d%s" % (stem, index, ext or ".pcapng")
+
+
+class RotatingWriter:
+    """Files of at most max_size bytes (a packet never splits; each file is a whole
+    pcapng with its own header), the newest ``files`` kept (None: all)."""
+
+    def __init__(self, path, buses, max_size, files=None, application=None):
+        self.path = path
+        self.buses = tuple(buses)
+        self.max_size = max_size
+        self.files = files
+        self.application = application
+        self.index = 0
+        self.written = []  # paths, oldest first
+        self.packets = 0
+        self._w = None
+        self._open_next()
+
+    def _open_next(self):
+        if self._w is not None:
+            self._w.close()
+        self.index += 1
+        name = ring_name(self.path, self.index)
+        self._w = Writer(open(name, "wb"), self.buses, application=self.application)
+        self.written.append(name)
+        while self.files is not None and len(self.written) > self.files:
+            old = self.written.pop(0)
+            try:
+                os.remove(old)
+            except OSError:
+                pass
+
+    @property
+    def current(self):
+        return self.written[-1]
+
+    def write(self, rec):
+        if not 0 <= rec.bus < len(self.buses):
+            raise ValueError("record for bus %d, but the capture has %d" % (rec.bus, len(self.buses)))
+        block = packet(rec)
+        if self._w.packets and self._w.size + len(block) > self.max_size:
+            self._open_next()
+        self._w.write_block(block)
+        self.packets += 1
+
+    def flush(self):
+        self._w.flush()
+
+    def close(self):
+        self._w.close()

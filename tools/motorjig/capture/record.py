@@ -1,0 +1,103 @@
+"""One captured piece of a bus: the record every source produces and every sink takes.
+
+A ``Record`` is what one frame, one dropped fragment or one run of noise looked
+like on one bus: the bytes exactly as they were on the wire (header, stuffing and
+tail included), the time its last byte arrived, which way it went when that is
+known, and the parser's verdict. Sources today: ``motorjig.capture.framer`` (a
+listen-only adapter framed on the host). The jig's own recording of both buses
+(a later firmware session) is meant to yield the same records, so the pcapng
+writer, the text view and the dissector need nothing new for it.
+
+Verdicts are the parser's counters (``jig.parser.COUNTER_NAMES``) seen from one
+frame, plus ``unfinished`` for a frame the capture ended in the middle of.
+"""
+
+from collections import namedtuple
+
+from jig.parser import COUNTER_NAMES
+
+# Direction relative to the recording device (the jig, or the sniffer's adapter):
+# pcapng's EPB flag values. On the PC bus the jig is a slave, so inbound frames are
+# requests; on the driver bus it is the master, so outbound frames are requests.
+DIR_UNKNOWN = 0
+DIR_INBOUND = 1
+DIR_OUTBOUND = 2
+DIRECTION_NAMES = ("?", "in", "out")
+
+# Verdict codes (stable: the firmware's records will carry them as one byte).
+GOOD = 0
+BAD_CRC = 1
+BAD_STUFFING = 2
+SHORT = 3
+OVERLONG = 4
+TIMEOUT = 5
+RESYNC = 6
+NOISE = 7
+UNFINISHED = 8
+
+#: code -> (name, text for people)
+VERDICTS = {
+    GOOD: ("good", "good frame"),
+    BAD_CRC: ("bad_crc", "dropped: bad CRC"),
+    BAD_STUFFING: ("bad_stuffing", "dropped: stuffing error (0xAA followed by a byte other than AA/CC/EE)"),
+    SHORT: ("short", "dropped: too short (less than id, type and CRC)"),
+    OVERLONG: ("overlong", "dropped: longer than the protocol allows"),
+    TIMEOUT: ("timeout", "dropped: the line went silent inside the frame (inter-byte timeout)"),
+    RESYNC: ("resync", "dropped: a new header (AA CC) inside the frame"),
+    NOISE: ("noise", "bytes outside any frame"),
+    UNFINISHED: ("unfinished", "the capture ended inside this frame"),
+}
+VERDICT_CODES = {name: code for code, (name, _) in VERDICTS.items()}
+
+#: the parser counter each verdict is counted in (jig.parser.COUNTER_NAMES)
+VERDICT_COUNTER = {
+    GOOD: "good", BAD_CRC: "crc_errors", BAD_STUFFING: "stuff_errors", SHORT: "short",
+    OVERLONG: "overlong", TIMEOUT: "timeouts", RESYNC: "resyncs", NOISE: "noise",
+}
+assert set(VERDICT_COUNTER.values()) == set(COUNTER_NAMES)
+COUNTER_VERDICT = {counter: code for code, counter in VERDICT_COUNTER.items()}
+
+#: the start of every packet comment the writer puts in; the dissector reads the word after it
+COMMENT_PREFIX = "parser: "
+
+
+def verdict_name(code):
+    return VERDICTS[code][0] if code in VERDICTS else "verdict_%d" % code
+
+
+def comment(code):
+    """The packet comment of a record: 'parser: bad_crc (dropped: bad CRC)'."""
+    name, text = VERDICTS.get(code, (verdict_name(code), "unknown verdict"))
+    return "%s%s (%s)" % (COMMENT_PREFIX, name, text)
+
+
+class Record(namedtuple("Record", "bus t_us direction data verdict")):
+    """bus: index into the capture's interface list; t_us: host or jig time of the last
+    byte, µs since the Unix epoch; direction: DIR_*; data: wire bytes; verdict: code."""
+
+    __slots__ = ()
+
+    @property
+    def good(self):
+        return self.verdict == GOOD
+
+
+class Bus(namedtuple("Bus", "name description baud")):
+    """One interface of a capture: short name ("pc", "drivers"), text, baud rate."""
+
+    __slots__ = ()
+
+
+def pc_bus(baud, where=""):
+    return Bus("pc", "PC bus, %d baud%s" % (baud, (", " + where) if where else ""), baud)
+
+
+def driver_bus(baud, where=""):
+    return Bus("drivers", "driver bus, %d baud%s" % (baud, (", " + where) if where else ""), baud)
+
+
+BUS_NAMES = ("pc", "drivers")
+
+
+def make_bus(name, baud, where=""):
+    return pc_bus(baud, where) if name == "pc" else driver_bus(baud, where)
