@@ -31,6 +31,7 @@ bench: setup ## print parser and bridge performance figures
 	@$(PY) tools/bench_parser.py
 	@$(PY) tools/bench_bridge.py
 	@$(PY) tools/bench_station.py
+	@$(PY) tools/bench_store.py
 
 sim: setup ## start the virtual bench (pty + TCP) and run the demo: make sim SIM_ARGS="--tcp-port 5000"
 	@$(PY) -m motorjig.sim $(SIM_ARGS)

@@ -9,7 +9,20 @@ for sub in ("firmware", "tools"):
     if path not in sys.path:
         sys.path.insert(0, path)
 
+import shutil  # noqa: E402
+import tempfile  # noqa: E402
+
 import pytest  # noqa: E402
+
+# Runs that tests start (jigctl test, the Desk's Test tab, also in child processes) store
+# themselves in the default results database: a folder of this session, never the user's.
+_DATA_HOME = tempfile.mkdtemp(prefix="motorjig-tests-data-")
+os.environ["XDG_DATA_HOME"] = _DATA_HOME
+os.environ.pop("JIGCTL_DB", None)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    shutil.rmtree(_DATA_HOME, ignore_errors=True)
 
 # The bridge suites run twice: on the portable main loop (what CPython and the
 # WebAssembly VM run) and on jig.fastpath.pump, the board's machine-code hot path,

@@ -2,7 +2,8 @@
 # Sets up everything the host side needs, once: a virtual environment in .venv with
 # the project installed (editable) plus its test, bench, board and gui extras, the
 # WebAssembly MicroPython used to replay captures on a real MicroPython VM, and
-# (under CI, or where apt can) Debian's chromium + chromedriver for the GUI's browser tests.
+# (under CI, or where apt can) Debian's chromium + chromedriver for the GUI's browser tests and
+# Debian's postgresql for the results database's tests.
 # Safe to run again: it only redoes a step whose inputs changed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -62,5 +63,25 @@ if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then
         apt_install chromium chromium-driver || { say "chromium/chromedriver are required in CI and could not be installed"; exit 1; }
     else
         say "chromium/chromedriver not found: the GUI's browser tests will be skipped (Debian: apt-get install chromium chromium-driver)"
+    fi
+fi
+
+# Debian's PostgreSQL server binaries: the results database's tests and benchmark start a
+# throw-away cluster of their own (initdb + pg_ctl, station/pgtemp.py); no service is used.
+if ! compgen -G '/usr/lib/postgresql/*/bin/initdb' >/dev/null && ! command -v initdb >/dev/null; then
+    if [ "${CI:-}" = true ]; then
+        apt_install postgresql || { say "postgresql is required in CI and could not be installed"; exit 1; }
+    else
+        say "PostgreSQL not found: the results database's PostgreSQL tests will be skipped (Debian: apt-get install postgresql)"
+    fi
+fi
+
+# Debian's tshark runs the Plus-R Lua dissector and the extcap in the capture tests
+# (host_tests/test_capture_*.py); the Python side needs nothing of Wireshark.
+if ! command -v tshark >/dev/null; then
+    if [ "${CI:-}" = true ]; then
+        apt_install tshark || { say "tshark is required in CI and could not be installed"; exit 1; }
+    else
+        say "tshark not found: the capture tests that run Wireshark's dissector will be skipped (Debian: apt-get install tshark)"
     fi
 fi

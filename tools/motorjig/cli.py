@@ -232,6 +232,15 @@ def build_parser():
     from motorjig.testcmd import add_test_arguments
 
     add_test_arguments(sp)
+    from motorjig.resultscmd import add_results_arguments, cmd_results
+
+    sp = add("results", cmd_results, "the results database of the test runs: list, show, yield, stats, export")
+    add_results_arguments(sp)
+    sp = add("capture", cmd_capture, "record a Plus-R bus to pcapng for Wireshark (--sniff PORT -w FILE), "
+                                     "with a live line per frame; install the dissector and the extcap")
+    from motorjig.capture.command import add_capture_arguments
+
+    add_capture_arguments(sp)
     sp = add("gui", cmd_gui, "MotorJig Desk: the bench program as a local web page (prints its URL)")
     from motorjig.desk.server import add_gui_arguments
 
@@ -241,6 +250,12 @@ def build_parser():
 
 def cmd_test(args):
     from motorjig.testcmd import cmd_test as run
+
+    return run(args)
+
+
+def cmd_capture(args):
+    from motorjig.capture.command import cmd_capture as run
 
     return run(args)
 

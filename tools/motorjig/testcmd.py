@@ -29,6 +29,10 @@ def add_test_arguments(sp):
     sp.add_argument("--out", default="results", help="folder for the record, JUnit XML and HTML report "
                                                      "(default ./results)")
     sp.add_argument("--yes", "-y", action="store_true", help="confirm every operator prompt (unattended runs)")
+    from motorjig.resultscmd import DB_HELP, default_db
+
+    sp.add_argument("--db", default=default_db(), metavar="PATH|URL|none",
+                    help=DB_HELP + "; every run is stored there, 'none': nowhere")
 
 
 def _say(args, text):
@@ -96,13 +100,30 @@ def cmd_test(args):
         return _err(str(exc))
     from motorjig.station import runner
 
+    store = None
+    if args.db is None or args.db.strip().lower() != "none":
+        try:
+            from motorjig.station.store import StoreError, open_store
+        except ImportError as exc:
+            return _err("the results database needs the 'station' extra (%s): pip install 'motorjig[station]' "
+                        "(or --db none)" % exc)
+        try:
+            store = open_store(args.db)  # before anything moves: a wrong --db is said now
+        except StoreError as exc:
+            return _err("%s (--db none runs without the results database)" % exc)
     confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
     _say(args, "plan %s %s (%s), drive slave %d, %s" % (plan.name, plan.version, plan.hash[:12],
                                                          plan.drive.slave, args.port))
-    ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial, operator=args.operator,
-                          station=args.station, out_dir=args.out, out=None if args.json else print,
-                          confirm=confirm, timeout_ms=args.timeout)
+    try:
+        ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial, operator=args.operator,
+                              station=args.station, out_dir=args.out, out=None if args.json else print,
+                              confirm=confirm, timeout_ms=args.timeout, db=store)
+    finally:
+        if store is not None:
+            store.close()
     result = runner.summary(ctx)
+    if store is not None:
+        result["db"] = {"db": store.name, "run_id": ctx.run_id, "error": ctx.store_error}
     if args.json:
         print(json.dumps(result, indent=2))
     else:
@@ -113,4 +134,12 @@ def cmd_test(args):
         for ext in ("html", "xml", "json"):
             if ext in ctx.files:
                 print("  %-4s %s" % (ext, ctx.files[ext]))
+        if store is not None and ctx.run_id is not None:
+            print("  db   run %d in %s" % (ctx.run_id, store.name))
+    if store is not None and ctx.store_error:
+        from motorjig.commands import fail
+
+        # the verdict stands (its exit status too): the drive was tested, only the database missed it
+        fail(0, "the run was not stored: %s; its files are written (jigctl results import %s stores it "
+                "later)" % (ctx.store_error, ctx.files.get("json", "RECORD.json")))
     return runner.exit_code(result["verdict"])

@@ -10,7 +10,7 @@ serial number, else the drive's own info), and writes, for every run that starte
 * ``<base>.xml``: JUnit XML (``station.junit``),
 * ``<base>.html``: the self-contained report (``station.report``).
 
-``<base>`` is ``<plan>_<dut>_<YYYYmmdd-HHMMSS>``. The outcome maps to the exit code
+``<base>`` is ``<plan>_<dut>_<YYYYmmdd-HHMMSS-mmm>``. The outcome maps to the exit code
 0 PASS, 1 FAIL, 2 anything else (ERROR, ABORTED, TIMEOUT; a bad plan or no connection
 never gets this far and is also 2).
 """
@@ -156,12 +156,16 @@ def build_test(plan, ctx, operator=None, station=None):
 
 
 def _base_name(record, plan):
-    when = time.strftime("%Y%m%d-%H%M%S", time.localtime(record["start_time_millis"] / 1000.0))
+    ms = record["start_time_millis"]
+    # milliseconds too: two runs of one DUT within a second must not overwrite each other's files
+    when = time.strftime("%Y%m%d-%H%M%S", time.localtime(ms / 1000.0)) + "-%03d" % (ms % 1000)
     safe = lambda t: re.sub(r"[^A-Za-z0-9._-]+", "-", str(t)).strip("-") or "x"  # noqa: E731
     return "%s_%s_%s" % (safe(plan.name), safe(record.get("dut_id") or "unknown"), when)
 
 
-def _writer(ctx, out_dir):
+def _writer(ctx, out_dir, db=None):
+    ctx.run_id = ctx.store_error = None
+
     def write(test_record):
         as_json = json_factory.convert_test_record_to_json(test_record)
         text = "".join(json_factory.stream_json(as_json, indent=2))
@@ -174,13 +178,31 @@ def _writer(ctx, out_dir):
                 f.write(content)
             ctx.files[ext] = path
         ctx.record = record
+        if db is not None:
+            _store(ctx, db, record)
 
     return write
 
 
+def _store(ctx, db, record):
+    """The run into the results database (a ``store.Store`` or what ``open_store`` takes): its id in
+    ``ctx.run_id``; a failure in ``ctx.store_error`` for the caller to report (the files stay)."""
+    try:
+        from motorjig.station import store
+
+        if isinstance(db, store.Store):
+            ctx.run_id = db.add_run(record, ctx.files)
+        else:
+            with store.open_store(db) as st:
+                ctx.run_id = st.add_run(record, ctx.files)
+    except Exception as exc:  # OpenHTF would only log it: the caller must see it
+        ctx.store_error = str(exc) or type(exc).__name__
+
+
 def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, out_dir=".", out=print,
-             confirm=None, timeout_ms=100, on_event=None):
-    """Run ``plan`` on the drive behind ``port``; returns the RunContext (``record``, ``files``)."""
+             confirm=None, timeout_ms=100, on_event=None, on_start=None, db=None):
+    """Run ``plan`` on the drive behind ``port``; returns the RunContext (``record``, ``files``).
+    ``db``: the results database to store the run in (None: none), see ``station.store``."""
     ctx = RunContext(plan, out, confirm, on_event)
     load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": plan.drive.slave,
             "motorjig_jig_id": plan.drive.jig_id, "motorjig_timeout_ms": timeout_ms,
@@ -190,8 +212,10 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
     CONF.load(**load)
     console_output.CLI_QUIET = True  # our own progress lines instead of OpenHTF's banner
     test = build_test(plan, ctx, operator, station)
-    test.add_output_callbacks(_writer(ctx, out_dir))
+    test.add_output_callbacks(_writer(ctx, out_dir, db))
     ctx.test = test
+    if on_start is not None:  # the caller may abort from here on (ctx.abort)
+        on_start(ctx)
     hook, threading.excepthook = threading.excepthook, _quiet_abort(threading.excepthook)
     try:
         test.execute(test_start=_preflight(plan, serial))

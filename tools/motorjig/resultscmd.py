@@ -1,0 +1,259 @@
+"""jigctl results: the station's results database (``motorjig.station.store``) on the command line.
+
+    jigctl results list   [--dut SN] [--plan NAME] [--verdict V] [--since DATE] [--until DATE] [--limit N]
+    jigctl results show   RUN_ID
+    jigctl results yield  --plan NAME
+    jigctl results stats  --plan NAME
+    jigctl results export --csv FILE [--dut ...] [--plan ...] [--verdict ...] [--since ...] [--until ...]
+    jigctl results import RECORD.json ...
+
+Every subcommand takes ``--db PATH|URL`` (default ``$JIGCTL_DB``, else the SQLite file in
+the user's data folder) and ``--json`` (one JSON document instead of the text). Exit
+status 0, or 2 with one sentence on stderr (bad input, no such run, a database that
+cannot be opened or is of another schema version).
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+EXIT_OK, EXIT_ERROR = 0, 2
+VERDICTS = ("PASS", "FAIL", "ERROR", "ABORTED", "TIMEOUT")
+DB_HELP = ("results database: a SQLite file or postgresql://USER@HOST/DB (default: $JIGCTL_DB, else "
+           "~/.local/share/motorjig/results.sqlite)")
+
+
+class Refused(Exception):
+    """A request that cannot be answered (no such run or plan, an unreadable record file)."""
+
+
+def default_db():
+    """The database ``--db`` means when it is not given: $JIGCTL_DB, else None (the default file)."""
+    return os.environ.get("JIGCTL_DB") or None
+
+
+def _verdict(text):
+    v = text.upper()
+    if v not in VERDICTS:
+        raise argparse.ArgumentTypeError("verdict must be one of %s, not %r" % (", ".join(VERDICTS), text))
+    return v
+
+
+def _run_id(text):
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("a run id is a number, not %r" % text) from None
+    if v < 1:
+        raise argparse.ArgumentTypeError("run ids start at 1")
+    return v
+
+
+def add_results_arguments(sp):
+    """The ``results`` subcommands, on the parser jigctl made for ``results``."""
+    sp.add_argument("--db", default=default_db(), metavar="PATH|URL", help=DB_HELP)
+    sub = sp.add_subparsers(dest="results_command", metavar="SUBCOMMAND")
+    sub.required = True
+
+    def add(name, help_text):
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        # SUPPRESS: given before the subcommand (jigctl --json results ...), the value stands
+        p.add_argument("--db", default=argparse.SUPPRESS, metavar="PATH|URL", help=DB_HELP)
+        p.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
+                       help="machine-readable JSON output")
+        return p
+
+    def filters(p):
+        p.add_argument("--dut", help="only this DUT (serial number)")
+        p.add_argument("--plan", help="only this plan (its name)")
+        p.add_argument("--verdict", type=_verdict, help="only runs with this verdict: " + ", ".join(VERDICTS))
+        p.add_argument("--since", metavar="DATE", help="runs started on or after: YYYY-MM-DD, 'YYYY-MM-DD HH:MM' "
+                                                       "(local time), today, yesterday, 7d, 12h")
+        p.add_argument("--until", metavar="DATE", help="runs started before the end of (a date) or at (a time)")
+
+    p = add("list", "the last runs, newest first")
+    filters(p)
+    p.add_argument("--limit", type=int, default=50, help="at most this many (default 50, 0: all)")
+    p = add("show", "one run: its drive, files, steps and every measurement with its limits")
+    p.add_argument("run_id", type=_run_id, metavar="RUN_ID", help="the run's id (jigctl results list)")
+    p = add("yield", "first-pass yield (a DUT's first run passed) and final yield (its last run passed)")
+    p.add_argument("--plan", required=True, help="the plan's name")
+    p = add("stats", "per step and measurement: n, min, mean, max, sigma and Cpk against the limits")
+    p.add_argument("--plan", required=True, help="the plan's name")
+    p = add("export", "every measurement of the matching runs as CSV, one row each")
+    p.add_argument("--csv", required=True, metavar="FILE", help="the CSV file to write ('-': standard output)")
+    filters(p)
+    p = add("import", "store records written earlier (jigctl test's .json files); a run stored already is kept once")
+    p.add_argument("records", nargs="+", metavar="RECORD", help="OpenHTF JSON records")
+
+
+# --- output ----------------------------------------------------------------------------------------
+
+def _local(ms):
+    return "-" if ms is None else time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(ms / 1000.0))
+
+
+def _num(x, digits=6):
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return "%.*g" % (digits, x)
+    return str(x)
+
+
+def _count(n, word):
+    return "%d %s%s" % (n, word, "" if n == 1 else "s")
+
+
+def _table(headers, rows):
+    rows = [[str(c) for c in r] for r in rows]
+    widths = [max([len(h)] + [len(r[i]) for r in rows]) for i, h in enumerate(headers)]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(headers, widths)).rstrip()]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    return "\n".join(lines)
+
+
+def _emit(args, obj, text):
+    if args.json:
+        print(json.dumps(obj, indent=2))
+    elif text:
+        print(text)
+
+
+def _no_plan(st, plan):
+    plans = st.plans()
+    known = ", ".join(sorted(plans)) or "none yet"
+    return "no runs of plan %r in %s (plans there: %s)" % (plan, st.name, known)
+
+
+# --- the subcommands ---------------------------------------------------------------------------------
+
+def _filter_args(args):
+    return {"dut": args.dut, "plan": args.plan, "verdict": args.verdict, "since": args.since, "until": args.until}
+
+
+def _list(args, st):
+    runs = st.runs(limit=args.limit, **_filter_args(args))
+    text = _table(["id", "start", "plan", "version", "dut", "station", "verdict", "time"],
+                  [[r["id"], _local(r["start_ms"]), r["plan"], r["plan_version"], r["dut"], r["station"] or "-",
+                    r["verdict"], "-" if r["seconds"] is None else "%.1f s" % r["seconds"]] for r in runs]) \
+        if runs else "no runs in %s match" % st.name
+    _emit(args, {"db": st.name, "runs": runs}, text)
+    return EXIT_OK
+
+
+def _show(args, st):
+    r = st.run(args.run_id)
+    if r is None:
+        raise Refused("no run %d in %s" % (args.run_id, st.name))
+    if args.json:
+        _emit(args, r, None)
+        return EXIT_OK
+    d = r["drive"]
+    lines = ["run %d  %s %s (%s)  %s" % (r["id"], r["plan"], r["plan_version"], (r["plan_hash"] or "-")[:12],
+                                         r["verdict"]),
+             "dut %s, station %s, operator %s, %s, %s" % (r["dut"], r["station"] or "-", r["operator"] or "-",
+                                                          _local(r["start_ms"]),
+                                                          "-" if r["seconds"] is None else "%.2f s" % r["seconds"])]
+    if d["slave"] is not None:
+        lines.append("drive: slave %s, Ver%s, type %s (%s)" % (d["slave"], d["protocol"], d["slave_type"],
+                                                               d["name"] or "-"))
+    if r["details"]:
+        lines.append("details: " + r["details"])
+    for kind, path in r["files"].items():
+        lines.append("  %-4s %s" % (kind, path))
+    rows = []
+    for ph in r["phases"]:
+        if not ph["measurements"]:
+            rows.append([ph["name"], "-", "", "", "", ph["outcome"]])
+        for m in ph["measurements"]:
+            value = m["text"] if m["text"] is not None else "(not measured)"
+            rows.append([ph["name"], m["name"], value, m["unit"] or "", m["limits"] or "", m["outcome"]])
+    lines += ["", _table(["step", "measurement", "value", "unit", "limits", "outcome"], rows)]
+    print("\n".join(lines))
+    return EXIT_OK
+
+
+def _yield(args, st):
+    y = st.yield_(args.plan)
+    if not y["runs"]:
+        raise Refused(_no_plan(st, args.plan))
+    pct = lambda f: "%.1f %%" % (100.0 * f)  # noqa: E731
+    text = "\n".join(["plan %s: %s, %s" % (y["plan"], _count(y["duts"], "DUT"), _count(y["runs"], "run")),
+                      "  first-pass yield  %7s  (%d of %s passed the first run)"
+                      % (pct(y["first_pass_yield"]), y["first_pass"], _count(y["duts"], "DUT")),
+                      "  final yield       %7s  (%d of %s passed the last run)"
+                      % (pct(y["final_yield"]), y["final_pass"], _count(y["duts"], "DUT"))])
+    _emit(args, y, text)
+    return EXIT_OK
+
+
+def _stats(args, st):
+    rows = st.stats(args.plan)
+    if not rows and not st.yield_(args.plan)["runs"]:
+        raise Refused(_no_plan(st, args.plan))
+    text = _table(["step", "measurement", "n", "min", "mean", "max", "sigma", "LSL", "USL", "Cpk", "unit"],
+                  [[s["step"], s["measurement"], s["n"], _num(s["min"]), _num(s["mean"]), _num(s["max"]),
+                    _num(s["sigma"], 4), _num(s["low"]), _num(s["high"]), _num(s["cpk"], 3), s["unit"] or ""]
+                   for s in rows]) if rows else "plan %s has no numeric measurements" % args.plan
+    _emit(args, {"plan": args.plan, "stats": rows}, text)
+    return EXIT_OK
+
+
+def _export(args, st):
+    if args.csv == "-":
+        st.export_csv(sys.stdout, **_filter_args(args))
+        return EXIT_OK
+    try:
+        n = st.export_csv(args.csv, **_filter_args(args))
+    except OSError as exc:
+        raise Refused("cannot write %s: %s" % (args.csv, exc.strerror or exc)) from None
+    _emit(args, {"file": os.path.abspath(args.csv), "rows": n}, "%d measurements to %s" % (n, args.csv))
+    return EXIT_OK
+
+
+def _import(args, st):
+    items = []
+    for path in args.records:
+        try:
+            with open(path, encoding="utf-8") as f:
+                record = json.load(f)
+        except OSError as exc:
+            raise Refused("cannot read %s: %s" % (path, exc.strerror or exc)) from None
+        except ValueError as exc:
+            raise Refused("%s is not JSON (%s)" % (path, exc)) from None
+        if not isinstance(record, dict) or "start_time_millis" not in record:
+            raise Refused("%s is not an OpenHTF test record" % path)
+        base = os.path.splitext(path)[0]
+        files = {"json": path}
+        files.update((ext, base + "." + ext) for ext in ("xml", "html") if os.path.exists(base + "." + ext))
+        items.append((record, files))
+    ids = st.add_runs(items)
+    _emit(args, {"db": st.name, "run_ids": ids},
+          "%s in %s: run ids %s" % (_count(len(ids), "record"), st.name, ", ".join(map(str, ids))))
+    return EXIT_OK
+
+
+HANDLERS = {"list": _list, "show": _show, "yield": _yield, "stats": _stats, "export": _export, "import": _import}
+
+
+def cmd_results(args):
+    from motorjig.commands import fail
+
+    try:
+        from motorjig.station import store as S
+    except ImportError as exc:
+        return fail(EXIT_ERROR, "the results database needs the 'station' extra (%s): "
+                                "pip install 'motorjig[station]'" % exc)
+    try:
+        with S.open_store(args.db) as st:
+            return HANDLERS[args.results_command](args, st)
+    except (S.StoreError, Refused) as exc:
+        return fail(EXIT_ERROR, str(exc))
+    except BrokenPipeError:
+        raise  # output piped into e.g. head, which has exited: jigctl's main handles it
+    except OSError as exc:
+        name = getattr(exc, "filename", None)
+        return fail(EXIT_ERROR, "%s%s" % ("%s: " % name if name else "", exc.strerror or exc))
