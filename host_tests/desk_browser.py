@@ -3,7 +3,9 @@
 Selenium is pointed at /usr/bin/chromedriver and /usr/bin/chromium explicitly, so
 selenium-manager never runs and nothing is downloaded. The bench and the Desk run
 as child processes on free ports bound to 127.0.0.1, so a test can kill the bench
-mid-session like an unplugged cable.
+mid-session like an unplugged cable. The browser allows pop-ups (as an operator
+does for the Desk, so a run's report opens in a new tab) and, when asked, saves
+downloads into a folder.
 """
 
 import os
@@ -18,7 +20,7 @@ CHROMIUM = os.environ.get("MOTORJIG_CHROMIUM", "/usr/bin/chromium")
 CHROMEDRIVER = os.environ.get("MOTORJIG_CHROMEDRIVER", "/usr/bin/chromedriver")
 HEADLESS_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--disable-dev-shm-usage", "--window-size=1440,1000")
+                  "--disable-dev-shm-usage", "--window-size=1440,1000", "--disable-popup-blocking")
 
 
 def browser_missing():
@@ -58,17 +60,30 @@ def _read_until(proc, needle, timeout):
     raise RuntimeError("%r never appeared; output so far:\n%s" % (needle, "".join(proc.early)))
 
 
+_DATA_HOME = None
+
+
+def data_home():
+    """A folder of its own for the children's default results database (never the user's)."""
+    global _DATA_HOME
+    if _DATA_HOME is None:
+        _DATA_HOME = tempfile.mkdtemp(prefix="motorjig-desk-data-")
+    return _DATA_HOME
+
+
 def _spawn(args):
     # NiceGUI switches to its own test mode (and another port) when it sees pytest's variable.
-    env = {k: v for k, v in os.environ.items() if k != "PYTEST_CURRENT_TEST"}
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTEST_CURRENT_TEST", "JIGCTL_DB")}
     env["PYTHONUNBUFFERED"] = "1"
+    env["XDG_DATA_HOME"] = data_home()
     return subprocess.Popen([sys.executable] + args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, env=env, start_new_session=True)
 
 
-def start_bench(drivers="2,3"):
-    """(process, socket URL) of `python -m motorjig.sim` without demo and pty."""
-    proc = _spawn(["-m", "motorjig.sim", "--no-demo", "--no-pty", "--drivers", drivers])
+def start_bench(drivers="2,3", *args):
+    """(process, socket URL) of `python -m motorjig.sim` without demo and pty; args: more options
+    (--wiring FILE, --fault SPEC)."""
+    proc = _spawn(["-m", "motorjig.sim", "--no-demo", "--no-pty", "--drivers", drivers] + list(args))
     try:
         line = _read_until(proc, "tcp: socket://", 20)
     except Exception:
@@ -78,7 +93,8 @@ def start_bench(drivers="2,3"):
 
 
 def start_desk(*args):
-    """(process, page URL) of `python -m motorjig.desk ARGS` on a free port."""
+    """(process, page URL) of `python -m motorjig.desk ARGS` on a free port (the URL as printed,
+    with its ?token= when the Desk has one)."""
     proc = _spawn(["-m", "motorjig.desk", "--http-port", str(free_port())] + list(args))
     try:
         line = _read_until(proc, "MotorJig Desk: http", 40)
@@ -119,7 +135,7 @@ def stop(proc):
 class Browser:
     """A headless Chromium session with the few lookups the tests need."""
 
-    def __init__(self):
+    def __init__(self, downloads=None):
         from selenium import webdriver
         from selenium.webdriver.chrome.service import Service
 
@@ -131,6 +147,10 @@ class Browser:
         opts.add_argument("--user-data-dir=%s" % self.profile)
         self.driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
         self.driver.set_page_load_timeout(30)
+        self.downloads = downloads
+        if downloads:
+            self.driver.execute_cdp_cmd("Browser.setDownloadBehavior",
+                                        {"behavior": "allow", "downloadPath": downloads})
 
     def close(self):
         try:
@@ -163,7 +183,9 @@ class Browser:
 
     def tab(self, testid):
         self.click(testid)
-        time.sleep(0.3)
+        self.wait_for(lambda: self.el(testid).get_attribute("aria-selected") == "true" and not self.js(
+            "return document.querySelectorAll('.q-tab-panels [class*=\"q-transition--\"]').length"),
+            5, "tab %s shown" % testid)  # and, were the panels animated, no longer sliding in
 
     def type(self, testid, value):
         from selenium.webdriver.common.keys import Keys
@@ -184,6 +206,18 @@ class Browser:
                 e.click()
                 return
         raise AssertionError("no %r inside %s" % (text, testid))
+
+    def choose(self, testid, label):
+        """Pick the option whose text is exactly label from the dropdown testid."""
+        self.el(testid).click()
+        self.wait_for(lambda: self.js("return document.querySelectorAll('.q-menu .q-item').length") > 0, 5,
+                      "the choices of %s" % testid)
+        found = self.js("""const item = Array.from(document.querySelectorAll('.q-menu .q-item'))
+                           .find(e => e.innerText.trim() === arguments[0]);
+                           if (item) item.click(); return !!item;""", label)
+        if not found:
+            raise AssertionError("no %r in %s" % (label, testid))
+        self.wait_for(lambda: label in self.text(testid), 5, "%s chosen in %s" % (label, testid))
 
     def wait_for(self, predicate, timeout=10.0, what="condition"):
         end = time.monotonic() + timeout

@@ -152,7 +152,9 @@ def test_move_inc_is_polled_into_status_and_history(s):
     assert rows[-1].actual_pos == 10000 and any(0 < r.actual_pos < 10000 for r in rows)
     assert any(r.actual_vel > 0 for r in rows)
     csv = s.history_csv().splitlines()
-    assert csv[0] == "time_s,command_pos,actual_pos,actual_vel_pps" and csv[-1].endswith(",10000,10000,0")
+    assert csv[0] == "time,t_s,slave,command_pos,actual_pos,actual_vel_pps" and csv[-1].endswith(",3,10000,10000,0")
+    first = csv[1].split(",")
+    assert first[1] == "0.000" and first[0][10] == "T" and first[0][-6] in "+-"  # local ISO time with its offset
     assert len(csv) == len(rows) + 1
 
 
@@ -392,3 +394,112 @@ def test_one_motion_test_at_a_time_and_stop_ends_it(s):
     s.stop_axis()
     t.join(15)
     assert not t.is_alive() and s.motion_test["summary"].endswith("(stopped)")
+
+
+# --- read-only, lending the port, the decoder's pairing ----------------------------------------------------
+def test_a_read_only_session_polls_and_refuses_everything_else(s):
+    s.read_only = True
+    try:
+        assert s.poll_once()
+        for what, fn in (("Move", lambda: s.move("inc", 100, 1000)), ("Servo on/off", lambda: s.servo(True)),
+                         ("EMERGENCY STOP", s.emergency_stop), ("STOP", s.stop_axis),
+                         ("Sending a raw frame", lambda: s.send_raw("2", "40")),
+                         ("Writing a parameter", lambda: s.write_param(2, 3, 100)),
+                         ("The motion test", lambda: s.run_motion_test(1, 100, 1000)),
+                         ("Connect", lambda: s.connect("socket://127.0.0.1:1")), ("Scan", s.scan)):
+            with pytest.raises(UserError, match="^%s refused: this Desk is read-only" % what):
+                fn()
+        with pytest.raises(UserError, match="read-only"):
+            s.lend_port("a test run", lambda: None)
+        with pytest.raises(UserError, match="read-only"):  # the bus itself refuses too
+            s._bus(lambda m: m.servo_enable(2, True))
+    finally:
+        s.read_only = False
+
+
+def test_lending_the_port_pauses_everything_and_stop_aborts_the_borrower(s, bench):
+    aborted = []
+    url, baud = s.lend_port("the test run (smoke)", lambda: aborted.append(1))
+    try:
+        assert (url, baud) == (bench.tcp_url, 115200) and s.state == "lent" and s.master is None
+        assert not s.poll_once()
+        with pytest.raises(UserError, match=r"the port is with the test run \(smoke\): wait until it ends"):
+            s.servo(True)
+        with pytest.raises(UserError, match="the port is with"):
+            s.connect(bench.tcp_url)
+        assert s.emergency_stop() == "test run aborted: emergency stop and servo off" and aborted == [1]
+        assert s.stop_axis().startswith("test run aborted") and aborted == [1, 1]
+    finally:
+        assert s.take_port_back() == "connected to %s again" % bench.tcp_url
+    assert s.state == "connected" and s.poll_once()
+    log = s.log_text()
+    assert "port %s handed to the test run (smoke)" % bench.tcp_url in log and "back from the test run" in log
+
+
+def test_the_decoder_pairs_a_sniffed_reply_with_its_request():
+    from motorjig.decode import PAIR_SECONDS, Decoder
+    from motorjig.master import Frame
+
+    def fr(slave, ftype, data, t, sync=-1):
+        return Frame(slave, sync, ftype, bytes(data), b"", t)
+
+    dec = Decoder()
+    # ServoEnable off and its reply are the same bytes: the first is the request, the second its reply
+    assert dec.classify(fr(2, F.SERVO_ENABLE, b"\x00", 1.0)) == "request"
+    assert dec.classify(fr(2, F.SERVO_ENABLE, b"\x00", 1.002)) == "reply"
+    # a known direction is remembered: the master's own request pairs with what comes back
+    dec.as_dict(fr(3, F.SERVO_ENABLE, b"\x00", 2.0), "request")
+    assert dec.classify(fr(3, F.SERVO_ENABLE, b"\x00", 2.003)) == "reply"
+    # a request that got no answer does not make a much later frame its reply
+    assert dec.classify(fr(4, F.SERVO_ENABLE, b"\x00", 3.0)) == "request"
+    assert dec.classify(fr(4, F.SERVO_ENABLE, b"\x00", 3.0 + PAIR_SECONDS + 1)) == "request"
+    # Ver8: the reply carries its request's sync number
+    assert dec.classify(fr(5, F.SERVO_ENABLE, b"\x00", 4.0, sync=0xF3)) == "request"
+    assert dec.classify(fr(5, F.SERVO_ENABLE, b"\x00", 4.001, sync=0xF4)) == "request"
+    assert dec.classify(fr(5, F.SERVO_ENABLE, b"\x00", 4.002, sync=0xF4)) == "reply"
+    # a reply whose request was not seen is still told by its shape
+    assert Decoder().classify(fr(2, F.MOVE_INC_POS, b"\x85", 5.0)) == "reply"
+
+
+def test_frame_types_are_hex_and_a_motion_test_distance_is_not_0():
+    assert [forms.hex_byte(t, "frame type") for t in ("40", "2A", "0x40", "0X2a", " f ", "ff")] == \
+        [0x40, 0x2A, 0x40, 0x2A, 0x0F, 0xFF]
+    for bad in ("", "140", "0x", "zz", "4 0", "-1"):
+        with pytest.raises(forms.InputError, match="frame type"):
+            forms.hex_byte(bad, "frame type")
+    assert forms.distance("-2000") == -2000
+    with pytest.raises(forms.InputError, match="distance must not be 0"):
+        forms.distance("0")
+
+
+def test_the_test_tabs_station_lists_plans_serves_run_files_and_counts_todays_yield(tmp_path):
+    import json
+    import os
+
+    from motorjig.desk.testrun import Station
+
+    plans = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "plans")
+    st = Station(BusSession(), plans_dir=plans, out_dir=str(tmp_path))
+    names = [e.file for e in st.plans()]
+    assert "smoke.toml" in names and "ezi-step-eol.toml" in names
+    assert "ezi-step-golden.toml" not in names  # a parameter set, not a plan
+    now = time.time() * 1000
+    for i, (dut, verdict) in enumerate((("A", "FAIL"), ("A", "PASS"), ("B", "PASS"), ("C", "ABORTED"))):
+        record = {"start_time_millis": now + i, "end_time_millis": now + i + 500, "outcome": verdict,
+                  "dut_id": dut, "station_id": "s", "metadata": {"test_name": "smoke", "operator": "anna"},
+                  "phases": [{"name": "out", "outcome": "FAIL" if verdict == "FAIL" else "PASS"}]}
+        (tmp_path / ("smoke_%s_%d.json" % (dut, i))).write_text(json.dumps(record))
+    (tmp_path / "smoke_A_1.html").write_text("<html>report</html>")
+    y = st.yield_today("smoke")
+    assert (y["runs"], y["PASS"], y["FAIL"], y["ABORTED"], y["duts"], y["first_pass"]) == (4, 2, 1, 1, 3, 1)
+    assert y["yield_pct"] == 33.3 and st.yield_today("other")["runs"] == 0
+    rows = st.recent_runs()
+    assert [r["dut"] for r in rows] == ["C", "B", "A", "A"] and rows[3]["failed"] == "out"
+    assert rows[2]["report"] == "/runs/smoke_A_1.html" and rows[3]["report"] == ""
+    assert st.file_path("smoke_A_1.html") == str(tmp_path / "smoke_A_1.html")
+    for bad in ("../smoke_A_1.html", "x/smoke_A_1.html", ".smoke.html", "smoke_A_1.toml", "missing.html"):
+        assert st.file_path(bad) is None, bad
+    with pytest.raises(UserError, match="a plan is a .toml file"):
+        st.add_upload("plan.txt", b"")
+    assert st.add_upload("../up.toml", b"[parameters]\n").startswith("up.toml kept beside the uploaded plans")
+    assert os.listdir(st.upload_dir) == ["up.toml"]  # a path in the name is dropped: it stays in the folder

@@ -4,11 +4,15 @@
 
 Starts the bench and the Desk as child processes, plays a short session (scan,
 servo on, a move, a motion test, the parameter table, a raw frame with a broken
-CRC) and saves one PNG per main view. Uses the browser helpers of the tests.
+CRC, and on the Test tab ezi-step-eol failing on a drive with a wrong parameter,
+then passing, then smoke passing) and saves one PNG per main view. Uses the
+browser helpers of the tests; the runs' records go to a temporary folder.
 """
 
 import os
+import shutil
 import sys
+import tempfile
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -28,10 +32,15 @@ def main(argv=None):
     if why:
         sys.stderr.write("desk_screenshots: %s.\n" % why)
         return 2
-    bench, url = B.start_bench()
-    desk = b = None
+    wiring = os.path.join(ROOT, "plans", "ezi-step-eol.toml")
+    bench, url = B.start_bench("2,3", "--wiring", wiring)
+    faulty = desk = b = None
+    results = tempfile.mkdtemp(prefix="motorjig-shots-")
     try:
-        desk, page = B.start_desk("--port", url, "--timeout", "300")
+        faulty, faulty_url = B.start_bench("2", "--wiring", wiring, "--fault", "param=3:250")
+        desk, page = B.start_desk("--port", url, "--timeout", "300", "--out", results,
+                                  "--db", os.path.join(results, "results.sqlite"), "--operator", "anna",
+                                  "--station", "eol-station-1")
         b = B.Browser()
         b.driver.set_window_size(1440, 1300)
         b.open(page)
@@ -71,6 +80,8 @@ def main(argv=None):
         b.click("btn-raw-send")
         time.sleep(1.5)
         b.screenshot(os.path.join(out, "desk-raw-log.png"))
+
+        test_tab(b, out, url, faulty_url)
         print("screenshots written to %s" % out)
         return 0
     finally:
@@ -78,6 +89,66 @@ def main(argv=None):
             b.close()
         B.stop(desk)
         B.stop(bench)
+        B.stop(faulty)
+        shutil.rmtree(results, ignore_errors=True)
+
+
+def run_plan(b, label, serial, prompt=False, expect=None):
+    """Run a plan from the Test tab and wait for its verdict; the report's tab is closed again.
+    With ``expect`` the run is repeated (up to three times) until that is the verdict: on a
+    busy machine the real-time bench can fall behind and a move take too long."""
+    for _ in range(3):
+        if _run_once(b, label, serial, prompt) == expect or expect is None:
+            return
+    raise RuntimeError("%s never ended %s (a busy machine?)" % (label, expect))
+
+
+def _run_once(b, label, serial, prompt):
+    first = b.driver.current_window_handle
+    b.tab("tab-plan")
+    b.choose("plan-select", label)
+    b.type("serial", serial)
+    b.click("btn-test-start")
+    if prompt:
+        b.wait_for(lambda: b.find("btn-prompt-yes") is not None and b.el("btn-prompt-yes").is_displayed(), 15,
+                   "the prompt")
+        b.click("btn-prompt-yes")
+    b.wait_for(lambda: b.el("verdict").is_displayed() and b.text("verdict-word"), 60, "the verdict")
+    b.wait_for(lambda: len(b.driver.window_handles) > 1, 10, "the report's tab")
+    for h in b.driver.window_handles:
+        if h != first:
+            b.driver.switch_to.window(h)
+            b.driver.close()
+    b.driver.switch_to.window(first)
+    b.wait_for(lambda: b.text("conn-state").startswith("connected: "), 10, "the port back")
+    return b.text("verdict-word")
+
+
+def connect(b, url):
+    b.tab("tab-connect")
+    b.type("port", url)
+    b.click("btn-connect")
+    b.wait_for(lambda: b.text("conn-state") == "connected: %s @ 115200" % url, 10, "connected to %s" % url)
+
+
+def test_tab(b, out, url, faulty_url):
+    """desk-test-fail.png: a FAIL as the operator sees it; desk-test.png: a PASS with the page below it."""
+    b.driver.set_window_size(1440, 1000)
+    connect(b, faulty_url)
+    run_plan(b, "ezi-step-eol 1.0", "SN-24-1041", prompt=True, expect="FAIL")
+    time.sleep(1.0)
+    b.screenshot(os.path.join(out, "desk-test-fail.png"))
+    connect(b, url)
+    run_plan(b, "ezi-step-eol 1.0", "SN-24-1042", prompt=True, expect="PASS")
+    run_plan(b, "smoke 1.0", "SN-24-1043", expect="PASS")
+    time.sleep(1.0)
+    # The whole tab in one picture: the verdict as tall as in a 1000-pixel window, then the rest.
+    b.js("document.querySelectorAll('.verdict').forEach(v => v.style.minHeight = '560px');"
+         "document.documentElement.style.overflow = 'hidden';")
+    height = b.js("return document.documentElement.scrollHeight")
+    b.driver.set_window_size(1440, height + 140)  # + the browser's own frame in headless mode
+    time.sleep(0.8)
+    b.screenshot(os.path.join(out, "desk-test.png"))
 
 
 if __name__ == "__main__":

@@ -1,10 +1,14 @@
 """Human-readable decoding of frames seen on the line (monitor, raw, -v trace).
 
-``Decoder`` tells requests from replies by remembering the last request per
-(slave, frame type): the next frame with the same pair is its reply. A frame
-seen without a request before it is classed by its length (a reply starts with a
-known status byte and has the reply length of its frame type; a request has the
-request length).
+Where the direction is known (the master sent it, or received it) the caller says
+so (``kind``). Where it is not (a sniffed line: ``jigctl monitor``) ``Decoder`` pairs
+frames: a request is remembered per (slave, frame type) for ``PAIR_SECONDS``, and
+the next frame with the same pair (and, in Ver8, the same sync number) that has
+the shape of a reply is its reply. A frame seen without its request before it is
+classed by its shape (a reply starts with a known status byte and has the reply
+length of its frame type; a request has the request length); one that fits both,
+e.g. ``02 2A 00`` (ServoEnable off, and also every ServoEnable reply), counts as
+a request until its reply shows up.
 """
 
 from jig import diag as D
@@ -106,32 +110,58 @@ def looks_like_request(ftype, data):
     return want is None or want == len(data)
 
 
+#: how long a sniffed request waits for its reply (drives answer within milliseconds;
+#: the longest reply timeout jigctl uses is 5 s, for SaveAllParameters)
+PAIR_SECONDS = 5.0
+
+
 class Decoder:
     """Turns Frames into dicts and one-line descriptions, pairing replies with requests."""
 
     def __init__(self):
-        self.pending = set()
+        self.pending = {}  # (slave, frame type) -> (time, sync) of a request not answered yet
+
+    def _asked(self, fr):
+        """True when fr can answer a request seen before (same pair, in time, same sync)."""
+        key = (fr.slave, fr.ftype)
+        asked = self.pending.get(key)
+        if asked is None:
+            return False
+        t, sync = asked
+        if fr.t and t and fr.t - t > PAIR_SECONDS:
+            del self.pending[key]
+            return False
+        return sync < 0 or fr.sync < 0 or sync == fr.sync
+
+    def note(self, fr, kind):
+        """Remember a frame whose direction is known: a request waits for its reply."""
+        key = (fr.slave, fr.ftype)
+        if kind == "request":
+            self.pending[key] = (fr.t, fr.sync)
+        elif kind == "reply":
+            self.pending.pop(key, None)
 
     def classify(self, fr):
-        """'request', 'reply' or 'broadcast'.
+        """'request', 'reply' or 'broadcast', for a frame whose direction is not known.
 
-        A frame that answers a request seen before is a reply. Otherwise its length
-        decides; a frame that fits both (e.g. ``02 2C 00``: StepAlarmReset release,
-        and also its OK reply) counts as a request.
+        A frame with the shape of a reply that answers a request seen before is a
+        reply. Otherwise its shape decides; a frame that fits both counts as a request.
         """
-        key = (fr.slave, fr.ftype)
         if fr.slave == F.BROADCAST_ID:
             return "broadcast"
-        if key in self.pending and fr.data:
-            self.pending.discard(key)
+        ver8 = fr.sync >= 0
+        reply_shape = looks_like_reply(fr.ftype, fr.data, ver8)
+        if reply_shape and (self._asked(fr) or not looks_like_request(fr.ftype, fr.data)):
+            self.note(fr, "reply")
             return "reply"
-        if looks_like_reply(fr.ftype, fr.data, fr.sync >= 0) and not looks_like_request(fr.ftype, fr.data):
-            return "reply"
-        self.pending.add(key)
+        self.note(fr, "request")
         return "request"
 
     def as_dict(self, fr, kind=None):
-        kind = kind or self.classify(fr)
+        if kind is None:
+            kind = self.classify(fr)
+        else:
+            self.note(fr, kind)
         out = {"t": fr.t, "kind": kind, "slave": fr.slave, "type": fr.ftype,
                "name": N.frame_name(fr.ftype), "data": bytes(fr.data).hex(" ")}
         if fr.sync >= 0:

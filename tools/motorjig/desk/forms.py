@@ -4,6 +4,8 @@ Every function returns the value or raises ``InputError`` with one sentence that
 names the field; the page shows that sentence next to nothing having moved.
 """
 
+import string
+
 from jig import frame as F
 
 MAX_SPEED = 2500000  # pps, the drives' speed parameter limit (the same as jigctl's)
@@ -49,6 +51,25 @@ def accel(text, what):
     """An acc/dec time in ms, or None when the field is left blank (the drive's parameter applies)."""
     value = number(text, what, 1, MAX_ACCEL_MS, blank=0)
     return value or None
+
+
+def distance(text, what="distance"):
+    """A move distance that is not 0 (a move of 0 pulses proves nothing)."""
+    value = position(text, what)
+    if value == 0:
+        raise InputError("%s must not be 0: a move of 0 pulses tests nothing" % what)
+    return value
+
+
+def hex_byte(text, what):
+    """One byte written in hex, with or without 0x: '40', '2A', '0x40'."""
+    t = str(text if text is not None else "").strip()
+    digits = t[2:] if t.lower().startswith("0x") else t
+    if not t:
+        raise InputError("%s is empty" % what)
+    if not 1 <= len(digits) <= 2 or any(c not in string.hexdigits for c in digits):
+        raise InputError("%s: %r is not a hex byte (00..FF, e.g. 40 or 0x40)" % (what, text))
+    return int(digits, 16)
 
 
 def slave_id(text, what="slave id"):

@@ -1,10 +1,14 @@
 """The MotorJig Desk page (NiceGUI): layout only; state and bus work live in ``session``.
 
 Every browser tab gets its own copy of the page, all showing the one shared
-``BusSession``. Clicks run the session's methods in a worker thread
-(``run.io_bound``) so a slow bus never freezes the page; a per-tab timer copies
-the session's state into the widgets ten times a second, touching only what
-changed. Elements that tests and people look for carry a ``data-testid``.
+``BusSession`` (and the one ``testrun.Station`` of the Test tab, ``runpanel``).
+Clicks run the session's methods in a worker thread (``run.io_bound``) so a slow
+bus never freezes the page; a per-tab timer copies the session's state into the
+widgets ten times a second, touching only what changed. Elements that tests and
+people look for carry a ``data-testid``.
+
+Esc is EMERGENCY STOP wherever the focus is, except while a dialog or a dropdown
+is open: then Esc is theirs (it closes them) and stops nothing.
 """
 
 import time
@@ -16,7 +20,7 @@ from motorjig import names as N
 from motorjig.master import BAUD_RATES
 
 from motorjig.desk import forms
-from motorjig.desk.session import UserError, stamp
+from motorjig.desk.session import ESTOP_RECOVERY, UserError, stamp
 
 CSS = """
 .lamp {display:inline-block; padding:1px 7px; margin:2px; border-radius:9px; font-size:11px;
@@ -25,6 +29,25 @@ CSS = """
 .lamp.err {background:#c62828; color:#fff}
 .big-num {font-family:monospace; font-size:1.6rem; text-align:right; min-width:9rem}
 .estop {font-weight:800; letter-spacing:.05em}
+.chip {display:inline-block; padding:1px 8px; border-radius:4px; font-size:12px; font-weight:700;
+       background:#546e7a; color:#fff; letter-spacing:.04em}
+.chip.ro {background:#ffb300; color:#000}
+.header-axis {min-width:13rem}
+.header-axis .q-field__native, .header-axis .q-field__label, .header-axis .q-select__dropdown-icon {color:#fff}
+.enter-hint .q-btn__content::after {content:"⏎"; opacity:.75; margin-left:.4em}
+"""
+
+# Esc on keydown, before Quasar sees it (it closes its dialogs and menus on keyup): an
+# open dialog or dropdown (one not already fading out) takes the key for itself.
+ESC_SCRIPT = """
+<script>
+window.addEventListener('keydown', (e) => {
+  if (e.key !== 'Escape' || e.repeat) return;
+  const open = Array.from(document.querySelectorAll('.q-dialog__inner, .q-menu'))
+    .some(el => !/-leave-(active|to)/.test(el.className));
+  if (!open) emitEvent('motorjig_estop');
+}, true);
+</script>
 """
 
 PLOT_WINDOWS = {10: "10 s", 30: "30 s", 60: "60 s", 120: "120 s"}
@@ -48,19 +71,43 @@ class Changed:
         return True
 
 
-def build(session):
-    """Register the page for one BusSession."""
+def build(session, station=None):
+    """Register the page (and the run files' route) for one BusSession and its Station."""
+    from nicegui import app
+    from fastapi import HTTPException
+    from fastapi.responses import FileResponse
+
+    from motorjig.desk.testrun import FILE_KINDS
 
     @ui.page("/")
     async def index():
-        DeskPage(session).build()
+        DeskPage(session, station).build()
+
+    @app.get("/runs/{name}")
+    def run_file(name: str):
+        """A file of the output folder: a run's record, JUnit XML or report."""
+        path = station.file_path(name) if station is not None else None
+        if path is None:
+            raise HTTPException(status_code=404, detail="no such run file")
+        return FileResponse(path, media_type=FILE_KINDS[name.rsplit(".", 1)[-1]])
+
+    @app.get("/report/{run_id}")
+    def stored_report(run_id: int):
+        """The HTML report of a run in the results database, wherever it was written."""
+        path = station.report_path(run_id) if station is not None else None
+        if path is None:
+            raise HTTPException(status_code=404, detail="no report of run %d" % run_id)
+        return FileResponse(path, media_type=FILE_KINDS["html"])
 
 
 class DeskPage:
     """One browser tab's widgets and the callbacks that feed them."""
 
-    def __init__(self, session):
+    def __init__(self, session, station=None):
         self.s = session
+        self.station = station
+        self.test_panel = None
+        self.last_move = ("abs", 1)  # what Enter in a move field repeats
         self.changed = Changed()
         self.log_seq = 0
         self.lamps = {}
@@ -96,12 +143,19 @@ class DeskPage:
         with ui.header().classes("items-center bg-blue-grey-9 q-py-xs"):
             ui.label("MotorJig Desk").classes("text-h6")
             self.conn_label = tid(ui.label(""), "conn-state").classes("q-ml-md")
-            self.axis_label = tid(ui.label(""), "axis-label").classes("q-ml-md")
+            self.axis_select = tid(ui.select({}, label="axis", on_change=self._pick_axis), "axis-select") \
+                .props("dense borderless options-dense").classes("q-ml-md header-axis")
+            self.protocol_chip = tid(ui.label(""), "protocol").classes("chip").tooltip(
+                "the framing the Desk talks: Ver6, or Ver8 with sync numbers (the Ver8 switch on Connect & bus)")
+            if s.read_only:
+                tid(ui.label("READ-ONLY"), "read-only").classes("chip ro").tooltip(
+                    "started with --read-only: the page shows the status and the runs and sends nothing")
             ui.space()
             tid(ui.button("STOP", on_click=lambda: self.act(s.stop_axis)), "btn-stop").props("color=orange")
             tid(ui.button("EMERGENCY STOP (Esc)", on_click=lambda: self.act(s.emergency_stop)),
                 "btn-estop").props("color=red size=lg").classes("estop")
-        ui.keyboard(on_key=self._key, ignore=[])
+        ui.add_body_html(ESC_SCRIPT)
+        ui.on("motorjig_estop", self._esc)
         with tid(ui.card(), "lost-banner").classes("w-full bg-red-1") as self.lost_banner:
             with ui.row().classes("items-center"):
                 ui.icon("link_off", color="red", size="md")
@@ -110,6 +164,7 @@ class DeskPage:
         self.lost_banner.set_visibility(False)
         with ui.tabs().classes("w-full") as tabs:
             t_conn = tid(ui.tab("Connect & bus"), "tab-connect")
+            t_plan = tid(ui.tab("Test"), "tab-plan") if self.station is not None else None
             t_axis = tid(ui.tab("Axis"), "tab-axis")
             t_test = tid(ui.tab("Motion test"), "tab-test")
             t_par = tid(ui.tab("Parameters"), "tab-params")
@@ -117,9 +172,17 @@ class DeskPage:
             t_diag = tid(ui.tab("Jig diagnostics"), "tab-diag")
             t_raw = tid(ui.tab("Raw frames & log"), "tab-raw")
         self.tabs = tabs
-        with ui.tab_panels(tabs, value=t_conn if not s.connected or s.axis is None else t_axis).classes("w-full"):
+        # Not animated: a sliding panel is half-way across the screen when the operator clicks in it.
+        with ui.tab_panels(tabs, value=t_conn if not s.connected or s.axis is None else t_axis,
+                           animated=False).classes("w-full"):
             with ui.tab_panel(t_conn):
                 self._connect_panel()
+            if t_plan is not None:
+                from motorjig.desk.runpanel import TestPanel
+
+                with ui.tab_panel(t_plan):
+                    self.test_panel = TestPanel(self, self.station)
+                    self.test_panel.build()
             with ui.tab_panel(t_axis):
                 self._axis_panel()
             with ui.tab_panel(t_test):
@@ -141,9 +204,8 @@ class DeskPage:
     def _gone(self):
         self.s.viewers = max(0, self.s.viewers - 1)
 
-    async def _key(self, e):
-        if e.key == "Escape" and e.action.keydown and not e.action.repeat:
-            await self.act(self.s.emergency_stop)
+    async def _esc(self, _e=None):
+        await self.act(self.s.emergency_stop)
 
     async def _reconnect(self):
         await self.act(self.s.reconnect)
@@ -206,6 +268,7 @@ class DeskPage:
     async def _pick_axis(self, e):
         if e.value is not None and e.value != self.s.axis:
             await self.act(self.s.select_axis, e.value, quiet=True)
+            self.changed.last.pop("axis_pick", None)  # a refused choice shows the session's axis again
 
     # --- axis panel, motion and plot -------------------------------------------------------------
     def _axis_panel(self):
@@ -224,6 +287,13 @@ class DeskPage:
                         lamp = ui.label(name).classes("lamp").props('data-flag="%s"' % name).tooltip(
                             "bit %d: %s" % (bit, meaning))
                         self.lamps[name] = lamp
+                with tid(ui.row(), "estop-hint").classes("items-center bg-red-1 q-pa-xs rounded-borders") \
+                        as self.estop_hint:
+                    ui.icon("report", color="red")
+                    ui.label(ESTOP_RECOVERY).classes("text-red-10 text-body2").style("max-width:30rem")
+                    tid(ui.button("Servo OFF → ON", on_click=lambda: self.act(s.recover_estop)),
+                        "btn-estop-recover").props("color=red outline dense")
+                self.estop_hint.set_visibility(False)
                 with ui.row().classes("text-caption"):
                     ui.label("inputs:")
                     self.inputs_label = tid(ui.label("-"), "inputs")
@@ -241,15 +311,23 @@ class DeskPage:
                         .props("outline")
             with ui.card().classes("w-1/2"):
                 ui.label("Motion").classes("text-subtitle1")
+                last = s.move_fields
                 with ui.row():
-                    self.target = tid(ui.input("position / distance (pulses)", value="10000"), "move-target")
-                    self.speed = tid(ui.input("speed (pps)", value="5000"), "move-speed").classes("w-28")
-                    self.acc = tid(ui.input("accel (ms)", placeholder="drive's"), "move-acc").classes("w-24")
-                    self.dec = tid(ui.input("decel (ms)", placeholder="drive's"), "move-dec").classes("w-24")
+                    self.target = tid(ui.input("position / distance (pulses)", value=last["target"]), "move-target")
+                    self.speed = tid(ui.input("speed (pps)", value=last["speed"]), "move-speed").classes("w-28")
+                    self.acc = tid(ui.input("accel (ms)", value=last["acc"], placeholder="drive's"),
+                                   "move-acc").classes("w-24")
+                    self.dec = tid(ui.input("decel (ms)", value=last["dec"], placeholder="drive's"),
+                                   "move-dec").classes("w-24")
+                for box in (self.target, self.speed, self.acc, self.dec):
+                    box.on("keydown.enter", lambda: self._move(*self.last_move))
+                self.move_buttons = {}
                 with ui.row():
-                    tid(ui.button("Move ABS", on_click=lambda: self._move("abs", 1)), "btn-move-abs")
-                    tid(ui.button("Move INC", on_click=lambda: self._move("inc", 1)), "btn-move-inc")
-                    tid(ui.button("Move DEC", on_click=lambda: self._move("inc", -1)), "btn-move-dec")
+                    for key, text, testid in ((("abs", 1), "Move ABS", "btn-move-abs"),
+                                              (("inc", 1), "Move INC", "btn-move-inc"),
+                                              (("inc", -1), "Move DEC", "btn-move-dec")):
+                        self.move_buttons[key] = tid(ui.button(text, on_click=lambda k=key: self._move(*k)), testid)
+                self._mark_enter()
                 with ui.row().classes("items-center"):
                     ui.label("hold to jog:")
                     for sign, text in ((-1, "Jog −"), (1, "Jog +")):
@@ -264,14 +342,14 @@ class DeskPage:
                     tid(ui.button("Limit +", on_click=lambda: self.act(s.to_limit, 1, self.speed.value)),
                         "btn-limit-plus").props("outline")
                 ui.label("Leave accel/decel blank to use the drive's parameters 3 and 4; filled in, the move is "
-                         "sent as MoveAbsPosEx / MoveIncPosEx with its own times.").classes(
-                    "text-caption text-grey-7")
+                         "sent as MoveAbsPosEx / MoveIncPosEx with its own times. Enter in a field repeats the "
+                         "move marked ⏎ (the last one used).").classes("text-caption text-grey-7")
         with ui.card().classes("w-full"):
             with ui.row().classes("items-center"):
                 ui.label("Live plot").classes("text-subtitle1")
                 tid(ui.switch("pause", on_change=lambda e: setattr(self, "plot_paused", e.value)), "plot-pause")
-                ui.select(PLOT_WINDOWS, value=self.plot_window, label="window",
-                          on_change=lambda e: setattr(self, "plot_window", e.value)).classes("w-24")
+                tid(ui.select(PLOT_WINDOWS, value=self.plot_window, label="window",
+                              on_change=lambda e: setattr(self, "plot_window", e.value)), "plot-window").classes("w-24")
                 tid(ui.button("Export CSV", icon="download", on_click=self._export_csv), "btn-csv").props("outline")
                 self.plot_points = tid(ui.label("0 points"), "plot-points").classes("text-caption")
             self.chart = tid(ui.echart({
@@ -292,7 +370,14 @@ class DeskPage:
                 ],
             }), "plot").classes("w-full h-72")
 
+    def _mark_enter(self):
+        for key, button in self.move_buttons.items():
+            button.classes(add="enter-hint") if key == self.last_move else button.classes(remove="enter-hint")
+
     def _move(self, kind, sign):
+        if (kind, sign) != self.last_move:
+            self.last_move = (kind, sign)
+            self._mark_enter()
         target = self.target.value
         if sign < 0:  # Move DEC: the same distance the other way
             try:
@@ -313,7 +398,8 @@ class DeskPage:
             await self.act(self.s.jog_release, quiet=True)
 
     def _export_csv(self):
-        ui.download.content(self.s.history_csv(), time.strftime("motorjig-plot-%Y%m%d-%H%M%S.csv"),
+        slave = "slave%s-" % self.s.axis if self.s.axis is not None else ""
+        ui.download.content(self.s.history_csv(), time.strftime("motorjig-plot-" + slave + "%Y%m%d-%H%M%S.csv"),
                             "text/csv")
 
     # --- motion test ---------------------------------------------------------------------------------
@@ -513,6 +599,8 @@ class DeskPage:
         with ui.row().classes("items-end"):
             self.raw_wire = tid(ui.input("or wire bytes as typed (AA CC ... AA EE, nothing added)"),
                                 "raw-wire").classes("w-2/3")
+        for box in (self.raw_id, self.raw_type, self.raw_data, self.raw_wire):
+            box.on("keydown.enter", self._send_raw)  # Enter sends, as the Send button
         with ui.row().classes("items-center"):
             tid(ui.switch("log polling frames", value=s.log_polls,
                           on_change=lambda e: setattr(s, "log_polls", e.value)), "log-polls")
@@ -537,15 +625,20 @@ class DeskPage:
         ch = self.changed
         state = s.state
         conn = {"connected": "connected: %s @ %d" % (s.url, s.baud), "lost": "CONNECTION LOST",
-                "disconnected": "not connected"}[state]
+                "disconnected": "not connected", "lent": "test run: the plan has the port"}[state]
         if ch("conn", conn):
             self.conn_label.text = conn
         if ch("lost", (state, s.lost_reason)):
             self.lost_banner.set_visibility(state == "lost")
             self.lost_text.text = s.lost_message() if state == "lost" else ""
-        axis = "axis: slave %d" % s.axis if s.axis is not None else "no axis selected"
-        if ch("axis", axis):
-            self.axis_label.text = axis
+        options = {r["id"]: "%d %s" % (r["id"], "jig" if r["jig"] else r["type_name"]) for r in s.slaves.values()}
+        if s.axis is not None and s.axis not in options:
+            options[s.axis] = "%d" % s.axis
+        if ch("axis_select", (tuple(options.items()), s.axis)):
+            self.axis_select.set_options(options, value=s.axis)
+        proto = "Ver8" if s.ver8 else "Ver6"
+        if ch("protocol", proto):
+            self.protocol_chip.text = proto
         prog = s.scan_progress
         rows = [dict(r, role="jig (slave %d)" % r["id"] if r["jig"] else "driver") for r in s.slaves.values()]
         if prog is not None:
@@ -568,6 +661,8 @@ class DeskPage:
             self.axis_pick.value = s.axis
         self._refresh_axis()
         self._refresh_test()
+        if self.test_panel is not None:
+            self.test_panel.refresh()
         new = s.log_since(self.log_seq)
         for e in new:
             self.log_view.push("%s  %-5s %s" % (stamp(e.t), e.kind.upper(), e.text))
@@ -592,6 +687,9 @@ class DeskPage:
             cls = "lamp err" if name in errors else "lamp on" if name in flags else "lamp"
             if ch("lamp-" + name, cls):
                 lamp.classes(replace=cls)
+        latched = "emergency_stop" in flags
+        if ch("estop_hint", latched):
+            self.estop_hint.set_visibility(latched)
         if ch("ins", ins):
             self.inputs_label.text = ins
         if ch("outs", outs):
@@ -618,6 +716,8 @@ class DeskPage:
         self.mt_table.update()
 
     def _refresh_plot(self):
+        if self.test_panel is not None:
+            self.test_panel.refresh_plot()
         if self.plot_paused:
             return
         rows = self.s.history_rows(self.plot_window)

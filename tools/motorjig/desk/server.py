@@ -1,14 +1,19 @@
-"""Start MotorJig Desk: the web server, the shared bus session and, on request, the bench.
+"""Start MotorJig Desk: the web server, the shared bus session, the Test tab's station and, on request, the bench.
 
     jigctl gui [--port PORT] [--baud B] [--http-port N] [--host 127.0.0.1] [--open]
+               [--plans DIR] [--out DIR] [--operator NAME] [--station NAME] [--read-only]
     python -m motorjig.desk --bench [--drivers 2,3]     the virtual bench and the page on it (`make`)
 
-The page listens on 127.0.0.1 unless another address is asked for; then a
-warning says that anyone who can reach it can move the motors.
+The page listens on 127.0.0.1 unless another address is asked for. Bound to any
+other address it needs a token: a random one is made at start and printed in the
+URL (``http://HOST:PORT/?token=...``); without it every page, file and websocket
+is answered 401/403 (``auth``). ``--read-only`` shows the status and the runs and
+refuses everything that would send to the bus.
 """
 
 import argparse
 import ipaddress
+import os
 import socket
 import sys
 
@@ -25,17 +30,25 @@ def is_loopback(host):
         return False
 
 
-def security_warning(host):
+def security_warning(host, read_only=False):
     """The sentence printed when the page is reachable from other machines, or None."""
     if is_loopback(host):
         return None
-    return ("WARNING: MotorJig Desk listens on %s without a password: anyone who can reach this address "
-            "can move the motors. Use --host 127.0.0.1 unless this network is yours alone." % host)
+    if read_only:
+        return ("NOTE: MotorJig Desk listens on %s, read-only: whoever has the URL with its token sees the "
+                "status and the runs; nothing can be sent to the bus from the page." % host)
+    return ("WARNING: MotorJig Desk listens on %s: anyone who has the URL with its token can move the "
+            "motors. There is no TLS: keep it to a network that is yours, or use --read-only." % host)
 
 
-def page_url(host, port):
-    shown = "127.0.0.1" if host in ("0.0.0.0", "") else ("[%s]" % host if ":" in host else host)
-    return "http://%s:%d/" % (shown, port)
+def page_url(host, port, token=None):
+    if host in ("0.0.0.0", ""):
+        shown = "127.0.0.1"
+    elif host == "::":
+        shown = "[::1]"
+    else:
+        shown = "[%s]" % host if ":" in host else host
+    return "http://%s:%d/%s" % (shown, port, "?token=%s" % token if token else "")
 
 
 def check_http_port(host, port):
@@ -106,6 +119,18 @@ def add_gui_arguments(p):
     p.add_argument("--drivers", type=_ids, default=(2, 3), help="with --bench: simulated driver ids (default 2,3)")
     p.add_argument("--tcp-port", type=tcp_port, default=0,
                    help="with --bench: the bench's TCP port for other programs (default: a free one)")
+    p.add_argument("--plans", metavar="DIR", help="the Test tab's plans folder (default: the repository's plans/)")
+    p.add_argument("--out", metavar="DIR", default="results",
+                   help="where the Test tab's runs leave their records and reports (default ./results)")
+    p.add_argument("--operator", default=os.environ.get("USER", ""),
+                   help="the operator's name the Test tab starts with (default: $USER)")
+    p.add_argument("--station", help="station name in the run records (default: this computer's name)")
+    p.add_argument("--db", default=os.environ.get("JIGCTL_DB") or None, metavar="PATH|URL|none",
+                   help="results database the Test tab stores every run in and lists them from (as jigctl "
+                        "test --db; default: $JIGCTL_DB, else ~/.local/share/motorjig/results.sqlite; 'none': "
+                        "the records in --out)")
+    p.add_argument("--read-only", action="store_true",
+                   help="show the status and the runs, refuse everything that would send to the bus")
 
 
 def build_parser():
@@ -120,6 +145,19 @@ def build_parser():
     return p
 
 
+def open_results(db, out):
+    """The results database for the Test tab, or None (then the records of --out are listed)."""
+    if db is not None and str(db).strip().lower() == "none":
+        return None
+    try:
+        from motorjig.station.store import open_store
+
+        return open_store(db)
+    except Exception as exc:  # no SQLAlchemy, a bad URL, a server that does not answer: the page still works
+        out.write("Test tab: no results database (%s); the runs are listed from the records in --out\n" % exc)
+        return None
+
+
 def serve(args, out=None):
     """Run the page until Ctrl-C; returns an exit status. args: see build_parser."""
     out = out or sys.stdout
@@ -128,10 +166,12 @@ def serve(args, out=None):
     except ImportError:
         sys.stderr.write("jigctl gui: the web GUI needs NiceGUI: run `make setup` (pip extra [gui]).\n")
         return 2
-    from motorjig.desk import page
+    from motorjig.desk import auth, page
     from motorjig.desk.session import BusSession, UserError
+    from motorjig.desk.testrun import Station
 
-    warning = security_warning(args.host)
+    read_only = bool(getattr(args, "read_only", False))
+    warning = security_warning(args.host, read_only)
     if warning:
         sys.stderr.write(warning + "\n")
         sys.stderr.flush()
@@ -162,26 +202,42 @@ def serve(args, out=None):
     if port:
         try:
             msg = session.connect(port, args.baud, args.ver8)
-            if bench is not None:  # the bench's ids are known: scan them now, the page opens ready
-                rows = session.scan(1, max(args.drivers))
+            if bench is not None or read_only:  # a read-only page cannot scan: it opens ready
+                rows = session.scan(1, max(args.drivers) if bench is not None else 15)
                 msg = "connected to %s; found %s; working with slave %s" % (
                     port, ", ".join("%d (%s)" % (r["id"], "jig" if r["jig"] else r["type_name"]) for r in rows),
                     session.axis)
             out.write(msg + "\n")
         except UserError as exc:
             out.write("could not connect yet: %s (the page offers Connect)\n" % exc)
-    page.build(session)
+    session.read_only = read_only
+    # The station's engine (OpenHTF) sets a signal handler when imported: that works in this thread only.
+    store = open_results(getattr(args, "db", None), out)
+    station = Station(session, plans_dir=getattr(args, "plans", None), out_dir=getattr(args, "out", "results"),
+                      operator=getattr(args, "operator", ""), station=getattr(args, "station", None), store=store)
+    if station.unavailable:
+        out.write("Test tab: %s\n" % station.unavailable)
+    page.build(session, station)
+    token = None
+    if not is_loopback(args.host):
+        token = auth.new_token()
+        app.add_middleware(auth.TokenGate, token=token, port=args.http_port)
 
     def shutdown():
         session.stop()
+        if store is not None:
+            store.close()
         if bench is not None:
             bench.stop()
 
     app.on_shutdown(shutdown)
-    url = page_url(args.host, args.http_port)
-    out.write("MotorJig Desk: %s  (Ctrl-C stops)\n" % url)
+    url = page_url(args.host, args.http_port, token)
+    out.write("MotorJig Desk: %s  (Ctrl-C stops)%s\n" % (url, "  read-only" if read_only else ""))
+    if args.host in ("0.0.0.0", "::"):
+        out.write("  from other computers: %s\n" % page_url(socket.gethostname(), args.http_port, token))
     out.flush()
-    ui.run(host=args.host, port=args.http_port, title="MotorJig Desk", reload=False, show=bool(args.open),
+    show = ("/?token=%s" % token if token else "/") if args.open else False
+    ui.run(host=args.host, port=args.http_port, title="MotorJig Desk", reload=False, show=show,
            show_welcome_message=False, uvicorn_logging_level="warning", favicon="🛠", dark=False)
     return 0
 

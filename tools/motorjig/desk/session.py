@@ -11,10 +11,18 @@ of their requests.
 Every failure the operator can cause or meet reaches the page as ``UserError``
 with one sentence; a port that fails while in use switches the session to the
 ``lost`` state ("connection lost ... Reconnect").
+
+A test-plan run (the Test tab) needs the port for itself: ``lend_port`` closes the
+Master (the poller and every command then wait with a sentence, state ``lent``) and
+``take_port_back`` opens it again, so one program part owns the port at a time.
+With ``read_only`` every method that would send something to the bus is refused;
+only the poller reads.
 """
 
 import collections
 import csv
+import datetime
+import functools
 import io
 import threading
 import time
@@ -27,7 +35,7 @@ from jig.parser import FrameParser
 from motorjig import names as N
 from motorjig.commands import _motion_cycles  # the very moves and checks of `jigctl motion-test`
 from motorjig.decode import Decoder
-from motorjig.errors import JigError, PortError
+from motorjig.errors import JigError, MotionRefusedError, PortError
 from motorjig.master import BAUD_RATES, AxisStatus, Frame, Master
 
 from motorjig.desk import forms
@@ -51,6 +59,27 @@ class Aborted(JigError):
     """STOP or EMERGENCY STOP was pressed while a job was running."""
 
 
+#: what the page says brings an axis back after EMERGENCY STOP (the drive latches it)
+ESTOP_RECOVERY = ("EMERGENCY STOP is latched in the drive: it refuses every move (0x85) until the servo is "
+                  "switched off and on again (Servo OFF, then Servo ON). ALARM RESET and STOP do not clear it.")
+
+#: the move fields' values before the operator has typed any (those of the seed program)
+MOVE_DEFAULTS = {"target": "300000", "speed": "50000", "acc": "1000", "dec": "10"}
+
+
+def command(what):
+    """Mark a session method that sends something to the bus: refused in a read-only Desk."""
+    def wrap(fn):
+        @functools.wraps(fn)
+        def call(self, *args, **kw):
+            if self.read_only:
+                raise UserError("%s refused: this Desk is read-only (--read-only): it shows the status and the "
+                                "runs and sends nothing to the bus" % what)
+            return fn(self, *args, **kw)
+        return call
+    return wrap
+
+
 def wire_frame(wire):
     """(Frame, None) for complete wire bytes, or (None, why) when they are not a good frame."""
     p = FrameParser()
@@ -68,13 +97,17 @@ class BusSession:
     """Connection, selected axis, polled status, history, log and jobs of one Desk server."""
 
     def __init__(self, poll_interval=0.05, history_seconds=120.0, log_size=3000, timeout=0.1,
-                 master_factory=Master):
+                 master_factory=Master, read_only=False):
+        self.read_only = read_only
         self.poll_interval = poll_interval
         self.timeout = timeout
         self.history_seconds = history_seconds
         self.master_factory = master_factory
         self.master = None
-        self.state = "disconnected"  # connected, lost
+        self.state = "disconnected"  # connected, lost, lent (to a test run)
+        self.lent_to = ""  # who has the port while lent
+        self._lent_abort = None  # called by STOP / EMERGENCY STOP while lent
+        self.move_fields = dict(MOVE_DEFAULTS)  # the last values moved with, for new tabs
         self.url = ""
         self.baud = 115200
         self.ver8 = False
@@ -128,8 +161,8 @@ class BusSession:
             fr, why = wire_frame(item)
             text = self._decoder.describe(fr, _kind(fr)) if fr is not None else "(%s)" % why
             self.log("tx", "%s   [wire %s]" % (text, bytes(item).hex(" ")))
-        else:
-            self.log("rx", "%s   [body %s]" % (self._decoder.describe(item), item.body.hex(" ")))
+        else:  # what the master receives is a reply: the bus master sends every request
+            self.log("rx", "%s   [body %s]" % (self._decoder.describe(item, "reply"), item.body.hex(" ")))
 
     def _note_line_errors(self):
         p = self.master.parser if self.master is not None else None
@@ -147,8 +180,10 @@ class BusSession:
     def connected(self):
         return self.state == "connected"
 
+    @command("Connect")
     def connect(self, url, baud=115200, ver8=False):
         """Open the port and look for the jig; returns a sentence saying what answered."""
+        self._not_lent()
         url = str(url or "").strip()
         if not url:
             raise UserError("choose a serial port or type a pyserial URL (socket://host:port)")
@@ -156,7 +191,7 @@ class BusSession:
         if baud not in BAUD_RATES:
             raise UserError("baud rate %d is not one the drives support (%s)" % (
                 baud, ", ".join(map(str, BAUD_RATES))))
-        self.disconnect(quiet=True)
+        self._close(quiet=True)
         with self._lock:
             try:
                 m = self.master_factory(url, baud=baud, ver8=bool(ver8), trace=self._trace, timeout=self.timeout)
@@ -175,13 +210,19 @@ class BusSession:
                 self._lose(exc)
                 raise UserError(self.lost_message()) from None
         if not alive:
-            msg = ("connected to %s, but nothing answers on the bus (silent port: check the baud rate, "
-                   "the wiring and that the jig is powered); press Scan to look again" % url)
+            msg = ("connected to %s, but nothing answers on the bus (silent port: check the baud rate, the "
+                   "Ver6/Ver8 setting (now %s: the Ver8 framing switch), the wiring and that the jig is "
+                   "powered); press Scan to look again" % (url, "Ver8" if ver8 else "Ver6"))
             self.log("error", msg)
             return msg
         return "connected to %s; press Scan to find the slaves" % url
 
+    @command("Disconnect")
     def disconnect(self, quiet=False):
+        self._not_lent()
+        self._close(quiet)
+
+    def _close(self, quiet=False):
         self._abort.set()
         with self._lock:
             m, self.master = self.master, None
@@ -194,6 +235,7 @@ class BusSession:
             self.status = None
         self._abort.clear()
 
+    @command("Reconnect")
     def reconnect(self):
         if not self.url:
             raise UserError("nothing to reconnect to: connect first")
@@ -215,9 +257,65 @@ class BusSession:
         return "connection lost: %s. Check the cable or the bench, then press Reconnect." % (
             self.lost_reason.rstrip("."))
 
+    def _not_lent(self):
+        if self.state == "lent":
+            raise UserError("the port is with %s: wait until it ends, or press Abort" % self.lent_to)
+
+    def lend_port(self, who, abort):
+        """Close the Master so ``who`` (a test run) can open the port itself; returns (url, baud).
+
+        Until ``take_port_back`` the poller pauses and every command is refused with a
+        sentence; STOP and EMERGENCY STOP call ``abort`` instead.
+        """
+        if self.read_only:
+            raise UserError("a test run refused: this Desk is read-only (--read-only)")
+        if self.motion_test["running"]:
+            raise UserError("a motion test is running: stop it first")
+        if self.scan_progress is not None:
+            raise UserError("a scan is running: wait for it to end")
+        with self._lock:
+            self._not_lent()
+            if self.state == "lost":
+                raise UserError(self.lost_message())
+            if self.master is None:
+                raise UserError("not connected: connect to the bus first (Connect & bus)")
+            m, self.master = self.master, None
+            try:
+                m.close()
+            except Exception:
+                pass
+            self.state, self.lent_to, self._lent_abort = "lent", who, abort
+            self.status = None
+            self.log("info", "port %s handed to %s" % (self.url, who))
+        return self.url, self.baud
+
+    def take_port_back(self):
+        """Open the port again after a test run; returns a sentence."""
+        with self._lock:
+            if self.state != "lent":
+                return ""
+            who = self.lent_to
+            self.lent_to, self._lent_abort = "", None
+            try:
+                m = self.master_factory(self.url, baud=self.baud, ver8=self.ver8, trace=self._trace,
+                                        timeout=self.timeout)
+            except PortError as exc:
+                self.state = "lost"
+                self.lost_reason = "after %s: %s" % (who, exc)
+                self.log("error", self.lost_message())
+                return self.lost_message()
+            self.master = m
+            self._seen_errors = {name: getattr(m.parser, name, 0) for name, _ in LINE_ERRORS}
+            self.state = "connected"
+            self.log("info", "port %s back from %s" % (self.url, who))
+            return "connected to %s again" % self.url
+
     def _bus(self, fn, *args, polling=False):
         """Run fn(master, *args) with the bus to ourselves; failures become UserError."""
+        if self.read_only and not polling:
+            raise UserError("refused: this Desk is read-only (--read-only)")
         with self._lock:
+            self._not_lent()
             if self.state == "lost":
                 raise UserError(self.lost_message())
             if self.master is None:
@@ -228,6 +326,11 @@ class BusSession:
             except PortError as exc:
                 self._lose(exc)
                 raise UserError(self.lost_message()) from None
+            except MotionRefusedError as exc:
+                flags = AxisStatus(self.status.axis).flags if self.status is not None else ()
+                if "emergency_stop" in flags:
+                    raise UserError("%s. %s" % (exc, ESTOP_RECOVERY)) from None
+                raise UserError(str(exc)) from None
             except (JigError, ValueError) as exc:
                 raise UserError(str(exc)) from None
             finally:
@@ -242,6 +345,7 @@ class BusSession:
         return {"id": i, "type": info.type, "type_name": info.type_name, "version": info.version,
                 "jig": info.type == D.SLAVE_TYPE}
 
+    @command("Scan")
     def scan(self, first=0, last=F.MAX_SLAVE_ID):
         """GetSlaveInfo to every id (one request per lock hold); returns the rows found."""
         first, last = forms.slave_id(first, "first id"), forms.slave_id(last, "last id")
@@ -266,6 +370,7 @@ class BusSession:
             self.history.clear()
         return list(found.values())
 
+    @command("Scan via jig")
     def scan_via_jig(self):
         """The jig's own bus scan (0xF2/0xF3), then GetSlaveInfo to what it found."""
         jig = self.jig_id()
@@ -288,6 +393,7 @@ class BusSession:
                 return r["id"]
         return 1
 
+    @command("Choosing the axis")
     def select_axis(self, slave):
         slave = forms.slave_id(slave)
         if slave != self.axis:
@@ -327,7 +433,10 @@ class BusSession:
         if self._poller is not None:
             self._poller.join(2.0)
             self._poller = None
-        self.disconnect(quiet=True)
+        abort = self._lent_abort
+        if abort is not None:  # the server stops during a test run: end it safely
+            abort()
+        self._close(quiet=True)
 
     def _poll_loop(self):
         while not self._stop.wait(self.poll_interval):
@@ -388,35 +497,64 @@ class BusSession:
         return rows
 
     def history_csv(self):
+        """The plot's samples: local ISO time, seconds from the first sample, the slave."""
         out = io.StringIO()
         w = csv.writer(out)
-        w.writerow(["time_s", "command_pos", "actual_pos", "actual_vel_pps"])
-        for r in list(self.history):
-            w.writerow(["%.3f" % r.t, r.command_pos, r.actual_pos, r.actual_vel])
+        w.writerow(["time", "t_s", "slave", "command_pos", "actual_pos", "actual_vel_pps"])
+        rows = list(self.history)
+        t0 = rows[0].t if rows else 0.0
+        for r in rows:
+            when = datetime.datetime.fromtimestamp(r.t).astimezone().isoformat(timespec="milliseconds")
+            w.writerow([when, "%.3f" % (r.t - t0), self.axis, r.command_pos, r.actual_pos, r.actual_vel])
         return out.getvalue()
 
     # --- drive control and motion ---------------------------------------------------------------
+    @command("Servo on/off")
     def servo(self, on):
         a = self._need_driver()
         self._bus(lambda m: m.servo_enable(a, bool(on)))
         return "slave %d: servo %s" % (a, "on" if on else "off")
 
+    @command("Servo off and on")
+    def recover_estop(self):
+        """Servo off, then on: what clears a drive's latched emergency stop."""
+        a = self._need_driver()
+        self._bus(lambda m: m.servo_enable(a, False))
+        self._bus(lambda m: m.servo_enable(a, True))
+        self.log("info", "slave %d: servo off and on again (clears the emergency stop)" % a)
+        return "slave %d: servo off and on again" % a
+
+    @command("Alarm reset")
     def alarm_reset(self):
         a = self._need_driver()
         servo = self.axis_is_servo()
         self._bus(lambda m: m.alarm_reset(a, servo=servo))
         return "slave %d: alarm reset sent" % a
 
+    @command("STOP")
     def stop_axis(self):
-        """Decelerating stop of the selected axis; also ends a running job."""
+        """Decelerating stop of the selected axis; also ends a running job (a test run: Abort)."""
+        if self._abort_lent():
+            return "test run aborted: emergency stop and servo off"
         self._abort.set()
         a = self._need_driver()
         self._bus(lambda m: m.move_stop(a))
         self.log("info", "STOP sent to slave %d" % a)
         return "slave %d: stop" % a
 
+    def _abort_lent(self):
+        abort = self._lent_abort if self.state == "lent" else None
+        if abort is None:
+            return False
+        self.log("info", "STOP / EMERGENCY STOP during %s: aborting it" % self.lent_to)
+        abort()
+        return True
+
+    @command("EMERGENCY STOP")
     def emergency_stop(self):
         """EMERGENCY STOP: broadcast to every axis, then to the selected one with a reply."""
+        if self._abort_lent():
+            return "test run aborted: emergency stop and servo off"
         self._abort.set()
         a = self.axis if self.axis is not None and not self.axis_is_jig() else None
 
@@ -429,12 +567,15 @@ class BusSession:
         self.log("info", "EMERGENCY STOP sent to all axes%s" % ("" if a is None else " and slave %d" % a))
         return "EMERGENCY STOP sent"
 
+    @command("Move")
     def move(self, kind, target, speed, accel="", decel=""):
         """Move absolute ('abs') or incremental ('inc'); acc/dec times use the EX frames."""
         a = self._need_driver()
+        fields = {"target": str(target), "speed": str(speed), "acc": str(accel or ""), "dec": str(decel or "")}
         target = forms.position(target, "position" if kind == "abs" else "distance")
         speed = forms.speed(speed)
         acc, dec = forms.accel(accel, "acceleration time"), forms.accel(decel, "deceleration time")
+        self.move_fields = fields
         self._abort.clear()
         if kind == "abs":
             fn = (lambda m: m.move_abs_ex(a, target, speed, acc, dec)) if acc or dec else \
@@ -447,6 +588,7 @@ class BusSession:
         self._bus(fn)
         return "slave %d: move %s %d at %d pps" % (a, kind, target, speed)
 
+    @command("Jog")
     def jog(self, direction, speed):
         """Start jogging (press); a release that reaches the bus first cancels it."""
         a = self._need_driver()
@@ -460,34 +602,40 @@ class BusSession:
         self._bus(start)
         return "slave %d: jog %s" % (a, "+" if direction > 0 else "-")
 
+    @command("Jog")
     def jog_release(self):
         self._jog_gen += 1
         a = self._need_driver()
         self._bus(lambda m: m.move_stop(a))
         return "slave %d: jog released" % a
 
+    @command("Home")
     def home(self):
         a = self._need_driver()
         self._bus(lambda m: m.move_origin(a))
         return "slave %d: origin search started" % a
 
+    @command("Move to limit")
     def to_limit(self, direction, speed):
         a = self._need_driver()
         speed = forms.speed(speed)
         self._bus(lambda m: m.move_to_limit(a, speed, 1 if direction > 0 else 0))
         return "slave %d: to limit %s" % (a, "+" if direction > 0 else "-")
 
+    @command("Clear position")
     def clear_position(self):
         a = self._need_driver()
         self._bus(lambda m: m.clear_position(a))
         return "slave %d: position cleared" % a
 
     # --- motion test (the checks of `jigctl motion-test`) ------------------------------------------
+    @command("The motion test")
     def run_motion_test(self, cycles, distance, speed, move_timeout=30.0):
-        """Out-and-back cycles with per-move pass/fail; blocks until done (run it in a thread)."""
+        """Out-and-back cycles with per-move pass/fail; blocks until done (run it in a thread).
+        It ends at the first lost connection, or at STOP / EMERGENCY STOP."""
         a = self._need_driver()
         args = SimpleNamespace(cycles=forms.number(cycles, "cycles", 1, 1000),
-                               distance=forms.position(distance, "distance"),
+                               distance=forms.distance(distance),
                                speed=forms.speed(speed), move_timeout=move_timeout, json=True,
                                stop_on_fail=False)
         moves = []
@@ -502,8 +650,9 @@ class BusSession:
             _motion_cycles(args, _JobMaster(self, args), a, moves)
         finally:
             passed = sum(1 for r in moves if r["ok"])
-            aborted = self._abort.is_set()
-            summary = "%d of %d moves passed%s" % (passed, len(moves), " (stopped)" if aborted else "")
+            why = (" (connection lost)" if self.state == "lost" else " (stopped)" if self._abort.is_set()
+                   else "")
+            summary = "%d of %d moves passed%s" % (passed, len(moves), why)
             verdict = "PASS" if passed == len(moves) == 2 * args.cycles else "FAIL"
             self.motion_test = {"running": False, "moves": moves, "summary": "%s: %s" % (verdict, summary)}
             self.log("info", "motion test %s: %s" % (verdict, summary))
@@ -517,6 +666,7 @@ class BusSession:
             return "jig", N.jig_params()
         return "drive", N.STEP_PARAMS
 
+    @command("Reading the parameters")
     def read_params(self, slave=None):
         """Every parameter's RAM and ROM value (one request per lock hold)."""
         slave = self._need_axis() if slave is None else forms.slave_id(slave)
@@ -540,6 +690,7 @@ class BusSession:
                 raise
             return None
 
+    @command("Writing a parameter")
     def write_param(self, slave, key, value):
         slave = forms.slave_id(slave)
         which, table = self.param_table(slave)
@@ -556,6 +707,7 @@ class BusSession:
         self.log("info", "slave %d parameter %d %s = %d (RAM)" % (slave, p.number, p.name, back))
         return back
 
+    @command("Saving the parameters")
     def save_params(self, slave):
         slave = forms.slave_id(slave)
         self._bus(lambda m: m.save_all_parameters(slave))
@@ -563,6 +715,7 @@ class BusSession:
         return "slave %d: parameters saved to ROM" % slave
 
     # --- I/O ----------------------------------------------------------------------------------------
+    @command("Reading the I/O")
     def io_bits(self, slave=None):
         """(input rows, output rows) of (bit, name, on) for the drive's or the jig's I/O."""
         slave = self._need_axis() if slave is None else slave
@@ -578,32 +731,38 @@ class BusSession:
         return ([(b, n, bool(inputs >> b & 1)) for b, n in in_names],
                 [(b, n, bool(outputs >> b & 1)) for b, n in out_names])
 
+    @command("Switching an output")
     def set_output(self, slave, bit, on):
         mask = 1 << forms.number(bit, "output bit", 0, 31)
         self._bus(lambda m: m.set_io_output(slave, mask if on else 0, 0 if on else mask))
         return "slave %d output bit %d %s" % (slave, bit, "on" if on else "off")
 
     # --- jig diagnostics ----------------------------------------------------------------------------
+    @command("Reading the counters")
     def counters(self):
         jig = self.jig_id()
         return self._bus(lambda m: m.read_counters(jig))
 
+    @command("Resetting the counters")
     def reset_counters(self):
         jig = self.jig_id()
         self._bus(lambda m: m.reset_counters(jig))
         self.log("info", "jig counters reset")
         return "jig counters reset"
 
+    @command("Reading the crash log")
     def crash_log(self):
         jig = self.jig_id()
         return self._bus(lambda m: m.read_crash_log(jig)) or "no crash recorded (or none kept here)"
 
+    @command("Reading the bus-scan result")
     def bus_scan_result(self):
         jig = self.jig_id()
         res = self._bus(lambda m: m.get_bus_scan_result(jig))
         return "%s: %s" % (res.state, ", ".join("id %d type %d" % kv for kv in sorted(res.types.items())) or "no ids")
 
     # --- raw frames -----------------------------------------------------------------------------------
+    @command("Sending a raw frame")
     def send_raw(self, slave, ftype, data_hex="", corrupt=False, wire_hex="", timeout=None):
         """Send one frame (or wire bytes as typed) and log every frame that comes back."""
         timeout = self.timeout if timeout is None else timeout
@@ -612,7 +771,7 @@ class BusSession:
             want = None
         else:
             slave = forms.slave_id(slave)
-            ftype = forms.number(ftype, "frame type", 0, 255)
+            ftype = forms.hex_byte(ftype, "frame type")
             data = forms.hex_bytes(data_hex, "data")
             if len(data) > F.MAX_DATA:
                 raise UserError("too much data for one frame (at most %d bytes)" % F.MAX_DATA)
@@ -672,6 +831,8 @@ class _JobMaster:
             try:
                 return self._s._bus(lambda m: getattr(m, name)(*a, **kw))
             except UserError as exc:
+                if self._s.state != "connected":  # lost (or lent): no further move can reach the drive
+                    self._args.stop_on_fail = True
                 raise JigError(str(exc)) from None
         return call
 
@@ -688,4 +849,5 @@ def stamp(t):
     return time.strftime("%H:%M:%S", time.localtime(t)) + ".%03d" % int(t % 1 * 1000)
 
 
-__all__ = ["BusSession", "UserError", "Aborted", "LogEntry", "Sample", "wire_frame", "stamp"]
+__all__ = ["BusSession", "UserError", "Aborted", "LogEntry", "Sample", "wire_frame", "stamp", "ESTOP_RECOVERY",
+           "MOVE_DEFAULTS"]

@@ -1,0 +1,512 @@
+"""The Desk's Test tab without web code: the plans, one run at a time on the station's engine, the records.
+
+``Station`` lists the plans of the plans folder and the uploaded ones, and starts a
+run with ``motorjig.station.run_plan`` (the very engine of ``jigctl test``) in a
+worker thread once the ``BusSession`` has lent it the port. ``Run`` is what the page
+shows of it: every step (pending, running, pass, fail, error, aborted) with its
+measurements against their limits, the live samples of the moving steps, the
+operator's prompt (the engine's worker waits until it is answered) and the verdict
+with the record's files. Abort (also STOP, EMERGENCY STOP and Esc while a run has the
+port) is the engine's abort: the running step ends, the axis gets an emergency stop
+and the servo goes off.
+
+Every run is stored in the results database (``motorjig.station.store``, the one
+``jigctl test --db`` writes: by default a SQLite file per computer), and the station's
+recent runs and today's yield are read from it. Without a database (``--db none``,
+or it cannot be opened) they come from the records in the output folder instead
+(each run leaves ``<plan>_<dut>_<time>.json`` there).
+"""
+
+import datetime
+import glob
+import json
+import os
+import re
+import socket
+import threading
+import time
+
+try:
+    import tomllib
+except ImportError:  # Python < 3.11
+    import tomli as tomllib
+
+from motorjig.desk.session import UserError
+
+MAX_UPLOAD = 512 * 1024  # bytes: a plan or parameter set is a few kB
+MAX_SAMPLES = 30000  # per step: a 3-minute move at 150 samples a second
+SERIAL_RE = re.compile(r"^[\x21-\x7e]{1,64}$")  # what a barcode holds: printable, no spaces
+FILE_KINDS = {"html": "text/html; charset=utf-8", "json": "application/json", "xml": "application/xml"}
+
+
+def default_plans_dir():
+    """The repository's plans/ (an editable install), else plans/ in the current folder."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    repo = os.path.normpath(os.path.join(here, "..", "..", "..", "plans"))
+    return repo if os.path.isdir(repo) else os.path.abspath("plans")
+
+
+def fmt_value(v):
+    """A measured value as the steps list shows it."""
+    if isinstance(v, bool) or v is None:
+        return str(v)
+    if isinstance(v, float):
+        return "%.0f" % v if abs(v) >= 1e5 else "%.4g" % v
+    text = str(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+class PlanEntry:
+    """One plan file: the loaded plan, or why it does not load."""
+
+    def __init__(self, path, source, plan=None, error=""):
+        self.path, self.source, self.plan, self.error = path, source, plan, error
+        self.file = os.path.basename(path)
+
+    @property
+    def label(self):
+        where = " (uploaded)" if self.source == "uploaded" else ""
+        if self.plan is None:
+            return "%s%s: does not load" % (self.file, where)
+        return "%s %s%s" % (self.plan.name, self.plan.version, where)
+
+    def describe(self):
+        if self.plan is None:
+            return self.error
+        p = self.plan
+        return "%s  ·  %d steps  ·  drive slave %d (%s, slave type %d)  ·  %s" % (
+            p.description or p.name, len(p.steps), p.drive.slave,
+            "/".join("Ver%d" % v for v in p.drive.protocol), p.drive.slave_type, self.file)
+
+
+class Run:
+    """One plan run as the page sees it; the engine's events arrive from its worker threads."""
+
+    def __init__(self, number, plan, serial, operator):
+        self.number = number
+        self.plan = plan
+        self.serial = serial
+        self.operator = operator
+        self.lock = threading.Lock()
+        self.steps = [{"name": "preflight", "kind": "the drive is the plan's", "state": "running",
+                       "seconds": None, "measurements": [], "details": []}]
+        self.steps += [{"name": s.name, "kind": s.kind, "state": "pending", "seconds": None, "measurements": [],
+                        "details": []} for s in plan.steps]
+        self._row = {r["name"]: i for i, r in enumerate(self.steps) if i}
+        self.samples = {}  # step name -> [[t, command, actual, velocity], ...]
+        self.plot_step = None  # the step whose samples came last
+        self.prompt = None  # {"id", "message"} while the engine waits for the operator
+        self._prompts = 0
+        self._answer = None
+        self._answered = threading.Event()
+        self.verdict = None  # PASS, FAIL, ERROR, ABORTED once it ended
+        self.details = []  # the record's outcome details
+        self.files = {}
+        self.dut_id = serial
+        self.started = time.time()
+        self.ended = None
+        self.version = 0  # bumped by every change, so a page redraws only what changed
+        self.ctx = None
+        self.abort_requested = False
+        self._abort_delivered = False  # the engine's executor existed when ctx.abort() was called
+
+    @property
+    def running(self):
+        return self.verdict is None
+
+    # --- from the engine ----------------------------------------------------------------
+    def on_start(self, ctx):
+        self.ctx = ctx
+        if self.abort_requested:
+            self._abort_engine()
+
+    def on_event(self, ev):
+        with self.lock:
+            i = self._row.get(ev.get("step"))
+            if ev["event"] == "sample":
+                rows = self.samples.setdefault(ev["step"], [])
+                if len(rows) < MAX_SAMPLES:
+                    rows.append(ev["row"])
+                self.plot_step = ev["step"]
+            elif ev["event"] == "step" and i is not None:
+                row = self.steps[i]
+                row["state"] = ev["state"]
+                if self.steps[0]["state"] == "running":
+                    self.steps[0]["state"] = "pass"
+                if ev["state"] != "running":
+                    row["seconds"] = ev.get("seconds")
+                    row["details"] = list(ev.get("details") or ())
+                    row["measurements"] = [dict(m) for m in ev.get("measurements") or ()]
+            self.version += 1
+        if ev["event"] == "step" and ev["state"] == "running" and self.abort_requested \
+                and not self._abort_delivered and self.ctx is not None:
+            # Abort came before the engine could take it; not from this thread (the phase's own).
+            threading.Thread(target=self._abort_engine, daemon=True).start()
+
+    def confirm(self, message):
+        """The engine's operator prompt: blocks its worker until the page answers (or Abort)."""
+        with self.lock:
+            self._prompts += 1
+            self.prompt = {"id": self._prompts, "message": message}
+            self._answer = None
+            self._answered.clear()
+            self.version += 1
+        try:
+            # Short waits: OpenHTF's abort reaches this thread only between two of them.
+            while not self._answered.wait(0.1):
+                pass
+            return bool(self._answer) and not self.abort_requested
+        finally:
+            with self.lock:
+                self.prompt = None
+                self.version += 1
+
+    def answer(self, prompt_id, ok):
+        with self.lock:
+            if self.prompt is None or self.prompt["id"] != prompt_id:
+                return False
+            self._answer = bool(ok)
+            self._answered.set()
+            return True
+
+    def abort(self):
+        """Abort: the engine stops the running step, then emergency stop and servo off."""
+        if not self.running:
+            return
+        self.abort_requested = True
+        self._answered.set()
+        if self.ctx is not None:
+            self._abort_engine()
+
+    def _abort_engine(self):
+        """ctx.abort() once it can reach the engine: OpenHTF aborts only a test whose executor
+        exists (its ``uid``), and a second abort forces even the teardown phases to be skipped."""
+        if self._abort_delivered:
+            return
+        test = self.ctx.test
+        self._abort_delivered = test is not None and test.uid is not None
+        self.ctx.abort()
+
+    def finish(self, record, files, error=""):
+        with self.lock:
+            record = record or {}
+            self.verdict = record.get("outcome") or "ERROR"
+            if self.abort_requested and self.verdict not in ("PASS", "FAIL"):
+                self.verdict = "ABORTED"
+            self.details = [d.get("description") for d in record.get("outcome_details", []) if d.get("description")]
+            if error:
+                self.details.append(error)
+            self.dut_id = record.get("dut_id") or self.serial
+            self.files = dict(files or {})
+            end_state = {"ABORTED": "aborted"}.get(self.verdict, "error")
+            for row in self.steps:
+                if row["state"] == "running":
+                    row["state"] = end_state
+                    if not row["details"] and self.details:
+                        row["details"] = list(self.details)
+                elif row["state"] == "pending":
+                    row["state"] = "not run"
+            self.ended = time.time()
+            self.version += 1
+
+    # --- for the page ---------------------------------------------------------------------
+    def snapshot(self):
+        with self.lock:
+            return {"steps": [dict(r) for r in self.steps], "prompt": self.prompt, "verdict": self.verdict,
+                    "details": list(self.details), "files": dict(self.files), "dut_id": self.dut_id,
+                    "version": self.version, "plot_step": self.plot_step}
+
+    def samples_of(self, step):
+        with self.lock:
+            return list(self.samples.get(step, ()))
+
+    def first_failure(self):
+        """(step name, [failure texts]) of the first step that did not pass, or None."""
+        with self.lock:
+            for row in self.steps:
+                if row["state"] in ("fail", "error", "aborted"):
+                    return row["name"], list(row["details"])
+        return None
+
+    def seconds(self):
+        return (self.ended or time.time()) - self.started
+
+
+class Station:
+    """The Test tab's state, shared by every browser tab of one Desk."""
+
+    def __init__(self, session, plans_dir=None, out_dir="results", operator="", station=None, upload_dir=None,
+                 store=None):
+        self.session = session
+        self.store = store  # a motorjig.station.store.Store, or None: the records of out_dir
+        self.plans_dir = os.path.abspath(plans_dir or default_plans_dir())
+        self.out_dir = os.path.abspath(out_dir)
+        self.upload_dir = os.path.abspath(upload_dir or os.path.join(self.out_dir, "uploaded-plans"))
+        self.operator = operator
+        self.station = station
+        self.run = None  # the running or the last run
+        self.selected = None  # the plan last chosen (new tabs start with it)
+        self._number = 0
+        self._lock = threading.Lock()
+        self._plan_cache = {}  # path -> (mtime, PlanEntry or None)
+        self._record_cache = {}  # path -> (mtime, size, summary)
+        self._stored = {}  # run id -> (first failing step, report path): stored runs do not change
+        self.records_error = ""
+        self.records_version = 0
+        try:
+            from motorjig.station import load_plan, run_plan  # noqa: F401
+            self.unavailable = ""
+        except ImportError as exc:
+            self.unavailable = ("the Test tab needs the station's OpenHTF (%s): pip install 'motorjig[station]'"
+                                % exc)
+
+    # --- plans ----------------------------------------------------------------------------------
+    def plans(self):
+        """Every plan of the plans folder, then the uploaded ones (parameter sets are left out)."""
+        out = []
+        for folder, source in ((self.plans_dir, "plans"), (self.upload_dir, "uploaded")):
+            for path in sorted(glob.glob(os.path.join(folder, "*.toml"))):
+                entry = self._entry(path, source)
+                if entry is not None:
+                    out.append(entry)
+        return out
+
+    def _entry(self, path, source):
+        try:
+            mtime = os.stat(path).st_mtime
+        except OSError:
+            return None
+        cached = self._plan_cache.get(path)
+        if cached is not None and cached[0] == mtime:
+            return cached[1]
+        entry = self._load(path, source)
+        self._plan_cache[path] = (mtime, entry)
+        return entry
+
+    def _load(self, path, source):
+        try:
+            with open(path, "rb") as f:
+                table = tomllib.load(f)
+        except (OSError, ValueError) as exc:
+            return PlanEntry(path, source, error="%s: %s" % (os.path.basename(path), exc))
+        if "plan" not in table and "steps" not in table:
+            return None  # a parameter set or a wiring file, not a plan
+        if self.unavailable:
+            return PlanEntry(path, source, error=self.unavailable)
+        from motorjig.station import PlanError, load_plan
+
+        try:
+            return PlanEntry(path, source, plan=load_plan(path))
+        except PlanError as exc:
+            return PlanEntry(path, source, error=str(exc))
+
+    def find_plan(self, key):
+        for entry in self.plans():
+            if entry.path == key:
+                return entry
+        return None
+
+    def add_upload(self, filename, data):
+        """Keep an uploaded file beside the other uploads; returns a sentence about it."""
+        if self.session.read_only:
+            raise UserError("uploading a plan refused: this Desk is read-only (--read-only)")
+        name = os.path.basename(str(filename or "")).strip()
+        if not re.match(r"^[A-Za-z0-9][A-Za-z0-9._-]*\.toml$", name):
+            raise UserError("%r: a plan is a .toml file named with letters, digits, . _ -" % filename)
+        if len(data) > MAX_UPLOAD:
+            raise UserError("%s is %d bytes: a plan is at most %d" % (name, len(data), MAX_UPLOAD))
+        os.makedirs(self.upload_dir, exist_ok=True)
+        path = os.path.join(self.upload_dir, name)
+        with open(path, "wb") as f:
+            f.write(data)
+        self._plan_cache.pop(path, None)
+        entry = self._entry(path, "uploaded")
+        if entry is None:
+            return "%s kept beside the uploaded plans (not a plan: a parameter set or wiring file)" % name
+        if entry.plan is None:
+            return "%s uploaded, but it does not load: %s" % (name, entry.error)
+        return "%s uploaded: plan %s %s, %d steps" % (name, entry.plan.name, entry.plan.version,
+                                                      len(entry.plan.steps))
+
+    # --- running ------------------------------------------------------------------------------------
+    @property
+    def running(self):
+        run = self.run
+        return run is not None and run.running
+
+    def start(self, key, serial="", operator=""):
+        """Start the plan at path ``key`` for DUT ``serial``; returns a sentence (the run goes on)."""
+        if self.session.read_only:
+            raise UserError("starting a test refused: this Desk is read-only (--read-only)")
+        if self.unavailable:
+            raise UserError(self.unavailable)
+        entry = self.find_plan(key) if key else None
+        if entry is None:
+            raise UserError("choose a plan first")
+        if entry.plan is None:
+            raise UserError(entry.error)
+        serial = str(serial or "").strip()
+        if serial and not SERIAL_RE.match(serial):
+            raise UserError("serial number %r: 1..64 printable characters without spaces" % serial)
+        with self._lock:
+            if self.running:
+                raise UserError("a test is running: wait for its verdict, or press Abort")
+            self._number += 1
+            run = Run(self._number, entry.plan, serial, str(operator or self.operator or "").strip())
+            url, baud = self.session.lend_port("the test run (%s)" % entry.plan.name, run.abort)
+            self.run = run
+        self.session.log("info", "test %s %s started for %s" % (entry.plan.name, entry.plan.version,
+                                                                 serial or "the drive's own id"))
+        threading.Thread(target=self._work, args=(run, url, baud), name="desk-test-run", daemon=True).start()
+        return "test %s started%s" % (entry.plan.name, " for %s" % serial if serial else "")
+
+    def _work(self, run, url, baud):
+        from motorjig.station import run_plan
+
+        record, files, error = None, {}, ""
+        try:
+            ctx = run_plan(run.plan, url, baud=baud, serial=run.serial or None, operator=run.operator or None,
+                           station=self.station, out_dir=self.out_dir, out=None, confirm=run.confirm,
+                           timeout_ms=max(1, round(self.session.timeout * 1000)), on_event=run.on_event,
+                           on_start=run.on_start, db=self.store)
+            record, files = ctx.record, ctx.files
+            if getattr(ctx, "store_error", None):
+                error = "the run was not stored in the results database: %s (its files are written)" % (
+                    ctx.store_error)
+        except Exception as exc:  # the engine itself failed: the run is an error, with the reason
+            error = "the run could not go on: %s: %s" % (type(exc).__name__, exc)
+        finally:
+            run.finish(record, files, error if error and record is None else "")
+            if error and record is not None:
+                self.records_error = error
+            self.session.log("info", "test %s: %s (%s)%s" % (run.plan.name, run.verdict, run.dut_id,
+                                                             "; " + "; ".join(run.details) if run.details else ""))
+            self.session.take_port_back()
+            self.records_version += 1
+
+    def abort(self):
+        run = self.run
+        if run is None or not run.running:
+            raise UserError("no test is running")
+        run.abort()
+        self.session.log("info", "test %s: Abort pressed" % run.plan.name)
+        return "test aborted: emergency stop and servo off"
+
+    def answer(self, prompt_id, ok):
+        run = self.run
+        if self.session.read_only:
+            raise UserError("answering refused: this Desk is read-only (--read-only)")
+        if run is None or not run.answer(prompt_id, ok):
+            return None
+        return "confirmed" if ok else "answered: not done"
+
+    # --- files and records ---------------------------------------------------------------------------
+    def file_path(self, name):
+        """The path of a run file in the output folder (by its bare name), or None."""
+        if name != os.path.basename(name) or name.startswith("."):
+            return None
+        ext = name.rsplit(".", 1)[-1]
+        path = os.path.join(self.out_dir, name)
+        return path if ext in FILE_KINDS and os.path.isfile(path) else None
+
+    def report_path(self, run_id):
+        """The HTML report of a stored run (any folder the database names), or None."""
+        if self.store is None:
+            return None
+        try:
+            return self._stored_run(int(run_id))[1] or None
+        except Exception:
+            return None
+
+    def _stored_run(self, run_id):
+        got = self._stored.get(run_id)
+        if got is None:
+            r = self.store.run(run_id) or {}
+            failed = next((p["name"] for p in r.get("phases", []) if p.get("outcome") in ("FAIL", "ERROR")), "")
+            html = (r.get("files") or {}).get("html") or ""
+            got = self._stored[run_id] = (failed, html if html and os.path.isfile(html) else "")
+        return got
+
+    def station_name(self):
+        return self.station or socket.gethostname()
+
+    def _summary(self, path):
+        """A run record of the output folder as a row of the runs table (None: not a record)."""
+        try:
+            st = os.stat(path)
+        except OSError:
+            return None
+        cached = self._record_cache.get(path)
+        if cached is not None and cached[:2] == (st.st_mtime, st.st_size):
+            return cached[2]
+        try:
+            with open(path, encoding="utf-8") as f:
+                r = json.load(f)
+            failed = next((p["name"] for p in r.get("phases", []) if p.get("outcome") in ("FAIL", "ERROR")), "")
+            html = os.path.basename(path)[:-5] + ".html"
+            summary = {"start": r["start_time_millis"] / 1000.0, "end": (r.get("end_time_millis") or 0) / 1000.0,
+                       "plan": r.get("metadata", {}).get("test_name", ""), "dut": r.get("dut_id") or "",
+                       "verdict": r.get("outcome", ""), "operator": r.get("metadata", {}).get("operator", ""),
+                       "station": r.get("station_id", ""), "failed": failed,
+                       "report": "/runs/" + html if os.path.isfile(os.path.join(self.out_dir, html)) else ""}
+        except (OSError, ValueError, KeyError, TypeError):
+            summary = None
+        self._record_cache[path] = (st.st_mtime, st.st_size, summary)
+        return summary
+
+    def _folder_rows(self):
+        rows = [self._summary(p) for p in glob.glob(os.path.join(self.out_dir, "*.json"))]
+        return sorted((r for r in rows if r), key=lambda r: r["start"], reverse=True)
+
+    @staticmethod
+    def _row(r):
+        return {"start": r["start_ms"] / 1000.0, "end": (r["end_ms"] or r["start_ms"]) / 1000.0, "plan": r["plan"],
+                "dut": r["dut"], "verdict": r["verdict"], "operator": r["operator"], "station": r["station"],
+                "id": r["id"], "failed": "", "report": ""}
+
+    def recent_runs(self, limit=12):
+        """This station's last runs, newest first: the database's, else the output folder's."""
+        if self.store is None:
+            return self._folder_rows()[:limit]
+        try:
+            me = self.station_name()
+            rows = [self._row(r) for r in self.store.runs(limit=max(200, limit)) if r["station"] == me][:limit]
+            for row in rows:
+                failed, html = self._stored_run(row["id"])
+                row["failed"], row["report"] = failed, "/report/%d" % row["id"] if html else ""
+            self.records_error = ""
+            return rows
+        except Exception as exc:  # the database went away: say so, keep the page alive
+            self.records_error = "the results database cannot be read: %s" % exc
+            return []
+
+    def yield_today(self, plan_name=None):
+        """Today's runs (local date) of this station: counts per verdict, the DUTs and the
+        first-pass yield (the DUTs whose first run today passed, of the DUTs tested today)."""
+        today = datetime.date.today()
+        if self.store is None:
+            rows = [r for r in self._folder_rows() if datetime.date.fromtimestamp(r["start"]) == today]
+        else:
+            try:
+                me = self.station_name()
+                rows = [self._row(r) for r in self.store.runs(plan=plan_name, since=today, limit=0)
+                        if r["station"] == me]
+            except Exception as exc:
+                self.records_error = "the results database cannot be read: %s" % exc
+                rows = []
+        if plan_name:
+            rows = [r for r in rows if r["plan"] == plan_name]
+        counts = {"PASS": 0, "FAIL": 0, "ERROR": 0, "ABORTED": 0}
+        first = {}
+        for r in sorted(rows, key=lambda r: r["start"]):
+            counts[r["verdict"] if r["verdict"] in counts else "ERROR"] += 1
+            first.setdefault(r["dut"], r["verdict"])
+        duts = len(first)
+        passed = sum(1 for v in first.values() if v == "PASS")
+        return dict(counts, runs=len(rows), duts=duts, first_pass=passed,
+                    yield_pct=round(100.0 * passed / duts, 1) if duts else None)
+
+    def records_source(self):
+        if self.store is not None:
+            return "results database %s (station %s)" % (self.store.name, self.station_name())
+        return "the records in %s" % self.out_dir
