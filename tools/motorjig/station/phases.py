@@ -282,31 +282,36 @@ def measures_io(step, plan):
     return out
 
 
+def _switch_and_read(m, out_slave, bit, in_slave, mask, settle):
+    """Output ``bit`` of ``out_slave`` on, then off; the masked inputs of ``in_slave`` after each."""
+    read = []
+    for on in (True, False):
+        if on:
+            m.set_io_output(out_slave, set_mask=1 << bit)
+        else:
+            m.set_io_output(out_slave, clear_mask=1 << bit)
+        time.sleep(settle)
+        read.append(m.get_io_input(in_slave) & mask)
+    return read
+
+
 def run_io(test, bus, step, ctx):
     m, s, jig = bus.master, bus.slave, bus.jig_id
     wiring = ctx.plan.wiring
     relays, senses = _io_entries(step, wiring)
-    drive_mask = sum(1 << e[1] for e in wiring.relays)
-    jig_mask = sum(1 << e[0] for e in wiring.senses)
     settle = step.args["settle_ms"] / 1000.0
+    drive_mask = sum(1 << e[1] for e in wiring.relays)  # only the wired bits count
+    jig_mask = sum(1 << e[0] for e in wiring.senses)
     m.set_io_output(jig, clear_mask=sum(1 << e[0] for e in wiring.relays))
     for relay, _, _ in relays:
-        for state in ("on", "off"):
-            if state == "on":
-                m.set_io_output(jig, set_mask=1 << relay)
-            else:
-                m.set_io_output(jig, clear_mask=1 << relay)
-            time.sleep(settle)
-            test.measurements["relay_%d_%s" % (relay, state)] = m.get_io_input(s) & drive_mask
+        on, off = _switch_and_read(m, jig, relay, s, drive_mask, settle)
+        test.measurements["relay_%d_on" % relay] = on
+        test.measurements["relay_%d_off" % relay] = off
     m.set_io_output(s, clear_mask=sum(1 << e[1] for e in wiring.senses))
     for jig_in, bit, _ in senses:
-        for state in ("on", "off"):
-            if state == "on":
-                m.set_io_output(s, set_mask=1 << bit)
-            else:
-                m.set_io_output(s, clear_mask=1 << bit)
-            time.sleep(settle)
-            test.measurements["sense_%d_%s" % (jig_in, state)] = m.get_io_input(jig) & jig_mask
+        on, off = _switch_and_read(m, s, bit, jig, jig_mask, settle)
+        test.measurements["sense_%d_on" % jig_in] = on
+        test.measurements["sense_%d_off" % jig_in] = off
 
 
 def _relay_entry(plan, ref):
