@@ -119,6 +119,9 @@ def add_gui_arguments(p):
     p.add_argument("--drivers", type=_ids, default=(2, 3), help="with --bench: simulated driver ids (default 2,3)")
     p.add_argument("--tcp-port", type=tcp_port, default=0,
                    help="with --bench: the bench's TCP port for other programs (default: a free one)")
+    p.add_argument("--wiring", metavar="FILE",
+                   help="with --bench: wire the bench's jig to its drive as FILE's [wiring] says (a plan will do; "
+                        "default: the plans folder's ezi-step-eol.toml, so that plan can pass on the bench)")
     p.add_argument("--plans", metavar="DIR", help="the Test tab's plans folder (default: the repository's plans/)")
     p.add_argument("--out", metavar="DIR", default="results",
                    help="where the Test tab's runs leave their records and reports (default ./results)")
@@ -186,10 +189,22 @@ def serve(args, out=None):
     if args.bench:
         from motorjig.sim import Bench
 
-        bench = Bench(driver_ids=args.drivers, baud=args.baud, tcp_port=args.tcp_port, pty=True)
+        from motorjig.desk.testrun import default_plans_dir
+        from motorjig.wiring import WiringError, load_wiring
+
+        wiring = getattr(args, "wiring", None)
+        if wiring is None:
+            eol = os.path.join(getattr(args, "plans", None) or default_plans_dir(), "ezi-step-eol.toml")
+            wiring = eol if os.path.exists(eol) else None
+        try:
+            wiring = load_wiring(wiring) if wiring else None
+        except WiringError as exc:
+            sys.stderr.write("jigctl gui: %s.\n" % str(exc).rstrip("."))
+            return 2
+        bench = Bench(driver_ids=args.drivers, baud=args.baud, tcp_port=args.tcp_port, pty=True, wiring=wiring)
         try:
             bench.start()
-        except OSError as exc:
+        except (OSError, ValueError) as exc:
             bench.stop()
             sys.stderr.write("jigctl gui: cannot start the virtual bench: %s.\n" % exc)
             return 1
@@ -197,6 +212,8 @@ def serve(args, out=None):
         out.write("virtual bench: jig = slave 1, drivers %s; other programs can use %s%s\n" % (
             ",".join(map(str, args.drivers)), bench.tcp_url,
             " or %s" % bench.pty_path if bench.pty_path else ""))
+        if wiring is not None:
+            out.write("  wired as %s says: jig relays and inputs to drive %s\n" % (wiring.source, wiring.slave))
 
     session = BusSession(timeout=max(1, args.timeout) / 1000.0).start()
     if port:
