@@ -453,6 +453,7 @@ def build_phase(step, plan, ctx):
             run(test, bus, step, ctx)
         except (KeyboardInterrupt, threads.ThreadTerminationError):
             bus.note_abort()
+            ctx.finished(step, "ABORTED", [], sum(bus.master.roundtrips[n0:]))
             raise
         except BaseException as exc:
             bus.note_failure()
