@@ -258,3 +258,77 @@ def test_a_parameters_step_in_apply_mode_writes_saves_and_verifies(tmp_path):
     ms = phase(rec, "parameters")["measurements"]
     assert set(ms) == {"ram_axis_acc_time", "rom_axis_acc_time", "ram_org_speed", "rom_org_speed"}
     assert ms["rom_org_speed"]["measured_value"] == 7000
+
+
+def test_making_safe_goes_on_when_the_stop_is_refused():
+    """MoveStop answered with an error status: EmergencyStop and servo off are still sent."""
+    from motorjig.station.plug import make_safe
+
+    with bench(wiring=False) as b:
+        drive = b.sim.drivers[DRIVE]
+        with Master(b.tcp_url, timeout=0.3) as m:
+            m.servo_enable(DRIVE, True)
+            m.move_velocity(DRIVE, 5000, 1)
+            drive.force(0x85, frames=1)  # the next request (MoveStop) is refused
+            problems = make_safe(m, DRIVE)
+            st = m.get_axis_status(DRIVE)
+    assert len(problems) == 1 and problems[0].startswith("MoveStop")
+    assert not st.motioning and not st.servo_on and st.emergency_stop
+
+
+def test_a_refused_drive_keeps_the_operators_serial(tmp_path):
+    plan = tmp_path / "servo.toml"
+    plan.write_text('[plan]\nname = "t"\nversion = "1"\n[drive]\nslave = 2\nslave_type = 1\n'
+                    '[[steps]]\nkind = "servo"\n')
+    with bench(wiring=False) as b:
+        ctx, rec = run(str(plan), b.tcp_url, tmp_path, serial="SN77")
+    assert rec["outcome"] == "ERROR" and rec["dut_id"] == "SN77"
+    assert "slave type 1" in rec["outcome_details"][0]["description"]
+
+
+def test_an_unwritable_out_folder_is_refused_before_anything_moves(tmp_path):
+    (tmp_path / "file").write_text("")
+    with bench(wiring=False) as b:
+        p = subprocess.run([JIGCTL, "test", SMOKE, "--port", b.tcp_url, "--yes", "--db", "none",
+                            "--out", str(tmp_path / "file" / "x")], capture_output=True, text=True, timeout=60)
+        assert b.sim.drivers[DRIVE].requests == 0
+    assert p.returncode == 2 and p.stderr.startswith("jigctl: cannot use ") and "Traceback" not in p.stderr
+
+
+def test_a_report_that_cannot_be_written_leaves_the_verdict_and_the_stored_run(tmp_path, monkeypatch):
+    from motorjig.station import report
+
+    def broken(record):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(report, "html_report", broken)
+    with bench(wiring=False) as b:
+        ctx, rec = run(SMOKE, b.tcp_url, tmp_path, db=str(tmp_path / "r.sqlite"))
+    assert rec["outcome"] == "PASS" and ctx.run_id == 1
+    assert "html" not in ctx.files and os.path.exists(ctx.files["json"])
+    assert "disk full" in ctx.write_errors[0]
+
+
+def test_an_io_step_that_errors_leaves_no_relay_on(tmp_path):
+    plan = tmp_path / "io.toml"
+    with open(EOL) as f:
+        eol = f.read()
+    plan.write_text(eol[: eol.index("[[steps]]")] + '[[steps]]\nkind = "io"\n')
+    with bench() as b:
+        drive = b.sim.drivers[DRIVE]
+
+        def on_event(ev):  # the drive refuses its first request of the io step
+            if ev.get("event") == "step" and ev["state"] == "running":
+                drive.force(0x85, frames=1)
+
+        ctx, rec = run(str(plan), b.tcp_url, tmp_path, on_event=on_event)
+        assert b.sim.hal.outputs == 0
+    assert rec["outcome"] == "ERROR" and rec["phases"][-1]["name"] == "io"
+
+
+def test_an_abort_before_the_first_step_moves_nothing(tmp_path):
+    with bench(wiring=False) as b:
+        ctx, rec = run(SMOKE, b.tcp_url, tmp_path, on_start=lambda c: c.abort())
+        drive = b.sim.drivers[DRIVE]
+        assert drive.motion.pos == 0 and not drive.servo_on
+    assert rec["outcome"] in ("ERROR", "ABORTED") and [p["name"] for p in rec["phases"]] == ["preflight"]

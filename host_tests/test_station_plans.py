@@ -198,3 +198,14 @@ def test_param_set_files_round_trip(tmp_path):
     path.write_text(paramset.dumps(values, slave=2, slave_type=20))
     ps = paramset.load(str(path))
     assert ps.values == values and ps.slave_type == 20
+
+
+def test_a_parameter_set_of_another_drive_type(capsys, tmp_path):
+    (tmp_path / "golden.toml").write_text("[drive]\nslave_type = 1\n[parameters]\naxis_acc_time = 100\n")
+    refused(capsys, tmp_path, GOOD + '\n[[steps]]\nkind = "parameters"\nfile = "golden.toml"\n', 19,
+            "steps[2].file", ["parameter set of slave type 1", "type 20"])
+
+
+def test_a_fixture_wired_to_another_slave(capsys, tmp_path):
+    text = GOOD + '\n[wiring]\nslave = 3\n[[wiring.relay]]\nrelay = 0\ndrive_input = 0\n'
+    refused(capsys, tmp_path, text, 18, "wiring.slave", ["wired to slave 3", "tests slave 2"])

@@ -47,21 +47,15 @@ def _err(text):
 
 
 def _check_drive(args, plan):
-    """Read only: the drive's variant and slave type against the plan's."""
+    """Read only: the drive's variant and slave type against the plan's (the run's preflight check)."""
     from motorjig.master import Master
+    from motorjig.station.runner import PreflightError, check_drive
 
     with Master(args.port, baud=args.baud, timeout=args.timeout / 1000.0) as m:
-        s = plan.drive.slave
-        variant = m.detect_variant(s)
-        if variant is None:
-            return "slave %d does not answer" % s
-        if variant not in plan.drive.protocol:
-            return "the plan is for a %s drive, but slave %d answers as Ver%d" % (
-                " or ".join("Ver%d" % v for v in plan.drive.protocol), s, variant)
-        info = m.get_slave_info(s)
-        if info.type != plan.drive.slave_type:
-            return "the plan is for slave type %d, but slave %d is type %d (%s)" % (
-                plan.drive.slave_type, s, info.type, info.type_name)
+        try:
+            check_drive(m, plan.drive)
+        except PreflightError as exc:
+            return str(exc).replace(": nothing was moved", "")
     return None
 
 
@@ -100,6 +94,9 @@ def cmd_test(args):
         return _err(str(exc))
     from motorjig.station import runner
 
+    problem = runner.check_out_dir(args.out)
+    if problem:
+        return _err(problem)
     store = None
     if args.db is None or args.db.strip().lower() != "none":
         try:
@@ -136,6 +133,10 @@ def cmd_test(args):
                 print("  %-4s %s" % (ext, ctx.files[ext]))
         if store is not None and ctx.run_id is not None:
             print("  db   run %d in %s" % (ctx.run_id, store.name))
+    for problem in ctx.write_errors:
+        from motorjig.commands import fail
+
+        fail(0, "a run file was not written: %s" % problem)
     if store is not None and ctx.store_error:
         from motorjig.commands import fail
 

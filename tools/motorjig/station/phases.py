@@ -31,6 +31,10 @@ DIR_PLUS = 1
 DIR_MINUS = 0
 
 
+class RunAborted(Exception):
+    """The run was aborted (the Desk's Abort) before this step began."""
+
+
 def trapezoid_time(distance, speed, acc_ms, dec_ms):
     """Seconds a move of ``distance`` pulses takes with the trapezoid profile: the axis
     reaches ``speed`` in acc_ms and stops from it in dec_ms (a triangle when the distance
@@ -83,12 +87,15 @@ class Trace:
         self.last = st
         return st
 
-    def until_stopped(self, m, s, timeout_s):
-        """Sample until the axis stops (or stops with an alarm); False on timeout."""
+    def until_stopped(self, m, s, timeout_s, settle_s=0.05):
+        """Sample until the axis stops (or stops with an alarm); False on timeout. A standstill
+        counts once motion was seen, or after settle_s (a drive may flag a start a cycle late)."""
         end = time.monotonic() + timeout_s
+        moved = False
         while True:
             st = self.sample(m, s)
-            if not st.axis.motioning:
+            moved = moved or st.axis.motioning
+            if not st.axis.motioning and (moved or self.rows[-1][0] >= settle_s):
                 return True
             if time.monotonic() > end:
                 return False
@@ -223,10 +230,12 @@ def run_move(test, bus, step, ctx):
     t_end = trace.rows[-1][0]
     if not done:
         m.move_stop(s)
+        m.wait_motion_done(s, timeout=5.0)
     last = trace.last
     test.measurements["duration"] = round(t_end, 4)
     if a["duration_s"] is None:
-        test.measurements["duration_ratio"] = round(t_end / expected, 4) if expected > 0 else 0.0
+        # a move to where the axis already is has no duration to judge: its ratio is 1
+        test.measurements["duration_ratio"] = round(t_end / expected, 4) if expected > 0 else 1.0
     test.measurements["expected_duration"] = round(expected, 4)
     test.measurements["position_error"] = abs(target - last.actual_pos)
     test.measurements["following_error"] = trace.peak_error
@@ -302,16 +311,22 @@ def run_io(test, bus, step, ctx):
     settle = step.args["settle_ms"] / 1000.0
     drive_mask = sum(1 << e[1] for e in wiring.relays)  # only the wired bits count
     jig_mask = sum(1 << e[0] for e in wiring.senses)
-    m.set_io_output(jig, clear_mask=sum(1 << e[0] for e in wiring.relays))
-    for relay, _, _ in relays:
-        on, off = _switch_and_read(m, jig, relay, s, drive_mask, settle)
-        test.measurements["relay_%d_on" % relay] = on
-        test.measurements["relay_%d_off" % relay] = off
-    m.set_io_output(s, clear_mask=sum(1 << e[1] for e in wiring.senses))
-    for jig_in, bit, _ in senses:
-        on, off = _switch_and_read(m, s, bit, jig, jig_mask, settle)
-        test.measurements["sense_%d_on" % jig_in] = on
-        test.measurements["sense_%d_off" % jig_in] = off
+    relay_mask = sum(1 << e[0] for e in wiring.relays)
+    output_mask = sum(1 << e[1] for e in wiring.senses)
+    try:
+        m.set_io_output(jig, clear_mask=relay_mask)
+        for relay, _, _ in relays:
+            on, off = _switch_and_read(m, jig, relay, s, drive_mask, settle)
+            test.measurements["relay_%d_on" % relay] = on
+            test.measurements["relay_%d_off" % relay] = off
+        m.set_io_output(s, clear_mask=output_mask)
+        for jig_in, bit, _ in senses:
+            on, off = _switch_and_read(m, s, bit, jig, jig_mask, settle)
+            test.measurements["sense_%d_on" % jig_in] = on
+            test.measurements["sense_%d_off" % jig_in] = off
+    finally:  # a relay left on (a limit input!) would stop the next step or the next drive
+        m.set_io_output(jig, clear_mask=relay_mask)
+        m.set_io_output(s, clear_mask=output_mask)
 
 
 def _relay_entry(plan, ref):
@@ -363,16 +378,20 @@ def run_stop_response(test, bus, step, ctx):
     m, s, a = bus.master, bus.slave, step.args
     trace = Trace(time.monotonic(), ctx, step)
     m.move_velocity(s, a["speed"], DIR_PLUS)
-    while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
-        trace.sample(m, s)
-    t_stop = time.monotonic() - trace.t0
-    t, pos, _, vel = trace.rows[-1]
-    pos_at_stop = pos + vel * (t_stop - t)  # the last sample carried forward to the stop command
-    if a["stop"] == "emergency-stop":
-        m.emergency_stop(s)
-    else:
-        m.move_stop(s)
-    stopped = trace.until_stopped(m, s, 10.0)
+    try:
+        while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
+            trace.sample(m, s)
+        t_stop = time.monotonic() - trace.t0
+        t, pos, _, vel = trace.rows[-1]
+        pos_at_stop = pos + vel * (t_stop - t)  # the last sample carried forward to the stop command
+        if a["stop"] == "emergency-stop":
+            m.emergency_stop(s)
+        else:
+            m.move_stop(s)
+        stopped = trace.until_stopped(m, s, 10.0)
+    finally:  # a velocity move runs until stopped: never leave it running
+        if trace.last is None or trace.last.axis.motioning:
+            m.emergency_stop(s)
     test.measurements["stopped"] = stopped
     test.measurements["stop_time"] = round(trace.rows[-1][0] - t_stop, 4)
     test.measurements["overshoot"] = int(round(abs(trace.rows[-1][1] - pos_at_stop)))
@@ -447,6 +466,9 @@ def build_phase(step, plan, ctx):
     run = globals()["run_" + kind]
 
     def phase(test, bus):
+        if getattr(ctx, "aborted", False):  # an Abort that came before OpenHTF could deliver it
+            bus.note_abort()
+            raise RunAborted("aborted before step %s" % step.name)
         ctx.started(step)
         n0 = len(bus.master.roundtrips)
         try:

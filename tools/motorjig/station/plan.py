@@ -158,7 +158,7 @@ def _wired(ck, wiring, keypath, ref, which):
     raise ck.error(keypath, "%s %r is not in the plan's [wiring] (wired: %s)" % (which, ref, known))
 
 
-def _check_step(ck, step_path, kind, args, plan_dir, wiring, paramsets):
+def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
     if kind == "move":
         need, other = ("position", "distance") if args["mode"] == "abs" else ("distance", "position")
         if args[need] is None:
@@ -171,11 +171,14 @@ def _check_step(ck, step_path, kind, args, plan_dir, wiring, paramsets):
     elif kind == "parameters":
         path = os.path.join(plan_dir, args["file"])
         try:
-            paramsets[path] = paramset.load(path)
+            ps = paramsets[path] = paramset.load(path)
         except SourceError as exc:
             if exc.line is None and exc.key == "" and not os.path.exists(path):
                 raise ck.error(step_path + ("file",), "parameter-set file %s not found" % path) from None
             raise
+        if ps.slave_type is not None and ps.slave_type != drive.slave_type:
+            raise ck.error(step_path + ("file",), "%s is a parameter set of slave type %d, the plan's drive is "
+                                                  "type %d" % (args["file"], ps.slave_type, drive.slave_type))
     elif kind == "limit-sensor":
         relay = _wired(ck, wiring, step_path + ("relay",), args["relay"], "relay")
         if relay[1] not in (0, 1):
@@ -226,6 +229,9 @@ def load_plan(path):
     if drive.slave in (drive.jig_id, 99):
         raise ck.error(("drive", "slave"), "slave %d is the jig or the broadcast id, not a drive" % drive.slave)
     wiring = _wiring(ck, data, drive.slave)
+    if wiring is not None and wiring.slave != drive.slave:
+        raise ck.error(("wiring", "slave"), "the fixture is wired to slave %s, the plan tests slave %d"
+                       % (wiring.slave, drive.slave))
     steps_data = data.get("steps")
     if not isinstance(steps_data, list) or not steps_data:
         raise ck.error(("steps",), "no steps (add [[steps]] tables)")
@@ -243,7 +249,7 @@ def load_plan(path):
             raise ck.error(sp + ("kind",), "unknown step kind %r%s (known: %s)" % (
                 kind, "; did you mean '%s'?" % hint[0] if hint else "", ", ".join(S.KINDS)))
         args = ck.table(sd, sp, S.COMMON_STEP_KEYS + S.KINDS[kind].keys, "a %s step" % kind)
-        _check_step(ck, sp, kind, args, plan_dir, wiring, paramsets)
+        _check_step(ck, sp, kind, args, plan_dir, drive, wiring, paramsets)
         first = len(steps)
         _expand(kind, (args["name"] or kind).replace(" ", "_"), args, i, steps, seen)
         if kind == "parameters":

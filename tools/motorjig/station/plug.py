@@ -90,15 +90,30 @@ class MotorJigPlug(plugs.BasePlug):
             self.master.close()
 
     def make_safe(self, emergency=False):
-        """Stop the axis (EmergencyStop or MoveStop and wait) and switch the servo off."""
-        m, s = self.master, self.slave
+        make_safe(self.master, self.slave, emergency)
+
+
+def make_safe(m, s, emergency=False):
+    """Stop the axis and switch the servo off, trying each action whatever the one before did:
+    MoveStop and a wait for standstill (EmergencyStop when that fails, or at once if
+    ``emergency``), then servo off. Returns the problems met, as texts (also logged)."""
+    problems = []
+
+    def attempt(what, fn, *args):
         try:
-            if emergency:
-                m.emergency_stop(s)
-            else:
-                m.move_stop(s)
-                m.wait_motion_done(s, timeout=5.0)
-            m.servo_enable(s, False)
-            _LOG.info("axis stopped (%s) and servo off", "emergency stop" if emergency else "MoveStop")
-        except (JigError, OSError) as exc:
-            _LOG.error("could not make the axis safe: %s", exc)
+            fn(*args)
+            return True
+        except Exception as exc:  # a garbled reply, a timeout, a closed port: try the next action anyway
+            problems.append("%s: %s" % (what, exc))
+            _LOG.error("making the axis safe, %s failed: %s", what, exc)
+            return False
+
+    stopped = False
+    if not emergency:
+        stopped = attempt("MoveStop", m.move_stop, s) and attempt("waiting for standstill", m.wait_motion_done, s, 5.0)
+    if not stopped:
+        attempt("EmergencyStop", m.emergency_stop, s)
+    attempt("servo off", m.servo_enable, s, False)
+    if not problems:
+        _LOG.info("axis stopped (%s) and servo off", "MoveStop" if stopped else "EmergencyStop")
+    return problems

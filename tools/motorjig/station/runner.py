@@ -29,7 +29,7 @@ from openhtf.util import configuration, console_output, threads
 from motorjig import names as N
 from motorjig.station import junit, report
 from motorjig.station.phases import build_phase
-from motorjig.station.plug import MotorJigPlug
+from motorjig.station.plug import MotorJigPlug, make_safe
 
 CONF = configuration.CONF
 EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
@@ -60,6 +60,8 @@ class RunContext:
         self.timings = []
         self.test = None
         self.aborted = False
+        self.run_id = self.store_error = None
+        self.write_errors = []  # run files that could not be written (the record may still be stored)
 
     def started(self, step):
         self._t_step = time.monotonic()
@@ -112,32 +114,43 @@ def console_confirm(message, stdin=sys.stdin, out=sys.stderr):
     return answer.strip().lower() in ("", "y", "yes")
 
 
-def _preflight(plan, serial):
-    d = plan.drive
+def check_drive(m, drive):
+    """The drive behind Master ``m`` against the plan's ``[drive]``, read only: (variant, SlaveInfo),
+    or PreflightError saying what is wrong. Afterwards ``m`` frames everything in that variant."""
+    s = drive.slave
+    variant = m.detect_variant(s)
+    if variant is None:
+        raise PreflightError("slave %d does not answer (check the cable, --port, --baud and [drive] slave)" % s)
+    if variant not in drive.protocol:
+        raise PreflightError("the plan is for a %s drive, but slave %d answers as Ver%d: nothing was moved"
+                             % (" or ".join("Ver%d" % v for v in drive.protocol), s, variant))
+    m.ver8 = variant == 8  # from here on every frame in the drive's variant, no probing
+    info = m.get_slave_info(s)
+    if info.type != drive.slave_type:
+        raise PreflightError("the plan is for slave type %d (%s), but slave %d is type %d (%s): nothing was moved"
+                             % (drive.slave_type, N.slave_type_name(drive.slave_type), s, info.type,
+                                info.type_name))
+    return variant, info
 
+
+def _preflight(plan, serial, ctx):
     @htf.PhaseOptions(name="preflight")
     @htf.plug(bus=MotorJigPlug)
     def preflight(test, bus):
         """Is the drive there, of the plan's variant and type? Sets the DUT id."""
-        m, s = bus.master, bus.slave
-        variant = m.detect_variant(s)
-        if variant is None:
-            raise PreflightError("slave %d does not answer (check the cable, --port, --baud and [drive] slave)" % s)
-        if variant not in d.protocol:
-            raise PreflightError("the plan is for a %s drive, but slave %d answers as Ver%d: nothing was "
-                                 "moved" % (" or ".join("Ver%d" % v for v in d.protocol), s, variant))
-        m.ver8 = variant == 8  # from here on every frame in the drive's variant, no probing
-        info = m.get_slave_info(s)
-        if info.type != d.slave_type:
-            raise PreflightError("the plan is for slave type %d (%s), but slave %d is type %d (%s): nothing was "
-                                 "moved" % (d.slave_type, N.slave_type_name(d.slave_type), s, info.type,
-                                            info.type_name))
+        if serial:
+            test.dut_id = serial  # first: a refused drive's record still names it
+        if ctx.aborted:
+            raise PreflightError("aborted before the first step")
+        variant, info = check_drive(bus.master, plan.drive)
+        s = bus.slave
         test.test_record.metadata["drive"] = {"slave": s, "protocol": variant, "slave_type": info.type,
                                               "name": info.version}
-        test.dut_id = serial or "slave%d-%s" % (s, re.sub(r"[^A-Za-z0-9.]+", "-", info.version).strip("-"))
+        if not serial:
+            test.dut_id = "slave%d-%s" % (s, re.sub(r"[^A-Za-z0-9.]+", "-", info.version).strip("-"))
         if plan.reset_jig_counters:
-            m.reset_counters(bus.jig_id)
-        m.roundtrips.clear()
+            bus.master.reset_counters(bus.jig_id)
+        bus.master.roundtrips.clear()
 
     return preflight
 
@@ -165,23 +178,40 @@ def _base_name(record, plan):
 
 def _writer(ctx, out_dir, db=None):
     ctx.run_id = ctx.store_error = None
+    ctx.write_errors = []
 
     def write(test_record):
         as_json = json_factory.convert_test_record_to_json(test_record)
         text = "".join(json_factory.stream_json(as_json, indent=2))
         record = json.loads(text)
+        ctx.record = record  # first: the verdict stands whatever happens to the files
         base = os.path.join(out_dir, _base_name(record, ctx.plan))
-        os.makedirs(out_dir, exist_ok=True)
-        for ext, content in (("json", text), ("xml", junit.junit_xml(record)), ("html", report.html_report(record))):
+        outputs = (("json", lambda: text), ("xml", lambda: junit.junit_xml(record)),
+                   ("html", lambda: report.html_report(record)))
+        for ext, content in outputs:
             path = "%s.%s" % (base, ext)
-            with open(path, "w", encoding="utf-8") as f:
-                f.write(content)
-            ctx.files[ext] = path
-        ctx.record = record
+            try:
+                os.makedirs(out_dir, exist_ok=True)
+                with open(path, "w", encoding="utf-8") as f:
+                    f.write(content())
+                ctx.files[ext] = path
+            except Exception as exc:  # OpenHTF would only log it: the caller must see it
+                ctx.write_errors.append("%s: %s" % (path, exc))
         if db is not None:
             _store(ctx, db, record)
 
     return write
+
+
+def check_out_dir(out_dir):
+    """A sentence saying why run files cannot be written into out_dir, or None (checked before anything moves)."""
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as exc:
+        return "cannot use %s for the run's files: %s" % (out_dir, exc.strerror or exc)
+    if not os.access(out_dir, os.W_OK):
+        return "cannot write the run's files into %s" % out_dir
+    return None
 
 
 def _store(ctx, db, record):
@@ -218,7 +248,7 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
         on_start(ctx)
     hook, threading.excepthook = threading.excepthook, _quiet_abort(threading.excepthook)
     try:
-        test.execute(test_start=_preflight(plan, serial))
+        test.execute(test_start=_preflight(plan, serial, ctx))
     except KeyboardInterrupt:
         pass  # OpenHTF has aborted the run, torn the plug down and written the record
     finally:
@@ -247,10 +277,9 @@ def _emergency_stop(port, baud, slave, timeout_ms):
 
     try:
         with Master(port, baud=baud, timeout=timeout_ms / 1000.0) as m:
-            m.emergency_stop(slave)
-            m.servo_enable(slave, False)
+            make_safe(m, slave, emergency=True)
     except (JigError, OSError):
-        pass  # the connection is gone: the record says how the run ended
+        pass  # the port cannot be opened any more: the record says how the run ended
 
 
 def summary(ctx):
@@ -265,4 +294,5 @@ def summary(ctx):
     return {"verdict": r.get("outcome", "ERROR"), "dut_id": r.get("dut_id"), "plan": ctx.plan.name,
             "plan_version": ctx.plan.version, "plan_hash": ctx.plan.hash, "station": r.get("station_id"),
             "operator": r.get("metadata", {}).get("operator"), "details": details, "files": ctx.files,
+            "write_errors": ctx.write_errors,
             "steps": steps}
