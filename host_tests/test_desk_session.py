@@ -503,3 +503,230 @@ def test_the_test_tabs_station_lists_plans_serves_run_files_and_counts_todays_yi
         st.add_upload("plan.txt", b"")
     assert st.add_upload("../up.toml", b"[parameters]\n").startswith("up.toml kept beside the uploaded plans")
     assert os.listdir(st.upload_dir) == ["up.toml"]  # a path in the name is dropped: it stays in the folder
+
+
+# --- the Test tab's station on the engine (no browser) ---------------------------------------------
+SERVO_PLAN = """\
+[plan]
+name = "quick"
+version = "1.0"
+
+[drive]
+slave = 2
+protocol = [6, 8]
+slave_type = 20
+
+[[steps]]
+kind = "servo"
+on = true
+
+[[steps]]
+kind = "servo"
+name = "servo_off"
+on = false
+"""
+
+LONG_MOVE_PLAN = """\
+[plan]
+name = "long-move"
+version = "1.0"
+
+[drive]
+slave = 2
+protocol = [6, 8]
+slave_type = 20
+
+[[steps]]
+kind = "servo"
+on = true
+
+[[steps]]
+kind = "move"
+name = "long"
+mode = "inc"
+distance = 200000
+speed = 5000
+"""
+
+GOLDEN = """\
+[drive]
+slave_type = 20
+
+[parameters]
+axis_acc_time = %d
+"""
+
+PARAMS_PLAN = """\
+[plan]
+name = "params"
+version = "1.0"
+
+[drive]
+slave = 2
+protocol = [6, 8]
+slave_type = 20
+
+[[steps]]
+kind = "parameters"
+mode = "verify"
+file = "golden.toml"
+memory = "ram"
+"""
+
+
+def wait_for(pred, timeout, what):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        got = pred()
+        if got:
+            return got
+        time.sleep(0.02)
+    raise AssertionError("never happened: " + what)
+
+
+def station_on(tmp_path, url, plans, **kw):
+    """A connected BusSession and a Station whose plans folder holds ``plans`` ({file: text})."""
+    from motorjig.desk.testrun import Station
+
+    folder = tmp_path / "plans"
+    folder.mkdir(exist_ok=True)
+    for name, text in plans.items():
+        (folder / name).write_text(text)
+    session = BusSession(timeout=TIMEOUT)
+    session.connect(url)
+    return session, Station(session, plans_dir=str(folder), out_dir=str(tmp_path / "out"), **kw)
+
+
+def stored_record(dut, station, start_ms, verdict="PASS", plan="smoke"):
+    return {"dut_id": dut, "station_id": station, "start_time_millis": start_ms, "end_time_millis": start_ms + 500,
+            "outcome": verdict, "metadata": {"test_name": plan, "test_version": "1.0", "operator": "anna"},
+            "phases": [{"name": "out", "outcome": verdict, "start_time_millis": start_ms,
+                        "end_time_millis": start_ms + 500, "measurements": {}}]}
+
+
+@pytest.fixture
+def bench_process():
+    """A bench in a process of its own (drive 2): the Desk's shutdown path is not helped by ours."""
+    import desk_browser as B
+
+    proc, url = B.start_bench("2", "--duration", "60")
+    try:
+        yield url
+    finally:
+        B.stop(proc)
+
+
+def test_stopping_the_desk_during_a_move_waits_until_the_axis_stands_with_the_servo_off(tmp_path, bench_process):
+    from motorjig.desk import server
+
+    session, st = station_on(tmp_path, bench_process, {"long-move.toml": LONG_MOVE_PLAN}, station="desk-stop")
+    st.start(str(tmp_path / "plans" / "long-move.toml"), "SN-STOP")
+    run = st.run
+    wait_for(lambda: len(run.samples_of("long")) > 10, 20, "the long move running")
+    assert run.samples_of("long")[-1][3] != 0  # moving (the samples' velocity)
+    server.stop_desk(session, st)  # what the server's shutdown runs, before the process exits
+    assert run.verdict == "ABORTED" and not st._worker.is_alive()
+    with Master(bench_process, timeout=TIMEOUT) as m:
+        first = m.get_all_status(2)
+        time.sleep(0.2)
+        again = m.get_all_status(2)
+    flags = set(first.axis.flags)
+    assert "motioning" not in flags and "servo_on" not in flags, flags
+    assert again.actual_pos == first.actual_pos and 0 < first.actual_pos < 200000
+
+
+def test_a_second_run_starts_right_after_the_verdict(tmp_path, bench):
+    session, st = station_on(tmp_path, bench.tcp_url, {"quick.toml": SERVO_PLAN})
+    slow_open = session.master_factory
+
+    def slow(*a, **kw):  # a port that takes its time to open again (a USB adapter, a busy machine)
+        m = slow_open(*a, **kw)
+        time.sleep(0.5)
+        return m
+
+    session.master_factory = slow
+    try:
+        key = str(tmp_path / "plans" / "quick.toml")
+        for serial in ("SN-Q1", "SN-Q2"):
+            st.start(key, serial)  # the second: as soon as the first's verdict is shown
+            run = st.run
+            assert wait_for(lambda: run.verdict, 20, "the verdict of %s" % serial) == "PASS", run.details
+            assert session.state == "connected"
+    finally:
+        session.stop()
+
+
+def test_a_changed_parameter_set_is_read_again(tmp_path):
+    import os
+
+    session = BusSession()
+    golden = tmp_path / "plans" / "golden.toml"
+    golden.parent.mkdir()
+    golden.write_text(GOLDEN % 100)
+    (tmp_path / "plans" / "params.toml").write_text(PARAMS_PLAN)
+    from motorjig.desk.testrun import Station
+
+    st = Station(session, plans_dir=str(tmp_path / "plans"), out_dir=str(tmp_path / "out"))
+    key = str(tmp_path / "plans" / "params.toml")
+    before = st.find_plan(key)
+    assert before.plan.paramsets[str(golden)].values[3] == 100
+    assert st.find_plan(key) is before  # unchanged files: not read again
+    golden.write_text(GOLDEN % 250)
+    later = os.stat(golden).st_mtime + 5
+    os.utime(golden, (later, later))  # the edit, whatever the file system's clock resolution
+    after = st.find_plan(key)
+    assert after.plan.paramsets[str(golden)].values[3] == 250
+    assert after.plan.hash != before.plan.hash
+    golden.unlink()  # gone: the plan does not load any more, and says why
+    assert "golden.toml" in st.find_plan(key).error
+    golden.write_text(GOLDEN % 100)  # back: it loads again
+    assert st.find_plan(key).plan.hash == before.plan.hash
+
+
+def test_the_recent_runs_are_this_stations_on_a_shared_database(tmp_path):
+    from motorjig.desk.testrun import Station
+    from motorjig.station.store import open_store
+
+    now = int(time.time() * 1000) - 600000
+    mine = [stored_record("M%d" % k, "desk-1", now + k, "FAIL" if k == 0 else "PASS") for k in range(3)]
+    others = [stored_record("O%d" % k, "line-%d" % (k % 4), now + 1000 + k) for k in range(250)]
+    with open_store(str(tmp_path / "line.sqlite")) as store:
+        store.add_runs(mine + others)  # the other stations' runs are newer than all of ours
+        st = Station(BusSession(), plans_dir=str(tmp_path), out_dir=str(tmp_path / "out"), station="desk-1",
+                     store=store)
+        rows = st.recent_runs()
+        assert [r["dut"] for r in rows] == ["M2", "M1", "M0"] and st.records_error == ""
+        assert rows[2]["verdict"] == "FAIL" and rows[2]["failed"] == "out"
+        y = st.yield_today("smoke")
+        assert (y["runs"], y["duts"], y["PASS"], y["FAIL"]) == (3, 3, 2, 1)
+
+
+def test_a_stored_report_is_served_only_from_the_output_folder(tmp_path):
+    import os
+
+    from motorjig.desk.testrun import Station
+    from motorjig.station.store import open_store
+
+    out = tmp_path / "out"
+    out.mkdir()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (out / "good.html").write_text("<html>report</html>")
+    (out / "record.json").write_text("{}")
+    (elsewhere / "secret.html").write_text("<html>not the Desk's</html>")
+    os.symlink(str(elsewhere / "secret.html"), str(out / "link.html"))
+    (tmp_path / "secret.txt").write_text("a key")
+    files = {"good": str(out / "good.html"), "json": str(out / "record.json"),
+             "outside": str(elsewhere / "secret.html"), "link": str(out / "link.html"),
+             "up": str(out / ".." / "secret.txt"), "dotdot": str(out / ".." / "elsewhere" / "secret.html")}
+    now = int(time.time() * 1000)
+    with open_store(str(tmp_path / "r.sqlite")) as store:
+        ids = {k: store.add_run(stored_record(k, "desk-1", now + i), {"html": path})
+               for i, (k, path) in enumerate(files.items())}
+        st = Station(BusSession(), plans_dir=str(tmp_path), out_dir=str(out), station="desk-1", store=store)
+        assert st.report_path(ids["good"]) == str(out / "good.html")
+        for bad in ("json", "outside", "link", "up", "dotdot"):
+            assert st.report_path(ids[bad]) is None, bad
+        assert st.report_path(999) is None and st.report_path("x") is None
+        reports = {r["dut"]: r["report"] for r in st.recent_runs()}
+        assert reports["good"] == "/report/%d" % ids["good"] and reports["outside"] == ""

@@ -252,6 +252,21 @@ def test_filters_of_the_run_list(db):
             st.runs(since="next tuesday")
 
 
+def test_the_run_list_of_one_station(db):
+    """A line's shared database: one station's runs, however many the others stored after them."""
+    mine = [record("M%d" % k, "PASS", T0_MS + k, [("move", [])], station="desk-1") for k in range(3)]
+    others = [record("O%d" % k, "FAIL", T0_MS + 1000 + k, [("move", [])], station="st%d" % (k % 3))
+              for k in range(250)]
+    with S.open_store(db) as st:
+        st.add_runs(mine + others)
+        assert len(st.runs(limit=200)) == 200 and all(r["station"] != "desk-1" for r in st.runs(limit=200))
+        got = st.runs(station="desk-1", limit=12)
+        assert [r["dut"] for r in got] == ["M2", "M1", "M0"] and {r["station"] for r in got} == {"desk-1"}
+        assert [r["dut"] for r in st.runs(station="desk-1", limit=2)] == ["M2", "M1"]
+        assert len(st.runs(station="st1", verdict="FAIL", limit=0)) == 83
+        assert st.runs(station="nobody") == [] and st.runs(station="desk-1", verdict="FAIL") == []
+
+
 # --- jigctl results: the same answers from SQLite and PostgreSQL -----------------------------------
 
 def same(a, b, path="$"):

@@ -7,6 +7,12 @@ pages, NiceGUI's own scripts, the websocket and the run files alike: a request
 carries the token in the query (``?token=``, then it is kept in a cookie) or in the
 cookie; without it the answer is HTTP 401, with a wrong one 403, and a websocket is
 refused before it opens.
+
+Bound to loopback the Desk needs no token (only this computer reaches it), but a web
+page from elsewhere could still reach it through its own name pointed at 127.0.0.1
+(DNS rebinding). ``HostGate`` refuses with 403 every request and websocket whose
+``Host`` header is not one of this computer's own names for the Desk (127.0.0.1,
+localhost, [::1], the address it is bound to; with the Desk's port, or without one).
 """
 
 import hmac
@@ -64,19 +70,7 @@ class TokenGate:
         text = ("MotorJig Desk: this page needs its token: open the URL the Desk printed at start "
                 "(http://HOST:PORT/?token=...)\n" if status == 401 else
                 "MotorJig Desk: wrong token: open the URL the Desk printed at start\n").encode()
-        if scope["type"] == "websocket":
-            if "websocket.http.response" in scope.get("extensions", {}):
-                await send({"type": "websocket.http.response.start", "status": status,
-                            "headers": [(b"content-type", b"text/plain; charset=utf-8")]})
-                await send({"type": "websocket.http.response.body", "body": text})
-            else:  # the server answers 403 to a websocket closed before it was accepted
-                await send({"type": "websocket.close", "code": 1008})
-            return None
-        await send({"type": "http.response.start", "status": status,
-                    "headers": [(b"content-type", b"text/plain; charset=utf-8"),
-                                (b"content-length", str(len(text)).encode()),
-                                (b"cache-control", b"no-store")]})
-        await send({"type": "http.response.body", "body": text})
+        await _refuse(scope, send, status, text)
         return None
 
     def _setting_cookie(self, send):
@@ -87,3 +81,56 @@ class TokenGate:
                 message = dict(message, headers=list(message.get("headers", [])) + [(b"set-cookie", cookie)])
             await send(message)
         return wrapped
+
+
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+
+
+def allowed_hosts(host, port):
+    """The Host header values a loopback Desk bound to ``host`` on ``port`` answers (lowercase)."""
+    names = set(LOOPBACK_HOSTS)
+    if host:
+        names.add("[%s]" % host if ":" in host and not host.startswith("[") else host)
+    names = {n.lower() for n in names}
+    return frozenset(names | {"%s:%d" % (n, port) for n in names})
+
+
+def _host_header(scope):
+    for name, value in scope.get("headers", ()):
+        if name == b"host":
+            return value.decode("latin-1").strip().lower()
+    return None
+
+
+class HostGate:
+    """ASGI middleware for a loopback Desk: a request or websocket whose Host header is not one
+    of this computer's own names for the Desk is refused with 403 (DNS rebinding)."""
+
+    def __init__(self, app, host, port):
+        self.app = app
+        self.allowed = allowed_hosts(host, port)
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] not in ("http", "websocket") or _host_header(scope) in self.allowed:
+            return await self.app(scope, receive, send)
+        text = ("MotorJig Desk: refused: the page was asked for under another name (Host %r); open it as "
+                "http://127.0.0.1:PORT/ or http://localhost:PORT/\n" % (_host_header(scope) or "")).encode()
+        await _refuse(scope, send, 403, text)
+        return None
+
+
+async def _refuse(scope, send, status, text):
+    """Answer ``status`` with ``text``: a plain HTTP response, or a websocket refused before it opens."""
+    if scope["type"] == "websocket":
+        if "websocket.http.response" in scope.get("extensions", {}):
+            await send({"type": "websocket.http.response.start", "status": status,
+                        "headers": [(b"content-type", b"text/plain; charset=utf-8")]})
+            await send({"type": "websocket.http.response.body", "body": text})
+        else:  # the server answers 403 to a websocket closed before it was accepted
+            await send({"type": "websocket.close", "code": 1008})
+        return
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"text/plain; charset=utf-8"),
+                            (b"content-length", str(len(text)).encode()),
+                            (b"cache-control", b"no-store")]})
+    await send({"type": "http.response.body", "body": text})

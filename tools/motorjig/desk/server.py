@@ -7,7 +7,8 @@
 The page listens on 127.0.0.1 unless another address is asked for. Bound to any
 other address it needs a token: a random one is made at start and printed in the
 URL (``http://HOST:PORT/?token=...``); without it every page, file and websocket
-is answered 401/403 (``auth``). ``--read-only`` shows the status and the runs and
+is answered 401/403 (``auth``); on loopback a request under any other name than
+127.0.0.1, localhost or [::1] is refused with 403 (DNS rebinding). ``--read-only`` shows the status and the runs and
 refuses everything that would send to the bus.
 """
 
@@ -161,6 +162,21 @@ def open_results(db, out):
         return None
 
 
+def stop_desk(session, station=None, store=None, bench=None, timeout=10.0):
+    """What the Desk does when it stops: a running test is aborted and waited for (its tearDown:
+    stop, emergency stop, servo off), then the bus session, the results database and the bench
+    are closed, in that order."""
+    try:
+        if station is not None and not station.shutdown(timeout):
+            session.log("error", "the test run did not end within %g s of the Desk stopping" % timeout)
+    finally:
+        session.stop()
+        if store is not None:
+            store.close()
+        if bench is not None:
+            bench.stop()
+
+
 def serve(args, out=None):
     """Run the page until Ctrl-C; returns an exit status. args: see build_parser."""
     out = out or sys.stdout
@@ -239,15 +255,9 @@ def serve(args, out=None):
     if not is_loopback(args.host):
         token = auth.new_token()
         app.add_middleware(auth.TokenGate, token=token, port=args.http_port)
-
-    def shutdown():
-        session.stop()
-        if store is not None:
-            store.close()
-        if bench is not None:
-            bench.stop()
-
-    app.on_shutdown(shutdown)
+    else:  # no token needed, but only under this computer's own names (no DNS rebinding)
+        app.add_middleware(auth.HostGate, host=args.host, port=args.http_port)
+    app.on_shutdown(lambda: stop_desk(session, station, store, bench))
     url = page_url(args.host, args.http_port, token)
     out.write("MotorJig Desk: %s  (Ctrl-C stops)%s\n" % (url, "  read-only" if read_only else ""))
     if args.host in ("0.0.0.0", "::"):

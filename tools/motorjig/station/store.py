@@ -596,8 +596,10 @@ class Store:
                 "seconds": None if r.end_ms is None else (r.end_ms - r.start_ms) / 1000.0, "details": r.details}
 
     @staticmethod
-    def _filters(dut=None, plan=None, verdict=None, since=None, until=None):
+    def _filters(dut=None, plan=None, verdict=None, since=None, until=None, station=None):
         where = []
+        if station is not None:
+            where.append(runs_t.c.station == str(station))
         if dut is not None:
             where.append(runs_t.c.dut == str(dut))
         if plan is not None:
@@ -611,9 +613,10 @@ class Store:
             where.append(runs_t.c.start_ms < hi)
         return where
 
-    def runs(self, dut=None, plan=None, verdict=None, since=None, until=None, limit=50):
-        """The last runs, newest first (``limit`` None or 0: all), as dicts."""
-        q = select(runs_t).where(*self._filters(dut, plan, verdict, since, until)) \
+    def runs(self, dut=None, plan=None, verdict=None, since=None, until=None, limit=50, station=None):
+        """The last runs, newest first (``limit`` None or 0: all), as dicts; ``station``: of that
+        station only."""
+        q = select(runs_t).where(*self._filters(dut, plan, verdict, since, until, station)) \
             .order_by(runs_t.c.start_ms.desc(), runs_t.c.id.desc())
         if limit:
             q = q.limit(int(limit))
