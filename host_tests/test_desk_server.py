@@ -176,3 +176,45 @@ def test_read_only_shows_the_status_and_refuses_a_move_and_a_test(remote):
     with Master(remote.bench_url, timeout=0.5) as m:  # nothing reached the drive
         st = m.get_all_status(2)
     assert st.command_pos == int(before) and "servo_on" not in st.axis.flags
+
+
+# --- on loopback: no token, but only under this computer's own names ---------------------------------
+@pytest.fixture(scope="module")
+def local(tmp_path_factory):
+    pytest.importorskip("nicegui")
+    proc, url = B.start_desk("--out", str(tmp_path_factory.mktemp("local")), "--db", "none")
+    try:
+        yield type("Local", (), {"url": url, "port": int(url.rsplit(":", 1)[1].strip("/"))})
+    finally:
+        B.stop(proc)
+
+
+def _raw_ws_status(port, host_header):
+    """The status line a websocket upgrade with ``host_header`` gets (a raw request: the client
+    libraries set Host from the URL)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(("GET /_nicegui_ws/socket.io/?EIO=4&transport=websocket HTTP/1.1\r\nHost: %s\r\n"
+                   "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+                   "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n" % host_header).encode())
+        return s.recv(4096).decode("latin-1").split("\r\n", 1)[0]
+
+
+def test_on_loopback_a_request_under_another_name_is_refused(local):
+    """DNS rebinding: a page of evil.example whose name now points at 127.0.0.1 gets nothing."""
+    import httpx
+    from websockets.sync.client import connect
+
+    base, port = "http://127.0.0.1:%d" % local.port, local.port
+    for host in ("evil.example:%d" % port, "evil.example", "127.0.0.1.evil.example:%d" % port,
+                 "localhost:%d" % (port + 1), "192.168.1.20:%d" % port):
+        for path in ("/", "/runs/x.html", "/report/1", "/_nicegui_ws/socket.io/?EIO=4&transport=polling"):
+            r = httpx.get(base + path, headers={"Host": host})
+            assert r.status_code == 403, (host, path, r.status_code)
+            assert "another name" in r.text
+        assert " 403 " in _raw_ws_status(port, host), host
+    for host in ("127.0.0.1:%d" % port, "localhost:%d" % port, "[::1]:%d" % port, "LocalHost:%d" % port):
+        r = httpx.get(base + "/", headers={"Host": host})
+        assert r.status_code == 200 and "<title>MotorJig Desk</title>" in r.text, host
+    assert " 101 " in _raw_ws_status(port, "localhost:%d" % port)
+    with connect(_ws_url(base), open_timeout=5) as ws:
+        assert ws.recv(timeout=5).startswith("0{")

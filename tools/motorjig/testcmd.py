@@ -94,9 +94,6 @@ def cmd_test(args):
         return _err(str(exc))
     from motorjig.station import runner
 
-    problem = runner.check_out_dir(args.out)
-    if problem:
-        return _err(problem)
     store = None
     if args.db is None or args.db.strip().lower() != "none":
         try:
@@ -108,6 +105,11 @@ def cmd_test(args):
             store = open_store(args.db)  # before anything moves: a wrong --db is said now
         except StoreError as exc:
             return _err("%s (--db none runs without the results database)" % exc)
+    problem = runner.check_out_dir(args.out)  # after --db: a refused run leaves no empty folder behind
+    if problem:
+        if store is not None:
+            store.close()
+        return _err(problem)
     confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
     _say(args, "plan %s %s (%s), drive slave %d, %s" % (plan.name, plan.version, plan.hash[:12],
                                                          plan.drive.slave, args.port))

@@ -26,12 +26,8 @@ import socket
 import threading
 import time
 
-try:
-    import tomllib
-except ImportError:  # Python < 3.11
-    import tomli as tomllib
-
 from motorjig.desk.session import UserError
+from motorjig.tomlsource import SourceError, read_toml
 
 MAX_UPLOAD = 512 * 1024  # bytes: a plan or parameter set is a few kB
 MAX_SAMPLES = 30000  # per step: a 3-minute move at 150 samples a second
@@ -44,6 +40,28 @@ def default_plans_dir():
     here = os.path.dirname(os.path.abspath(__file__))
     repo = os.path.normpath(os.path.join(here, "..", "..", "..", "plans"))
     return repo if os.path.isdir(repo) else os.path.abspath("plans")
+
+
+def _signature(paths):
+    """What tells a changed file: (mtime in ns, size) of each path, None for one that is gone."""
+    out = []
+    for p in paths:
+        try:
+            st = os.stat(p)
+        except OSError:
+            out.append(None)
+        else:
+            out.append((st.st_mtime_ns, st.st_size))
+    return tuple(out)
+
+
+def _inside(path, folder):
+    """True when ``path`` (links resolved) lies in ``folder`` or below it."""
+    path, folder = os.path.realpath(path), os.path.realpath(folder)
+    try:
+        return os.path.commonpath([path, folder]) == folder
+    except ValueError:  # another drive (Windows)
+        return False
 
 
 def fmt_value(v):
@@ -245,12 +263,14 @@ class Station:
         self.operator = operator
         self.station = station
         self.run = None  # the running or the last run
+        self._worker = None  # the thread of the running or the last run
         self.selected = None  # the plan last chosen (new tabs start with it)
         self._number = 0
         self._lock = threading.Lock()
-        self._plan_cache = {}  # path -> (mtime, PlanEntry or None)
+        self._plan_cache = {}  # path -> (what it was loaded from, its signature, PlanEntry or None)
         self._record_cache = {}  # path -> (mtime, size, summary)
         self._stored = {}  # run id -> (first failing step, report path): stored runs do not change
+        self._own_files = set()  # the files this Desk's runs wrote (real paths)
         self.records_error = ""
         self.records_version = 0
         try:
@@ -272,33 +292,37 @@ class Station:
         return out
 
     def _entry(self, path, source):
-        try:
-            mtime = os.stat(path).st_mtime
-        except OSError:
+        """The plan file at ``path``, loaded again when it or a parameter set it uses changed."""
+        if not os.path.isfile(path):
             return None
         cached = self._plan_cache.get(path)
-        if cached is not None and cached[0] == mtime:
-            return cached[1]
+        if cached is not None and _signature(cached[0]) == cached[1]:
+            return cached[2]
         entry = self._load(path, source)
-        self._plan_cache[path] = (mtime, entry)
+        if entry is not None and entry.plan is not None:
+            deps = (path,) + tuple(sorted(getattr(entry.plan, "paramsets", None) or ()))
+        else:  # a plan that does not load may name a parameter set not there yet: its folder too
+            deps = (path, os.path.dirname(path))
+        self._plan_cache[path] = (deps, _signature(deps), entry)
         return entry
 
     def _load(self, path, source):
-        try:
-            with open(path, "rb") as f:
-                table = tomllib.load(f)
-        except (OSError, ValueError) as exc:
-            return PlanEntry(path, source, error="%s: %s" % (os.path.basename(path), exc))
-        if "plan" not in table and "steps" not in table:
-            return None  # a parameter set or a wiring file, not a plan
-        if self.unavailable:
-            return PlanEntry(path, source, error=self.unavailable)
-        from motorjig.station import PlanError, load_plan
+        """A PlanEntry, or None for a parameter set or wiring file (no [plan], no [[steps]])."""
+        error = self.unavailable
+        if not error:
+            from motorjig.station import load_plan
 
-        try:
-            return PlanEntry(path, source, plan=load_plan(path))
-        except PlanError as exc:
+            try:
+                return PlanEntry(path, source, plan=load_plan(path))
+            except (ValueError, OSError) as exc:  # PlanError (a SourceError) names file, line and key
+                error = str(exc)
+        try:  # it does not load: a plan with a mistake, or no plan at all?
+            table = read_toml(path)[0]
+        except SourceError as exc:
             return PlanEntry(path, source, error=str(exc))
+        if "plan" not in table and "steps" not in table:
+            return None
+        return PlanEntry(path, source, error=error)
 
     def find_plan(self, key):
         for entry in self.plans():
@@ -357,7 +381,9 @@ class Station:
             self.run = run
         self.session.log("info", "test %s %s started for %s" % (entry.plan.name, entry.plan.version,
                                                                  serial or "the drive's own id"))
-        threading.Thread(target=self._work, args=(run, url, baud), name="desk-test-run", daemon=True).start()
+        # Joined by shutdown(): the Desk stops only after the run's tearDown made the drive safe.
+        self._worker = threading.Thread(target=self._work, args=(run, url, baud), name="desk-test-run", daemon=True)
+        self._worker.start()
         return "test %s started%s" % (entry.plan.name, " for %s" % serial if serial else "")
 
     def _work(self, run, url, baud):
@@ -376,13 +402,32 @@ class Station:
         except Exception as exc:  # the engine itself failed: the run is an error, with the reason
             error = "the run could not go on: %s: %s" % (type(exc).__name__, exc)
         finally:
-            run.finish(record, files, error if error and record is None else "")
+            # The port first: once a tab sees the verdict, the next DUT's run can start at once.
+            try:
+                self.session.take_port_back()
+            except Exception as exc:  # never leave the run without its verdict
+                self.session.log("error", "the port could not be taken back: %s" % exc)
             if error and record is not None:
                 self.records_error = error
+            for path in (files or {}).values():
+                self._own_files.add(os.path.realpath(path))
+            run.finish(record, files, error if error and record is None else "")
             self.session.log("info", "test %s: %s (%s)%s" % (run.plan.name, run.verdict, run.dut_id,
                                                              "; " + "; ".join(run.details) if run.details else ""))
-            self.session.take_port_back()
             self.records_version += 1
+
+    def shutdown(self, timeout=10.0):
+        """The Desk stops: abort a running test and wait (up to ``timeout`` s) until its worker
+        ended, so the plug's tearDown (stop, emergency stop, servo off) and the engine's last
+        emergency stop have reached the drive. True when no run is left going."""
+        run, worker = self.run, self._worker
+        if run is not None and run.running:
+            self.session.log("info", "test %s: the Desk stops: aborting it" % run.plan.name)
+            run.abort()
+        if worker is not None and worker is not threading.current_thread():
+            worker.join(timeout)
+            return not worker.is_alive()
+        return True
 
     def abort(self):
         run = self.run
@@ -407,10 +452,11 @@ class Station:
             return None
         ext = name.rsplit(".", 1)[-1]
         path = os.path.join(self.out_dir, name)
-        return path if ext in FILE_KINDS and os.path.isfile(path) else None
+        return path if ext in FILE_KINDS and os.path.isfile(path) and _inside(path, self.out_dir) else None
 
     def report_path(self, run_id):
-        """The HTML report of a stored run (any folder the database names), or None."""
+        """The HTML report of a stored run, or None: only an .html file in the output folder (or
+        one this Desk's runs wrote), whatever other path the database may name."""
         if self.store is None:
             return None
         try:
@@ -424,8 +470,14 @@ class Station:
             r = self.store.run(run_id) or {}
             failed = next((p["name"] for p in r.get("phases", []) if p.get("outcome") in ("FAIL", "ERROR")), "")
             html = (r.get("files") or {}).get("html") or ""
-            got = self._stored[run_id] = (failed, html if html and os.path.isfile(html) else "")
+            got = self._stored[run_id] = (failed, html if self._servable_report(html) else "")
         return got
+
+    def _servable_report(self, path):
+        if not path or not str(path).lower().endswith(".html") or not os.path.isfile(path):
+            return False
+        real = os.path.realpath(path)
+        return real.lower().endswith(".html") and (_inside(real, self.out_dir) or real in self._own_files)
 
     def station_name(self):
         return self.station or socket.gethostname()
@@ -470,7 +522,7 @@ class Station:
             return self._folder_rows()[:limit]
         try:
             me = self.station_name()
-            rows = [self._row(r) for r in self.store.runs(limit=max(200, limit)) if r["station"] == me][:limit]
+            rows = [self._row(r) for r in self.store.runs(station=me, limit=limit)]
             for row in rows:
                 failed, html = self._stored_run(row["id"])
                 row["failed"], row["report"] = failed, "/report/%d" % row["id"] if html else ""
@@ -489,8 +541,7 @@ class Station:
         else:
             try:
                 me = self.station_name()
-                rows = [self._row(r) for r in self.store.runs(plan=plan_name, since=today, limit=0)
-                        if r["station"] == me]
+                rows = [self._row(r) for r in self.store.runs(plan=plan_name, since=today, limit=0, station=me)]
             except Exception as exc:
                 self.records_error = "the results database cannot be read: %s" % exc
                 rows = []
