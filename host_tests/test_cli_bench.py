@@ -88,6 +88,9 @@ def test_status_and_watch(run):
     assert [json.loads(ln)["slave"] for ln in lines] == [DRIVE, DRIVE]
     run("-v", "status")
     assert "TX " + F.encode(DRIVE, F.GET_ALL_STATUS).hex(" ") in run.err and "RX reply     id 2  GetAllStatus(0x43)" in run.err
+    run("-v", "servo", "off")  # its reply (status only) is as long as the request: still a reply
+    assert "RX reply     id 2  ServoEnable(0x2A)" in run.err and "RX request" not in run.err, run.err
+    run("servo", "on")
 
 
 def test_move_kinds(bench, run):

@@ -103,7 +103,7 @@ def _tracer():
         if direction == "tx":
             sys.stderr.write("TX %s\n" % bytes(item).hex(" "))
         else:
-            sys.stderr.write("RX %s\n" % dec.describe(item))
+            sys.stderr.write("RX %s\n" % dec.describe(item, "reply"))  # what the master receives is a reply
         sys.stderr.flush()
 
     return trace
