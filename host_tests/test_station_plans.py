@@ -209,3 +209,14 @@ def test_a_parameter_set_of_another_drive_type(capsys, tmp_path):
 def test_a_fixture_wired_to_another_slave(capsys, tmp_path):
     text = GOOD + '\n[wiring]\nslave = 3\n[[wiring.relay]]\nrelay = 0\ndrive_input = 0\n'
     refused(capsys, tmp_path, text, 18, "wiring.slave", ["wired to slave 3", "tests slave 2"])
+
+
+def test_an_io_step_checks_the_relays_it_names_by_number_or_name(tmp_path):
+    from motorjig.station import phases
+
+    with open(os.path.join(PLANS, "ezi-step-eol.toml")) as f:
+        eol = f.read()
+    text = eol[: eol.index("[[steps]]")] + '[[steps]]\nkind = "io"\nrelays = ["user-in-0", 0]\nsenses = [1]\n'
+    plan = P.load_plan(write(tmp_path, text))
+    names = [m.name for m in phases.measures_io(plan.steps[0], plan)]
+    assert names == ["relay_2_on", "relay_2_off", "relay_0_on", "relay_0_off", "sense_1_on", "sense_1_off"]

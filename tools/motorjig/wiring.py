@@ -110,6 +110,14 @@ class Wiring:
                 mask |= 1 << k
         return mask
 
+    def find(self, which, ref):
+        """The (number, bit, name) entry of a relay (``which`` = "relay") or a jig input ("sense")
+        that ``ref`` names, by its number or its name; None when nothing is wired so."""
+        for entry in self.relays if which == "relay" else self.senses:
+            if ref == entry[0] if isinstance(ref, int) else (ref and ref == entry[2]):
+                return entry
+        return None
+
     def describe(self):
         """One line per wire, for people."""
         lines = []

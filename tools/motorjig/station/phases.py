@@ -268,13 +268,11 @@ def run_home(test, bus, step, ctx):
 
 
 def _io_entries(step, wiring):
-    """The wired relays and senses this io step checks."""
-    def pick(entries, refs):
-        if refs is None:
-            return list(entries)
-        return [e for e in entries if any(r == e[0] or r == e[2] for r in refs)]
+    """The wired relays and senses this io step checks (the loader made sure each is wired)."""
+    def pick(which, entries, refs):
+        return list(entries) if refs is None else [wiring.find(which, r) for r in refs]
 
-    return pick(wiring.relays, step.args["relays"]), pick(wiring.senses, step.args["senses"])
+    return pick("relay", wiring.relays, step.args["relays"]), pick("sense", wiring.senses, step.args["senses"])
 
 
 def measures_io(step, plan):
@@ -309,8 +307,8 @@ def run_io(test, bus, step, ctx):
     wiring = ctx.plan.wiring
     relays, senses = _io_entries(step, wiring)
     settle = step.args["settle_ms"] / 1000.0
-    drive_mask = sum(1 << e[1] for e in wiring.relays)  # only the wired bits count
-    jig_mask = sum(1 << e[0] for e in wiring.senses)
+    drive_mask = wiring.drive_input_mask  # only the wired bits count
+    jig_mask = wiring.jig_input_mask
     relay_mask = sum(1 << e[0] for e in wiring.relays)
     output_mask = sum(1 << e[1] for e in wiring.senses)
     try:
@@ -329,13 +327,6 @@ def run_io(test, bus, step, ctx):
         m.set_io_output(s, clear_mask=output_mask)
 
 
-def _relay_entry(plan, ref):
-    for e in plan.wiring.relays:
-        if ref == e[0] or ref == e[2]:
-            return e
-    raise ValueError("relay %r is not wired" % (ref,))  # the loader has checked it
-
-
 def measures_limit_sensor(step, plan):
     lo, hi = step.args["stop_time_s"]
     return [_equals("stopped", True, doc="the axis stopped after the limit input"),
@@ -345,7 +336,7 @@ def measures_limit_sensor(step, plan):
 
 def run_limit_sensor(test, bus, step, ctx):
     m, s, jig, a = bus.master, bus.slave, bus.jig_id, step.args
-    relay, drive_input, _ = _relay_entry(ctx.plan, a["relay"])
+    relay, drive_input, _ = ctx.plan.wiring.find("relay", a["relay"])  # the loader checked it is wired
     direction = DIR_PLUS if drive_input == 0 else DIR_MINUS
     trace = Trace(time.monotonic(), ctx, step)
     m.move_velocity(s, a["speed"], direction)

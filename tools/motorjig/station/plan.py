@@ -150,10 +150,10 @@ def _wiring(ck, data, drive_slave):
 
 def _wired(ck, wiring, keypath, ref, which):
     """The (number, other_bit, name) wiring entry that ``ref`` names; which = 'relay' or 'sense'."""
+    entry = wiring.find(which, ref) if wiring is not None else None
+    if entry is not None:
+        return entry
     entries = () if wiring is None else (wiring.relays if which == "relay" else wiring.senses)
-    for entry in entries:
-        if ref == entry[0] or (isinstance(ref, str) and ref == entry[2]):
-            return entry
     known = ", ".join("%d%s" % (e[0], " (%s)" % e[2] if e[2] else "") for e in entries) or "none"
     raise ck.error(keypath, "%s %r is not in the plan's [wiring] (wired: %s)" % (which, ref, known))
 
