@@ -27,7 +27,7 @@ test: setup check-mpy ## compile firmware for Cortex-M7, then run all host tests
 check-mpy: setup ## compile every firmware module with mpy-cross -march=armv7emdp
 	@$(PY) tools/check_mpy.py
 
-bench: setup ## print parser and bridge performance figures
+bench: setup ## print parser, bridge, station and results-database figures (takes several minutes)
 	@$(PY) tools/bench_parser.py
 	@$(PY) tools/bench_bridge.py
 	@$(PY) tools/bench_station.py
