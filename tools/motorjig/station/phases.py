@@ -22,7 +22,6 @@ from openhtf.util import threads, units
 from motorjig.station.plug import MotorJigPlug
 
 PULSE = units.UnitDescriptor("pulse", "pulse", "pulse")
-PPS = units.UnitDescriptor("pps", "pps", "pps")
 S = units.SECOND
 MS = units.MILLISECOND
 US = units.MICROSECOND
@@ -38,7 +37,11 @@ class RunAborted(Exception):
 def trapezoid_time(distance, speed, acc_ms, dec_ms):
     """Seconds a move of ``distance`` pulses takes with the trapezoid profile: the axis
     reaches ``speed`` in acc_ms and stops from it in dec_ms (a triangle when the distance
-    is too short to reach the speed)."""
+    is too short to reach the speed).
+
+    Written here on purpose, not taken from the simulated drive (``sim.driver.profile_time``):
+    the limit must say what a drive should do, so a fault in the simulator's model shows as
+    a failed move instead of testing the model against itself."""
     d, v = abs(distance), float(speed)
     ta, td = acc_ms / 1000.0, dec_ms / 1000.0
     if d >= v * (ta + td) / 2:
@@ -135,7 +138,7 @@ def run_identify(test, bus, step, ctx):
         test.measurements["motor_ok"] = re.search(a["motor_pattern"], motor.text) is not None
 
 
-def _param_names(step, plan):
+def _param_names(step):
     ps = step.paramset
     mem = step.args["memory"]
     kinds = ("ram", "rom") if mem == "both" else (mem,)
@@ -144,12 +147,12 @@ def _param_names(step, plan):
 
 def measures_parameters(step, plan):
     return [_equals("%s_%s" % (k, p.name), v, doc="parameter %d (%s) in %s" % (p.number, p.meaning, k.upper()))
-            for k, p, v in _param_names(step, plan)]
+            for k, p, v in _param_names(step)]
 
 
 def run_parameters(test, bus, step, ctx):
     m, s = bus.master, bus.slave
-    rows = _param_names(step, ctx.plan)
+    rows = _param_names(step)
     if step.args["mode"] == "apply":
         for p, v in step.paramset.items():
             m.set_parameter(s, p.number, v)

@@ -155,7 +155,7 @@ def _preflight(plan, serial, ctx):
     return preflight
 
 
-def build_test(plan, ctx, operator=None, station=None):
+def build_test(plan, ctx, operator=None):
     phases = [build_phase(step, plan, ctx) for step in plan.steps]
     # OpenHTF reads its own flags from sys.argv here (-v, --config-file, ...): jigctl's are not for it
     argv, sys.argv = sys.argv, sys.argv[:1]
@@ -241,7 +241,7 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
         load["station_id"] = station
     CONF.load(**load)
     console_output.CLI_QUIET = True  # our own progress lines instead of OpenHTF's banner
-    test = build_test(plan, ctx, operator, station)
+    test = build_test(plan, ctx, operator)
     test.add_output_callbacks(_writer(ctx, out_dir, db))
     ctx.test = test
     if on_start is not None:  # the caller may abort from here on (ctx.abort)
