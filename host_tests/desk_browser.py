@@ -219,6 +219,12 @@ class Browser:
             raise AssertionError("no %r in %s" % (label, testid))
         self.wait_for(lambda: label in self.text(testid), 5, "%s chosen in %s" % (label, testid))
 
+    def connect(self, url, what="connected"):
+        """Connect the page to url (the port field and CONNECT) and wait until the header says so."""
+        self.type("port", url)
+        self.click("btn-connect")
+        self.wait_for(lambda: self.text("conn-state") == "connected: %s @ 115200" % url, 5, what)
+
     def wait_for(self, predicate, timeout=10.0, what="condition"):
         end = time.monotonic() + timeout
         last = None

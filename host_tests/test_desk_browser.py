@@ -67,9 +67,7 @@ def test_disconnect_and_connect_from_the_page(desk):
     b.click("btn-connect")
     b.wait_for(lambda: "port /dev/ttyMOTORJIG-MISSING does not exist" in b.driver.page_source, 5, "missing port")
     assert b.text("conn-state") == "not connected"
-    b.type("port", desk.bench_url)
-    b.click("btn-connect")
-    b.wait_for(lambda: b.text("conn-state") == "connected: %s @ 115200" % desk.bench_url, 5, "connected again")
+    b.connect(desk.bench_url, "connected again")
 
 
 def test_scan_finds_the_jig_and_both_drivers(desk):

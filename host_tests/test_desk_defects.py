@@ -287,9 +287,7 @@ def test_7_a_silent_port_message_names_the_ver6_ver8_setting(desk):
         server.close()
         for conn, _ in held:
             conn.close()
-    b.type("port", desk.bench_url)
-    b.click("btn-connect")
-    b.wait_for(lambda: b.text("conn-state") == "connected: %s @ 115200" % desk.bench_url, 5, "back on the bench")
+    b.connect(desk.bench_url, "back on the bench")
 
 
 def test_3_a_motion_test_ends_at_the_first_lost_connection(desk):

@@ -206,9 +206,7 @@ def test_ezi_step_eol_on_a_faulty_drive_fails_at_the_parameters_step(desk):
     b = desk.b
     first = b.driver.current_window_handle
     b.tab("tab-connect")
-    b.type("port", desk.faulty_url)
-    b.click("btn-connect")
-    b.wait_for(lambda: b.text("conn-state") == "connected: %s @ 115200" % desk.faulty_url, 5, "the faulty bench")
+    b.connect(desk.faulty_url, "the faulty bench")
     pick_plan(b, "ezi-step-eol 1.0")
     b.type("serial", "SN-DESK-0003")
     b.click("btn-test-start")
