@@ -47,6 +47,7 @@ from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
+from jig.capture import Capture
 from jig.compat import NATIVE, const, ticks_add, ticks_diff
 from jig.frame import MAX_BODY
 from jig.handlers import Handlers
@@ -57,6 +58,7 @@ from jig.scan import Scanner
 RX_CHUNK = const(256)
 HEARTBEAT_US = const(500000)
 SLOW_US = const(10000)  # the slow pass runs at least this often
+STREAM_US = const(1000)  # ... and this often while the capture port takes records
 TICKS_MASK = const(0x3FFFFFFF)
 TICKS_HALF = const(0x20000000)
 PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
@@ -108,7 +110,11 @@ class App:
         self.handlers = Handlers(self)
         self.t_beat = hal.ticks_us()
         self.due = array("i", [self.t_beat])  # the tick at which the slow pass must next run
-        self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due)
+        self.cut = cut
+        # The recording of both buses (parameter capture; the HAL's capture port, if any).
+        self.capture = Capture(self, getattr(hal, "capture", None))
+        self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due,
+                             self.capture)
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
         self.up_rx = bytearray(RX_CHUNK)
@@ -130,6 +136,18 @@ class App:
         fast = _fastpath_module(fastpath) if cut and self.up.plain and self.down.plain else None
         self.pump = fast.pump if fast is not None else None
         self.pump_ctx = fast.context(self) if fast is not None else None
+        if pr[P.P_CAPTURE]:
+            self.set_capture(1, self.t_beat)
+
+    def set_capture(self, on, now):
+        """Recording of both buses on or off (parameter capture, in RAM). Store-and-
+        forward, the parsers then also stop at every dropped frame, to record it."""
+        on = 1 if on else 0
+        self.params.ram[P.P_CAPTURE] = on
+        self.capture.set(on, now)
+        drop = 1 if (self.cut or on) else 0
+        self.up_parser.st[_parser.S_STOP_DROP] = drop
+        self.down_parser.st[_parser.S_STOP_DROP] = drop
 
     # --- parameters --------------------------------------------------------------
     def apply_params(self):
@@ -139,6 +157,8 @@ class App:
         self.up.post_us = self.down.post_us = pr[P.P_DE_POST_US]
         self.up_parser.interbyte_timeout_us = pr[P.P_INTERBYTE_US]
         self.down_parser.interbyte_timeout_us = pr[P.P_INTERBYTE_US]
+        if (pr[P.P_CAPTURE] != 0) != self.capture.on:
+            self.set_capture(pr[P.P_CAPTURE], self._ticks())
 
     def save_params(self):
         ok = self.params.save()
@@ -245,6 +265,7 @@ class App:
         bridge.poll(now)
         self.scanner.poll(now)
         self.safety.poll(now)
+        stream = self.capture.slow(now)
         self.hal.wdt_feed()
         if ticks_diff(now, self.t_beat) >= HEARTBEAT_US:
             self.t_beat = now
@@ -253,6 +274,8 @@ class App:
         due = _earlier(due, now, ticks_diff(self.t_beat, now) + HEARTBEAT_US)
         due = _earlier(due, now, bridge.wait_us(now))
         due = _earlier(due, now, self.safety.wait_us(now))
+        if stream == 0:
+            due = _earlier(due, now, STREAM_US)  # more for the capture port
         if ticks_diff(due, now) <= 0:
             due = ticks_add(now, 1)
         self.due[0] = due

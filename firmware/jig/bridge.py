@@ -47,8 +47,11 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
                           C_FORWARDS, C_INT_ABORTS, C_INT_REPLIES, C_INT_REQUESTS, C_INT_TIMEOUTS, C_LOCAL,
                           C_LOCAL_ERRORS, C_RELAY_CORRUPT, C_REPLIES, C_STALE, C_TIMEOUTS, C_UNAWAITED, C_UP_IN,
                           C_UP_OUT)
-from jig.parser import EV_DROP, EV_FRAME, EV_HEAD, EV_START, HEADER, HUNT, S_EVENT, S_N, S_STATE, S_WHY, TABLES
+from jig.parser import (A_END, A_RESYNC, A_STORE, A_STUFF_ERROR, EV_DROP, EV_FRAME, EV_HEAD, EV_START, HEADER, HUNT,
+                        MIN_BODY, S_DROP_N, S_EVENT, S_N, S_STATE, S_T_LAST, S_WHY, TABLES)
 from jig.compat import const, ticks_diff
+from jig.capture import (CH_DRV_IN, CH_DRV_OUT, CH_PC_IN, CH_PC_OUT, CS_ON, CS_START, V_BAD_CRC, V_BAD_STUFFING, V_GOOD,
+                         V_OVERLONG, V_RESYNC, V_SHORT, V_TIMEOUT)
 from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
 IDLE = const(0)
@@ -173,10 +176,34 @@ _TICKS_HALF = const(0x20000000)
 # jig.frame's values, folded here (a module attribute is a dictionary look-up per use)
 _STUFF = const(0xAA)
 _BROADCAST_ID = const(99)
+_SHORT_STUB = const(3 << 8)  # V_SHORT << 8: a stub ended with a tail (const() takes no imported name)
+
+
+def drop_tick(st, now):
+    """Tick of the last byte of the frame parser st just dropped: a frame cut by
+    silence ended with the last byte before it, the others with the byte read now."""
+    return st[S_T_LAST] if st[S_WHY] == _WHY_TIMEOUT else now
+
+
+def drop_verdict(st):
+    """The capture verdict of the frame parser st just dropped (EV_DROP)."""
+    why = st[S_WHY]
+    if why == _WHY_TIMEOUT:
+        return V_TIMEOUT
+    if why == A_END:
+        return V_SHORT if st[S_DROP_N] < MIN_BODY else V_BAD_CRC
+    if why == A_STORE:
+        return V_OVERLONG
+    if why == A_RESYNC:
+        return V_RESYNC
+    if why == A_STUFF_ERROR:
+        return V_BAD_STUFFING
+    return V_BAD_CRC
 
 
 class Bridge:
-    def __init__(self, hal, up, down, handlers, params, counters, ver8=False, cut_through=True, due=None):
+    def __init__(self, hal, up, down, handlers, params, counters, ver8=False, cut_through=True, due=None,
+                 capture=None):
         self.hal = hal
         self.up = up  # rs485.Rs485 on the PC bus
         self.down = down  # rs485.Rs485 on the driver bus
@@ -212,6 +239,21 @@ class Bridge:
         # nothing to it for an echo-free port whose write returns after the last stop bit).
         self.fwd_part = down.raw_part if down.tx_blocks and not down.track_echo else down.part
         self.rel_part = up.raw_part if up.tx_blocks and not up.track_echo else up.part
+        # The recording of both buses (jig.capture): a record per frame received or
+        # sent while cs[CS_ON]; cs[CS_START + channel] is where a frame's first byte was.
+        if capture is None:
+            from jig.capture import Capture
+
+            capture = Capture(None, None, 64)
+        self.cs = capture.cs
+        self.cap_ring = capture.ring
+        self.cap_put = capture.put
+
+    def _record(self, kind, body, n, t_end=-1):
+        """One capture record (kind: channel | verdict << 8) of body[0:n] whose last
+        byte was at tick t_end (received: when its chunk was read), or now (sent: its
+        last stop bit has just gone)."""
+        self.cap_put(self.cs, self.cap_ring, kind, body, n, self._ticks() if t_end < 0 else t_end)
 
     # --- what other parts of the jig read ------------------------------------------
     def seen(self):
@@ -260,28 +302,32 @@ class Bridge:
         if ev == EV_START:
             self._pc_start(now)
         elif ev == EV_HEAD:
-            self._pc_head(p.body[0], now)
+            self._pc_head(p.body, now)
         elif ev == EV_FRAME:
             self.on_pc_frame(p, now)
         elif ev == EV_DROP:
-            self._pc_drop(p.st, p.body)
+            self._pc_drop(p.st, p.body, now)
 
     def _pc_start(self, now):
         """Cut-through: a header from the PC. It goes on to the driver bus at once,
         before its id is known (routing follows at the id). While the jig's own
         request is out, the driver bus is its: wait for the id then."""
         bs = self.bs
+        cs = self.cs
+        cs[CS_START + CH_PC_IN] = now
         if bs[B_REL]:  # the PC talks over a reply in progress: stop relaying
             self._end_relay(True)
         if bs[B_STATE] == AWAIT_INT:
             return
+        cs[CS_START + CH_DRV_OUT] = now
         self.down.begin(self.hdr, 0, 2)
         bs[B_FWD] = 1
         bs[B_ROUTED] = 0
         self._watch_line(now)
 
-    def _pc_head(self, slave, now):
+    def _pc_head(self, body, now):
         """Cut-through: the id of a PC frame is known; route it now."""
+        slave = body[0]
         bs = self.bs
         if bs[B_REL]:  # (a frame that started with a resync: no EV_START)
             self._end_relay(True)
@@ -293,6 +339,8 @@ class Bridge:
                 bs[B_FWD] = 0
                 self.fwd_part(self.tail, 0, 2)
                 self.down.finish()
+                if self.cs[CS_ON]:
+                    self._record(CH_DRV_OUT | _SHORT_STUB, body, 1)
             return  # answered when complete
         if not bs[B_FWD]:
             # Not passed on from its header (the jig's own request was out, or the
@@ -303,6 +351,7 @@ class Bridge:
             if slave == _STUFF:
                 hdr[3] = slave
                 k = 4
+            self.cs[CS_START + CH_DRV_OUT] = now
             self.down.begin(hdr, 0, k)
             bs[B_FWD] = 1
             self._watch_line(now)
@@ -319,13 +368,20 @@ class Bridge:
         if flags & F_ABORT:
             self._abort()
 
-    def _pc_drop(self, st, body):
-        """Cut-through: a PC frame being passed on ended without being good."""
+    def _pc_drop(self, st, body, now):
+        """A PC frame ended without being good (recorded); cut through, the copy being
+        passed on ends with it."""
         bs = self.bs
+        rec = self.cs[CS_ON]
+        if rec:
+            verdict = drop_verdict(st) << 8
+            self._record(CH_PC_IN | verdict, body, st[S_DROP_N], drop_tick(st, now))
         if not bs[B_FWD]:
             return
         bs[B_FWD] = 0
         self.down.finish()
+        if rec:
+            self._record(CH_DRV_OUT | verdict, body, st[S_DROP_N])
         if not bs[B_ROUTED]:
             return  # it broke off before its id: no driver was asked anything
         v = self.v
@@ -352,10 +408,15 @@ class Bridge:
         bs[B_T_PC] = t_in
         bs[B_PC_FRAMES] += 1
         body = p.body
+        rec = self.cs[CS_ON]
+        if rec:
+            self._record(CH_PC_IN, body, p.st[S_N], t_in)
         if bs[B_FWD]:
             # Cut through: the tail has gone out with the raw bytes.
             bs[B_FWD] = 0
             self.down.finish()
+            if rec:
+                self._record(CH_DRV_OUT, body, p.st[S_N])
             if bs[B_STATE] == AWAIT_PC:
                 self._pend_pc(body, p.st[S_N])
             return
@@ -387,6 +448,10 @@ class Bridge:
         n = frame.stuff_into(self.txbuf, body, blen)
         rs.send(self.txbuf, n)
         self._turnaround(ticks_diff(rs.t_tx_start, t_in))
+        if self.cs[CS_ON]:
+            ch = CH_DRV_OUT if rs is self.down else CH_PC_OUT
+            self.cs[CS_START + ch] = rs.t_tx_start
+            self._record(ch, body, blen)
 
     def _pend_pc(self, body, n):
         """Await the reply to the PC request body[0:n]. Its timeout: the frame type is
@@ -469,6 +534,9 @@ class Bridge:
         blen = frame.build_body(self.body, slave, ftype, data, 0, n, sync)
         m = frame.stuff_into(self.txbuf, self.body, blen)
         self.down.send(self.txbuf, m)
+        if self.cs[CS_ON]:
+            self.cs[CS_START + CH_DRV_OUT] = self.down.t_tx_start
+            self._record(CH_DRV_OUT, self.body, blen)
         v = self.v
         v[C_INT_REQUESTS] += 1
         v[C_DOWN_OUT] += 1
@@ -502,14 +570,21 @@ class Bridge:
         elif ev == EV_FRAME:
             self.on_down_frame(p, now)
         elif ev == EV_DROP:
-            self._down_drop()
+            self._down_drop(p.st, p.body, now)
 
-    def _down_drop(self):
-        """Cut-through: a driver frame ended without being good."""
+    def _down_drop(self, st, body, now):
+        """A driver frame ended without being good (recorded); cut through, the copy
+        being relayed ends with it."""
         bs = self.bs
+        rec = self.cs[CS_ON]
+        if rec:
+            verdict = drop_verdict(st) << 8
+            self._record(CH_DRV_IN | verdict, body, st[S_DROP_N], drop_tick(st, now))
         if bs[B_REL]:
             checked = bs[B_CHECKED]
             self._end_relay(False)
+            if rec:
+                self._record(CH_PC_OUT | verdict, body, st[S_DROP_N])
             if checked:
                 self.v[C_RELAY_CORRUPT] += 1
                 self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
@@ -522,9 +597,9 @@ class Bridge:
         p.scan(st, p.body, 0, 0, p.body, TABLES, now)
         if st[S_EVENT] == EV_DROP:
             if from_pc:
-                self._pc_drop(st, p.body)
+                self._pc_drop(st, p.body, now)
             else:
-                self._down_drop()
+                self._down_drop(st, p.body, now)
         if st[S_STATE] == HUNT:
             (self.down if from_pc else self.up).drop_early()  # a lone AA, then silence
             return True
@@ -543,8 +618,11 @@ class Bridge:
         the PC is not talking). Nothing else talks there then but the drive asked, so
         it goes on to the PC at once; its first two bytes confirm it (``_down_head``)."""
         bs = self.bs
+        cs = self.cs
+        cs[CS_START + CH_DRV_IN] = now
         if bs[B_STATE] != AWAIT_PC or bs[B_FWD]:
             return
+        cs[CS_START + CH_PC_OUT] = now
         self.up.begin(self.hdr, 0, 2)
         bs[B_REL] = 1
         bs[B_CHECKED] = 0
@@ -563,6 +641,8 @@ class Bridge:
             if relaying:
                 self.rel_part(self.tail, 0, 2)
                 self._end_relay(False)
+                if self.cs[CS_ON]:
+                    self._record(CH_PC_OUT | _SHORT_STUB, body, 2)
             return
         if relaying:
             bs[B_CHECKED] = 1
@@ -577,6 +657,7 @@ class Bridge:
         if b1 == _STUFF:
             hdr[4] = b1
             k = 5
+        self.cs[CS_START + CH_PC_OUT] = now
         self.up.begin(hdr, 0, k)
         bs[B_REL] = 1
         bs[B_CHECKED] = 1
@@ -595,9 +676,14 @@ class Bridge:
         v[C_DOWN_IN] += 1
         body = p.body
         bs = self.bs
+        rec = self.cs[CS_ON]
+        if rec:
+            self._record(CH_DRV_IN, body, p.st[S_N], t_in)
         if bs[B_REL]:
             # Relayed as it came: the tail has gone with the raw bytes.
             self._end_relay(False)
+            if rec:
+                self._record(CH_PC_OUT, body, p.st[S_N])
             self._event(E_REPLY)
             if body[0] < SEEN_IDS:
                 bs[B_SEEN] |= 1 << body[0]

@@ -99,6 +99,14 @@ _P_REPLY_TIMEOUT_MS = const(3)
 _P_INTERBYTE_US = const(4)
 _P_DE_PRE_US = const(6)
 _P_DE_POST_US = const(7)
+# jig.capture
+_CS_ON = const(0)
+_CS_START = const(8)
+_CH_PC_IN = const(0)
+_CH_PC_OUT = const(1)
+_CH_DRV_IN = const(2)
+_CH_DRV_OUT = const(3)
+_STUB = const(3 << 8)  # V_SHORT << 8: the verdict of a stub ended with a tail
 
 
 def context(app):
@@ -121,7 +129,7 @@ def context(app):
             TABLES, b.pc_event, b.down_event, b.bs, app.counters.v, app.due, app.params.ram, b.hdr, b.tail,
             TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS,
             app.handlers.handle, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
-            crc.TABLE)
+            crc.TABLE, app.capture.cs, app.capture.ring, app.capture.put)
 
 
 @micropython.viper
@@ -133,7 +141,7 @@ def pump(ctx, passes: int) -> int:
      up_parser, up_scan, up_st, up_rx, up_body, down_parser, down_scan, down_st, down_rx, down_body,
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
      flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
-     crc_table) = ctx
+     crc_table, cs_arr, cap_ring, cap_put) = ctx
     head = int(head_obj)
     reply = ptr8(reply_buf)
     ust = ptr32(up_st)
@@ -149,6 +157,7 @@ def pump(ctx, passes: int) -> int:
     flg = ptr16(flags_buf)
     uearly = ptr32(up_early)  # Rs485.early: tick DE went up ahead of a frame, -1: not
     dearly = ptr32(down_early)
+    cs = ptr32(cs_arr)  # jig.capture's state: recording on, where each frame began
     while passes != 0:
         if passes > 0:
             passes -= 1
@@ -170,7 +179,9 @@ def pump(ctx, passes: int) -> int:
                 state = bs[_B_STATE]
                 if ev == _EV_START:
                     # Bridge._down_start: to the PC at once while its reply is awaited
+                    cs[_CS_START + _CH_DRV_IN] = now
                     if state == _AWAIT_PC and bs[_B_FWD] == 0:
+                        cs[_CS_START + _CH_PC_OUT] = now
                         # Rs485.begin (DE up early: only the rest of the pre-delay)
                         wait = int(ram[_P_DE_PRE_US])
                         t = uearly[0]
@@ -203,6 +214,8 @@ def pump(ctx, passes: int) -> int:
                             if post != 0:
                                 sleep(post)
                             up_de(0)
+                            if cs[_CS_ON] != 0:
+                                cap_put(cs_arr, cap_ring, _CH_PC_OUT | _STUB, down_body, 2, ticks())
                     elif relaying != 0:
                         bs[_B_CHECKED] = 1
                     else:
@@ -212,6 +225,7 @@ def pump(ctx, passes: int) -> int:
                         if b1 == _STUFF:
                             hdr[4] = b1
                             k = 5
+                        cs[_CS_START + _CH_PC_OUT] = now
                         wait = int(ram[_P_DE_PRE_US])
                         t = uearly[0]
                         if t >= 0:
@@ -231,11 +245,16 @@ def pump(ctx, passes: int) -> int:
                     # Bridge.on_down_frame: the reply, relayed as it came
                     v[_C_DOWN_IN] += 1
                     bs[_B_REL] = 0
+                    rec = cs[_CS_ON]
+                    if rec != 0:  # (while the tail leaves the FIFO)
+                        cap_put(cs_arr, cap_ring, _CH_DRV_IN, down_body, dst[_S_N], now)
                     up_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
                         sleep(post)
                     up_de(0)
+                    if rec != 0:
+                        cap_put(cs_arr, cap_ring, _CH_PC_OUT, down_body, dst[_S_N], ticks())
                     bs[_B_STATE] = nxt[state * _N_EVENTS + _E_REPLY]
                     b0 = db[0]
                     if b0 < _SEEN_IDS:
@@ -272,6 +291,8 @@ def pump(ctx, passes: int) -> int:
                 state = bs[_B_STATE]
                 if ev == _EV_START and bs[_B_REL] == 0 and state != _AWAIT_INT:
                     # Bridge._pc_start: on to the driver bus from the header
+                    cs[_CS_START + _CH_PC_IN] = now
+                    cs[_CS_START + _CH_DRV_OUT] = now
                     wait = int(ram[_P_DE_PRE_US])
                     t = dearly[0]
                     if t >= 0:
@@ -298,6 +319,8 @@ def pump(ctx, passes: int) -> int:
                         if post != 0:
                             sleep(post)
                         down_de(0)
+                        if cs[_CS_ON] != 0:
+                            cap_put(cs_arr, cap_ring, _CH_DRV_OUT | _STUB, up_body, 1, ticks())
                         continue
                     bs[_B_ROUTED] = 1
                     v[_C_DOWN_OUT] += 1
@@ -318,11 +341,16 @@ def pump(ctx, passes: int) -> int:
                     bs[_B_T_PC] = now
                     bs[_B_PC_FRAMES] += 1
                     bs[_B_FWD] = 0
+                    rec = cs[_CS_ON]
+                    if rec != 0:  # (while the tail leaves the FIFO)
+                        cap_put(cs_arr, cap_ring, _CH_PC_IN, up_body, ust[_S_N], now)
                     down_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
                         sleep(post)
                     down_de(0)
+                    if rec != 0:
+                        cap_put(cs_arr, cap_ring, _CH_DRV_OUT, up_body, ust[_S_N], ticks())
                     if state == _AWAIT_PC:
                         # Bridge._pend_pc: the reply wait starts now
                         m = tmult[ub[1]]
@@ -344,6 +372,9 @@ def pump(ctx, passes: int) -> int:
                     if flg[k] & _F_ABORT:
                         v[_C_ABORTS] += 1  # (the PC's own wait: a local frame has no abort in AWAIT_INT)
                     v[_C_LOCAL] += 1
+                    rec = cs[_CS_ON]
+                    if rec != 0:
+                        cap_put(cs_arr, cap_ring, _CH_PC_IN, up_body, ust[_S_N], now)
                     n_rep = int(handle(up_parser, reply_buf))  # Bridge._local (the handlers: Python)
                     if n_rep < 0:
                         continue  # answered later, through Bridge.local_reply
@@ -374,6 +405,9 @@ def pump(ctx, passes: int) -> int:
                     if post != 0:
                         sleep(post)
                     up_de(0)
+                    if rec != 0:
+                        cs[_CS_START + _CH_PC_OUT] = t_tx
+                        cap_put(cs_arr, cap_ring, _CH_PC_OUT, reply_body, blen, ticks())
                     # Counters.turnaround(ticks_diff(t_tx, now))
                     us = ((t_tx - now + _HALF) & _MASK) - _HALF
                     if us < 0:

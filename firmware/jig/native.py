@@ -52,6 +52,7 @@ _S_TIMEOUTS = const(18)
 _S_RESYNCS = const(19)
 _S_WHY = const(20)
 _S_START_EV = const(21)
+_S_DROP_N = const(22)
 _CRC_AT = const(512)  # the CRC table's first u16 in tables
 _MASK = const(0x3FFFFFFF)
 _HALF = const(0x20000000)
@@ -82,6 +83,7 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
                     if s[_S_STOP_DROP] != 0:
                         ev = _EV_DROP
                         s[_S_WHY] = 0
+                        s[_S_DROP_N] = n
                 state = _HUNT
                 s[_S_STATE] = _HUNT
                 if ev != 0:
@@ -108,6 +110,7 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
                 if stop_drop != 0:
                     ev = _EV_DROP
                     s[_S_WHY] = _A_STORE
+                    s[_S_DROP_N] = limit
                     break
             else:
                 b[n] = c
@@ -138,6 +141,7 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
             if stop_drop != 0:
                 ev = _EV_DROP
                 s[_S_WHY] = _A_END
+                s[_S_DROP_N] = n
                 break
         elif a == _A_NOISE:
             s[_S_NOISE] += 1
@@ -145,16 +149,19 @@ def scan(st, data, start: int, end: int, body, tables, now: int) -> int:
             s[_S_NOISE] += 2
         elif a == _A_RESYNC:
             s[_S_RESYNCS] += 1
-            n = 0
             if stop_drop != 0:
                 ev = _EV_DROP
                 s[_S_WHY] = _A_RESYNC
+                s[_S_DROP_N] = n
+                n = 0
                 break
+            n = 0
         elif a == _A_STUFF_ERROR:
             s[_S_STUFF_ERRORS] += 1
             if stop_drop != 0:
                 ev = _EV_DROP
                 s[_S_WHY] = _A_STUFF_ERROR
+                s[_S_DROP_N] = n
                 break
     s[_S_STATE] = state
     s[_S_N] = n
@@ -232,3 +239,93 @@ def stuff(out, body, n: int) -> int:
     o[k] = 0xAA
     o[k + 1] = 0xEE
     return k + 2
+
+
+# jig.capture's record layout (a host test checks these agree with it)
+_CS_ON = const(0)
+_CS_HEAD = const(1)
+_CS_TAIL = const(2)
+_CS_MASK = const(3)
+_CS_LOST = const(4)
+_CS_LOST_T0 = const(5)
+_CS_LOST_T1 = const(6)
+_CS_T_LAST = const(7)
+_CS_START = const(8)
+_CS_TOTAL = const(12)
+_CS_LOST_TOTAL = const(13)
+_CAP_MARK = const(0xA5)
+_CAP_HEADER = const(12)
+_CAP_LOST = const(0x11)
+
+
+@micropython.viper
+def cap_put(cs, ring, kind: int, body, n: int, t1: int) -> int:
+    """jig.capture.put_py: one record into the ring (kind = type | verdict << 8,
+    data body[0:n]); 0 if it is full (counted as lost), else 1."""
+    c = ptr32(cs)
+    if c[_CS_ON] == 0:
+        return 0
+    t0 = t1
+    typ = kind & 0xFF
+    if typ < 4:
+        t = c[_CS_START + typ]
+        c[_CS_START + typ] = -1
+        if t >= 0:
+            t0 = t
+    r = ptr8(ring)
+    b = ptr8(body)
+    mask = c[_CS_MASK]
+    head = c[_CS_HEAD]
+    need = _CAP_HEADER + n
+    lost = c[_CS_LOST]
+    if lost != 0:
+        need += _CAP_HEADER + 4
+    if ((head - c[_CS_TAIL]) & mask) + need > mask:
+        if lost == 0:
+            c[_CS_LOST_T0] = t1
+        c[_CS_LOST] = lost + 1
+        c[_CS_LOST_T1] = t1
+        c[_CS_LOST_TOTAL] += 1
+        return 0
+    k = 0
+    while k < 2:
+        if k == 0:
+            if lost == 0:
+                k = 1
+                continue
+            typ = _CAP_LOST
+            m = 4
+            a = c[_CS_LOST_T0]
+            z = c[_CS_LOST_T1]
+        else:
+            typ = kind
+            m = n
+            a = t0
+            z = t1
+        r[head] = _CAP_MARK
+        r[(head + 1) & mask] = typ & 0xFF
+        r[(head + 2) & mask] = (typ >> 8) & 0xFF
+        r[(head + 3) & mask] = m
+        j = 0
+        while j < 4:
+            r[(head + 4 + j) & mask] = (a >> (8 * j)) & 0xFF
+            r[(head + 8 + j) & mask] = (z >> (8 * j)) & 0xFF
+            j += 1
+        head = (head + _CAP_HEADER) & mask
+        j = 0
+        if k == 0:
+            while j < 4:
+                r[head] = (lost >> (8 * j)) & 0xFF
+                head = (head + 1) & mask
+                j += 1
+            c[_CS_LOST] = 0
+        else:
+            while j < m:
+                r[head] = b[j]
+                head = (head + 1) & mask
+                j += 1
+        k += 1
+    c[_CS_HEAD] = head
+    c[_CS_T_LAST] = t1
+    c[_CS_TOTAL] += 1
+    return 1

@@ -34,6 +34,7 @@ P_SAFETY_TIMEOUT_MS = const(9)
 P_SAFETY_ACTION = const(10)
 P_SCAN_TIMEOUT_MS = const(11)
 P_FORWARD_MODE = const(12)
+P_CAPTURE = const(13)
 
 # forward_mode values
 CUT_THROUGH = const(0)  # bytes go on as they arrive (a wire, less the routing)
@@ -57,8 +58,9 @@ TABLE = (
     (10, "safety_action", "0=MoveStop 1=EmergencyStop", 0, 1, 0, IMMEDIATE),
     (11, "scan_timeout_ms", "ms", 1, 100, 20, IMMEDIATE),
     (12, "forward_mode", "0=cut-through 1=store-and-forward", 0, 1, 0, RESTART),
+    (13, "capture", "0=off 1=record both buses", 0, 1, 0, IMMEDIATE),
 )
-COUNT = const(13)
+COUNT = const(14)
 
 # Baud parameters must also be one of these.
 BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)

@@ -132,7 +132,8 @@ S_TIMEOUTS = const(18)
 S_RESYNCS = const(19)
 S_WHY = const(20)  # after EV_DROP: the action that dropped the frame (0: inter-byte timeout)
 S_START_EV = const(21)  # 1: return EV_START when a header starts a frame
-S_SIZE = const(22)
+S_DROP_N = const(22)  # after EV_DROP: body bytes of the dropped frame (in body[0:])
+S_SIZE = const(23)
 
 # Counter names, in the order ``counters()`` reports them.
 COUNTER_NAMES = ("good", "noise", "stuff_errors", "crc_errors", "short", "overlong", "timeouts", "resyncs")
@@ -200,6 +201,7 @@ def scan_py(st, data, start, end, body, tables, now):
                     if st[S_STOP_DROP]:
                         ev = EV_DROP
                         st[S_WHY] = 0
+                        st[S_DROP_N] = n
                 state = HUNT
                 st[S_STATE] = HUNT
                 if ev:
@@ -226,8 +228,12 @@ def scan_py(st, data, start, end, body, tables, now):
                 if j > i:
                     run = j - i
                     if run > limit - n:
-                        # As byte by byte: the byte that overflows ends the frame (the
-                        # rest of the run is noise, counted in HUNT).
+                        # As byte by byte: the body fills up, the byte that overflows
+                        # ends the frame (the rest of the run is noise, counted in HUNT).
+                        if SLICES:
+                            body[n:limit] = data[i:i + limit - n]
+                        else:
+                            copy(body, n, data, i, limit - n)
                         i += limit - n + 1
                         st[S_OVERLONG] += 1
                         n = 0
@@ -235,6 +241,7 @@ def scan_py(st, data, start, end, body, tables, now):
                         if stop_drop:
                             ev = EV_DROP
                             st[S_WHY] = A_STORE
+                            st[S_DROP_N] = limit
                             break
                         continue
                     if SLICES:
@@ -279,6 +286,7 @@ def scan_py(st, data, start, end, body, tables, now):
                 if stop_drop:
                     ev = EV_DROP
                     st[S_WHY] = A_STORE
+                    st[S_DROP_N] = limit
                     break
             else:
                 body[n] = b
@@ -303,6 +311,7 @@ def scan_py(st, data, start, end, body, tables, now):
             if stop_drop:
                 ev = EV_DROP
                 st[S_WHY] = A_END
+                st[S_DROP_N] = n
                 break
         elif action == A_NOISE:
             st[S_NOISE] += 1
@@ -310,16 +319,19 @@ def scan_py(st, data, start, end, body, tables, now):
             st[S_NOISE] += 2
         elif action == A_RESYNC:
             st[S_RESYNCS] += 1
-            n = 0
             if stop_drop:
                 ev = EV_DROP
                 st[S_WHY] = A_RESYNC
+                st[S_DROP_N] = n
+                n = 0
                 break
+            n = 0
         elif action == A_STUFF_ERROR:
             st[S_STUFF_ERRORS] += 1
             if stop_drop:
                 ev = EV_DROP
                 st[S_WHY] = A_STUFF_ERROR
+                st[S_DROP_N] = n
                 break
     st[S_STATE] = state
     st[S_N] = n

@@ -1,0 +1,296 @@
+"""The jig's recording of both buses: a ring of records, streamed in the slow pass.
+
+With parameter 13 ``capture`` = 1 (or a ``S`` on the capture port) the bridge writes
+one *record* into a preallocated ring for every frame and every dropped fragment
+it receives or sends on either bus; the main loop's slow pass moves the ring to the
+capture port (the board's second USB CDC port, the bench's TCP port / pty) as far
+as the port takes it, never waiting. A full ring drops new records and counts
+them; the next record that fits is preceded by a ``lost`` record. So recording
+never stalls the bridge, and the host always knows what it did not get.
+
+A record, little-endian (the format is versioned by the ``hello`` record that
+starts every stream; docs/capture.md, "The jig's record stream")::
+
+    0  u8   0xA5 (mark)
+    1  u8   type: 0..3 a frame on channel (bit 1: 0 PC bus, 1 driver bus;
+            bit 0: 0 received by the jig, 1 sent by it); 0x10 hello, 0x11 lost,
+            0x12 clock, 0x20 | channel: noise bytes counted on a receiving channel
+    2  u8   verdict (motorjig.capture.record codes: 0 good, 1 bad CRC, ...)
+    3  u8   n, data bytes that follow
+    4  u32  t_first: the jig's µs tick of the first byte (wraps at 2**30)
+    8  u32  t_end: of the last byte
+    12 n    data: a frame's body as the parser holds it (id .. CRC, unstuffed)
+
+Times of received bytes are the tick at which the main loop read the chunk that
+held them, less one character time for every byte that came after them in that
+chunk; of sent bytes, the tick the first was handed to the transmitter and the
+tick its last stop bit had gone. ``put`` is machine code on the board
+(``jig.native.cap_put``) and the same logic in Python elsewhere (``put_py``); the
+host tests compare the two.
+"""
+
+from array import array
+
+from jig.compat import NATIVE, const, ticks_diff
+from jig.mem import copy
+
+MARK = const(0xA5)
+VERSION = const(1)
+HEADER_LEN = const(12)
+
+# Record types
+CH_PC_IN = const(0)  # received from the PC
+CH_PC_OUT = const(1)  # sent to the PC
+CH_DRV_IN = const(2)  # received from the drives
+CH_DRV_OUT = const(3)  # sent to the drives
+T_HELLO = const(0x10)
+T_LOST = const(0x11)
+T_CLOCK = const(0x12)
+T_NOISE = const(0x20)  # | channel
+
+# Verdicts (motorjig.capture.record's codes; a host test checks they agree)
+V_GOOD = const(0)
+V_BAD_CRC = const(1)
+V_BAD_STUFFING = const(2)
+V_SHORT = const(3)
+V_OVERLONG = const(4)
+V_TIMEOUT = const(5)
+V_RESYNC = const(6)
+
+# Indices into Capture.cs (shared with jig.native.cap_put and jig.fastpath)
+CS_ON = const(0)  # 1: recording
+CS_HEAD = const(1)  # ring write offset
+CS_TAIL = const(2)  # ring read offset (what the port has taken)
+CS_MASK = const(3)  # ring size - 1 (a power of two)
+CS_LOST = const(4)  # records dropped since the last lost record
+CS_LOST_T0 = const(5)  # tick of the first of them
+CS_LOST_T1 = const(6)  # ... and of the last
+CS_T_LAST = const(7)  # tick of the last record written
+CS_START = const(8)  # 8..11: tick of the first byte of the frame in progress, per channel
+CS_TOTAL = const(12)  # records written since boot (wraps)
+CS_LOST_TOTAL = const(13)  # records lost since boot
+CS_SIZE = const(14)
+
+RING_SIZE = const(16384)
+CLOCK_US = const(1000000)  # a clock record after this long without one (the host unwraps ticks)
+STREAM_MAX = const(1024)  # bytes handed to the port per slow pass, at most
+STAGE = const(64)  # one USB full-speed packet
+
+CMD_START = const(0x53)  # "S"
+CMD_STOP = const(0x58)  # "X"
+
+
+def put_py(cs, ring, kind, body, n, t1):
+    """Append one record (type | verdict << 8 in ``kind``, data body[0:n], last byte
+    at tick t1); 0 if the ring is full (the record is counted as lost), else 1.
+
+    A frame's first tick is ``cs[CS_START + channel]``, which the bridge sets where
+    the frame starts (its header read, or handed to the transmitter); it is used
+    once (reset to -1), and t1 stands in where none was set."""
+    if not cs[CS_ON]:
+        return 0
+    t0 = t1
+    typ = kind & 0xFF
+    if typ < 4:
+        t = cs[CS_START + typ]
+        cs[CS_START + typ] = -1
+        if t >= 0:
+            t0 = t
+    mask = cs[CS_MASK]
+    head = cs[CS_HEAD]
+    need = HEADER_LEN + n
+    lost = cs[CS_LOST]
+    if lost:
+        need += HEADER_LEN + 4
+    if ((head - cs[CS_TAIL]) & mask) + need > mask:
+        if lost == 0:
+            cs[CS_LOST_T0] = t1
+        cs[CS_LOST] = lost + 1
+        cs[CS_LOST_T1] = t1
+        cs[CS_LOST_TOTAL] += 1
+        return 0
+    if lost:
+        head = _header(ring, mask, head, T_LOST, 4, cs[CS_LOST_T0], cs[CS_LOST_T1])
+        for k in range(4):
+            ring[head] = (lost >> (8 * k)) & 0xFF
+            head = (head + 1) & mask
+        cs[CS_LOST] = 0
+    head = _header(ring, mask, head, kind, n, t0, t1)
+    for i in range(n):
+        ring[head] = body[i]
+        head = (head + 1) & mask
+    cs[CS_HEAD] = head
+    cs[CS_T_LAST] = t1
+    cs[CS_TOTAL] += 1
+    return 1
+
+
+def _header(ring, mask, head, kind, n, t0, t1):
+    ring[head] = MARK
+    ring[(head + 1) & mask] = kind & 0xFF
+    ring[(head + 2) & mask] = (kind >> 8) & 0xFF
+    ring[(head + 3) & mask] = n
+    for k in range(4):
+        ring[(head + 4 + k) & mask] = (t0 >> (8 * k)) & 0xFF
+        ring[(head + 8 + k) & mask] = (t1 >> (8 * k)) & 0xFF
+    return (head + HEADER_LEN) & mask
+
+
+def _put_engine():
+    if NATIVE is not None:
+        return NATIVE.cap_put
+    return put_py
+
+
+class Capture:
+    """The ring, its state array ``cs`` and the streaming to ``port``.
+
+    ``port`` (the HAL's ``capture``, or None): ``any()`` -> bytes waiting from the
+    host, ``readinto(buf)`` -> count, ``write(buf)`` -> bytes taken (0 or None when
+    it takes nothing now; it must never block).
+    """
+
+    def __init__(self, app, port=None, size=RING_SIZE):
+        self.app = app
+        self.port = port
+        self.ring = bytearray(size)
+        cs = array("i", bytes(4 * CS_SIZE))
+        cs[CS_MASK] = size - 1
+        self.cs = cs
+        self.put = _put_engine()
+        self.info = bytearray(40)  # the hello record's data
+        self.stage = bytearray(STAGE)
+        # One view per length, made once: port.write takes a whole buffer, and a slice
+        # of a memoryview allocates on MicroPython.
+        mv = memoryview(self.stage)
+        self.views = [mv[0:k] for k in range(STAGE + 1)]
+        self.cmd = bytearray(1)
+        self.noise_seen = array("i", [0, 0])  # noise counts of the two parsers, last reported
+        self.lost_total_seen = 0
+
+    @property
+    def on(self):
+        return self.cs[CS_ON] != 0
+
+    # --- switching ----------------------------------------------------------------
+    def start(self, now):
+        """Recording on: the ring emptied, a hello record first."""
+        cs = self.cs
+        cs[CS_HEAD] = cs[CS_TAIL] = 0
+        cs[CS_LOST] = 0
+        for k in range(4):
+            cs[CS_START + k] = -1
+        cs[CS_ON] = 1
+        app = self.app
+        self.noise_seen[0] = app.up_parser.st[13]  # parser.S_NOISE
+        self.noise_seen[1] = app.down_parser.st[13]
+        n = self._hello_data()
+        self.put(cs, self.ring, T_HELLO, self.info, n, now)
+
+    def stop(self):
+        """Recording off; what is in the ring is dropped."""
+        cs = self.cs
+        cs[CS_ON] = 0
+        cs[CS_HEAD] = cs[CS_TAIL] = 0
+        cs[CS_LOST] = 0
+
+    def set(self, on, now):
+        if on and not self.cs[CS_ON]:
+            self.start(now)
+        elif not on and self.cs[CS_ON]:
+            self.stop()
+
+    def _hello_data(self):
+        from jig import params as P
+        from jig.frame import put_u32
+
+        pr = self.app.params.ram
+        d = self.info
+        d[0] = VERSION
+        d[1] = pr[P.P_PROTOCOL]
+        d[2] = pr[P.P_FORWARD_MODE]
+        d[3] = pr[P.P_SLAVE_ID]
+        put_u32(d, 4, pr[P.P_UP_BAUD])
+        put_u32(d, 8, pr[P.P_DOWN_BAUD])
+        put_u32(d, 12, pr[P.P_INTERBYTE_US])
+        put_u32(d, 16, len(self.ring))
+        name = b"MotorJig bridge 0.1"
+        d[20:20 + len(name)] = name
+        return 20 + len(name)
+
+    # --- the slow pass ----------------------------------------------------------------
+    def slow(self, now):
+        """Commands from the host, noise and clock records, and as much of the ring as
+        the port takes. Returns µs until it wants the slow pass again (-1: no need)."""
+        port = self.port
+        if port is not None and port.any():
+            n = port.readinto(self.cmd)
+            if n:
+                c = self.cmd[0]
+                if c == CMD_START:
+                    self.app.set_capture(1, now)
+                elif c == CMD_STOP:
+                    self.app.set_capture(0, now)
+        cs = self.cs
+        if not cs[CS_ON]:
+            return -1
+        self._noise(0, CH_PC_IN, self.app.up_parser.st, now)
+        self._noise(1, CH_DRV_IN, self.app.down_parser.st, now)
+        if ticks_diff(now, cs[CS_T_LAST]) >= CLOCK_US:
+            self.put(cs, self.ring, T_CLOCK, self.stage, 0, now)
+        if port is None:
+            return -1
+        return 0 if self._stream() else -1
+
+    def _noise(self, k, ch, st, now):
+        n = st[13] - self.noise_seen[k]  # parser.S_NOISE
+        if n > 0:
+            d = self.stage
+            d[0] = n & 0xFF
+            d[1] = (n >> 8) & 0xFF
+            d[2] = (n >> 16) & 0xFF
+            d[3] = (n >> 24) & 0xFF
+            if self.put(self.cs, self.ring, T_NOISE | ch, d, 4, st[3]):  # parser.S_T_LAST
+                self.noise_seen[k] = st[13]
+
+    def _stream(self):
+        """Hand the port what it takes (STAGE bytes a write, STREAM_MAX a pass);
+        True if the ring still holds bytes after that."""
+        cs = self.cs
+        ring = self.ring
+        stage = self.stage
+        mask = cs[CS_MASK]
+        write = self.port.write
+        sent = 0
+        while sent < STREAM_MAX:
+            tail = cs[CS_TAIL]
+            left = (cs[CS_HEAD] - tail) & mask
+            if left == 0:
+                return False
+            k = left if left < STAGE else STAGE
+            first = mask + 1 - tail  # bytes up to the ring's end
+            if first >= k:
+                copy(stage, 0, ring, tail, k)
+            else:
+                copy(stage, 0, ring, tail, first)
+                copy(stage, first, ring, 0, k - first)
+            w = write(self.views[k])
+            if not w:
+                return True
+            cs[CS_TAIL] = (tail + w) & mask
+            sent += w
+        return cs[CS_HEAD] != cs[CS_TAIL]
+
+    def pending(self):
+        """Bytes in the ring not yet taken by the port."""
+        cs = self.cs
+        return (cs[CS_HEAD] - cs[CS_TAIL]) & cs[CS_MASK]
+
+    def drain_to(self, out):
+        """Test and bench helper: move everything in the ring into ``out`` (a bytearray)."""
+        cs = self.cs
+        mask = cs[CS_MASK]
+        while cs[CS_HEAD] != cs[CS_TAIL]:
+            out.append(self.ring[cs[CS_TAIL]])
+            cs[CS_TAIL] = (cs[CS_TAIL] + 1) & mask
+        return out
