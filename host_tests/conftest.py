@@ -28,7 +28,8 @@ def pytest_sessionfinish(session, exitstatus):
 # WebAssembly VM run) and on jig.fastpath.pump, the board's machine-code hot path,
 # whose very source runs here as Python. Both must pass the same tests.
 JIG_LOOP_MODULES = {"test_bridge_faults", "test_sim_e2e", "test_bench_timing", "test_vendor_probe", "test_handlers",
-                    "test_safety", "test_board", "test_soak", "test_hil_on_bench", "test_captures"}
+                    "test_safety", "test_board", "test_soak", "test_hil_on_bench", "test_captures",
+                    "test_capture_firmware"}
 
 
 def pytest_generate_tests(metafunc):

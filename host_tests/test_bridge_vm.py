@@ -29,12 +29,16 @@ def test_zero_heap_bytes_per_transaction_on_micropython():
         "print(b.local_alloc(300))\n"
         "print(b.local_alloc(300, True))\n"
         "print(b.scan_all_absent())\n"
+        "print(b.forward_alloc(300, capture=True))\n"
+        "print(b.local_alloc(300, capture=True))\n"
         "import sys\nprint(sys.implementation.name)\n"
     )
     lines = out.split()
     assert lines[-1] == "micropython"
     assert out.splitlines()[:3] == ["(0, True)", "(0, True)", "(0, True)"]
     assert out.splitlines()[3] == "(16, 2, 0)"  # background scan: 16 probes, done, no heap
+    # capture on: four records a forwarded transaction, streamed by the slow pass, no heap
+    assert out.splitlines()[4:6] == ["(0, True)", "(0, True)"]
 
 
 def test_probe_sanity_under_cpython():

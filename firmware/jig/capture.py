@@ -260,7 +260,7 @@ class Capture:
         ring = self.ring
         stage = self.stage
         mask = cs[CS_MASK]
-        write = self.port.write
+        port = self.port  # (port.write(...) is a method call; a bound method kept would allocate)
         sent = 0
         while sent < STREAM_MAX:
             tail = cs[CS_TAIL]
@@ -274,7 +274,7 @@ class Capture:
             else:
                 copy(stage, 0, ring, tail, first)
                 copy(stage, first, ring, 0, k - first)
-            w = write(self.views[k])
+            w = port.write(self.views[k])
             if not w:
                 return True
             cs[CS_TAIL] = (tail + w) & mask

@@ -1,0 +1,346 @@
+"""The jig's own recording of both buses (jig.capture): records, ring, lost records, switching.
+
+The records are read here by a parser of the test's own (the documented layout,
+firmware/jig/capture.py), not by jigctl's, so the two are checked against each
+other by the format, not against themselves. Bench tests run on both main loops
+(conftest's ``jig_loop``: the portable loop and jig.fastpath.pump).
+"""
+
+import random
+import struct
+from array import array
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jig import capture as C
+from jig import fastpath, frame, native, parser
+from jig import params as P
+from motorjig.capture import record as R
+from motorjig.sim import SimBench
+
+NAMES = {C.CH_PC_IN: "pc_in", C.CH_PC_OUT: "pc_out", C.CH_DRV_IN: "drv_in", C.CH_DRV_OUT: "drv_out",
+         C.T_HELLO: "hello", C.T_LOST: "lost", C.T_CLOCK: "clock",
+         C.T_NOISE | C.CH_PC_IN: "pc_noise", C.T_NOISE | C.CH_DRV_IN: "drv_noise"}
+
+
+def parse(stream):
+    """[(name, verdict, data, t_first, t_end)] of a record stream; asserts it is whole."""
+    out = []
+    i = 0
+    while i < len(stream):
+        assert stream[i] == C.MARK, "record %d at byte %d: no mark" % (len(out), i)
+        typ, verdict, n, t0, t1 = struct.unpack_from("<BBBII", stream, i + 1)
+        data = bytes(stream[i + 12:i + 12 + n])
+        assert len(data) == n, "truncated record"
+        out.append((NAMES[typ], verdict, data, t0, t1))
+        i += 12 + n
+    return out
+
+
+def records(b, drop_hello=True):
+    recs = parse(b.app.capture.drain_to(bytearray()))
+    if drop_hello:
+        assert recs[0][0] == "hello"
+        recs = recs[1:]
+    return [r for r in recs if r[0] != "clock"]
+
+
+def body(wire):
+    """The body of a whole frame on the wire (header, tail and stuffing off)."""
+    return bytes(wire[2:-2]).replace(b"\xaa\xaa", b"\xaa")
+
+
+def bench(**kw):
+    kw.setdefault("jig_params", {})[P.P_CAPTURE] = 1
+    return SimBench(**kw)
+
+
+# --- format and the two put engines -------------------------------------------------
+def test_constants_agree_across_the_modules_that_share_them():
+    assert (native._CS_ON, native._CS_HEAD, native._CS_TAIL, native._CS_MASK, native._CS_LOST, native._CS_LOST_T0,
+            native._CS_LOST_T1, native._CS_T_LAST, native._CS_START, native._CS_TOTAL, native._CS_LOST_TOTAL) == (
+        C.CS_ON, C.CS_HEAD, C.CS_TAIL, C.CS_MASK, C.CS_LOST, C.CS_LOST_T0, C.CS_LOST_T1, C.CS_T_LAST, C.CS_START,
+        C.CS_TOTAL, C.CS_LOST_TOTAL)
+    assert (native._CAP_MARK, native._CAP_HEADER, native._CAP_LOST) == (C.MARK, C.HEADER_LEN, C.T_LOST)
+    assert (fastpath._CS_ON, fastpath._CS_START, fastpath._CH_PC_IN, fastpath._CH_PC_OUT, fastpath._CH_DRV_IN,
+            fastpath._CH_DRV_OUT, fastpath._STUB >> 8) == (C.CS_ON, C.CS_START, C.CH_PC_IN, C.CH_PC_OUT,
+                                                            C.CH_DRV_IN, C.CH_DRV_OUT, C.V_SHORT)
+    assert native._S_DROP_N == parser.S_DROP_N
+    # the verdict codes are motorjig.capture.record's (jigctl, pcapng, dissector)
+    assert (C.V_GOOD, C.V_BAD_CRC, C.V_BAD_STUFFING, C.V_SHORT, C.V_OVERLONG, C.V_TIMEOUT, C.V_RESYNC) == (
+        R.GOOD, R.BAD_CRC, R.BAD_STUFFING, R.SHORT, R.OVERLONG, R.TIMEOUT, R.RESYNC)
+    assert P.TABLE[P.P_CAPTURE][1:] == ("capture", "0=off 1=record both buses", 0, 1, 0, P.IMMEDIATE)
+
+
+def _state(size):
+    cs = array("i", bytes(4 * C.CS_SIZE))
+    cs[C.CS_MASK] = size - 1
+    cs[C.CS_ON] = 1
+    for k in range(4):
+        cs[C.CS_START + k] = -1
+    return cs, bytearray(size)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([0, 1, 2, 3, 0x12, 0x20, 0x22]), st.integers(0, 6),
+                          st.integers(0, 40), st.integers(-1, (1 << 30) - 1), st.integers(0, (1 << 30) - 1),
+                          st.integers(0, 70)), max_size=30),
+       st.sampled_from([64, 128, 256]))
+def test_the_machine_code_put_is_the_python_put(ops, size):
+    """Same records, same lost counts, same ring bytes, whatever the port takes between."""
+    a = _state(size)
+    b = _state(size)
+    src = bytes(range(40))
+    for typ, verdict, n, t_start, t1, take in ops:
+        for cs, ring in (a, b):
+            if typ < 4:
+                cs[C.CS_START + typ] = t_start
+            cs[C.CS_TAIL] = (cs[C.CS_TAIL] + min(take, (cs[C.CS_HEAD] - cs[C.CS_TAIL]) & cs[C.CS_MASK])) & cs[C.CS_MASK]
+        ra = C.put_py(a[0], a[1], typ | verdict << 8, src, n, t1)
+        rb = native.cap_put(b[0], b[1], typ | verdict << 8, src, n, t1)
+        assert ra == rb
+        assert list(a[0]) == list(b[0])
+        assert a[1] == b[1]
+
+
+def test_a_full_ring_counts_lost_records_and_says_so_before_the_next_one():
+    cs, ring = _state(64)
+    frame_body = bytes(10)
+    assert C.put_py(cs, ring, C.CH_PC_IN, frame_body, 10, 100) == 1  # 22 bytes
+    assert C.put_py(cs, ring, C.CH_PC_IN, frame_body, 10, 200) == 1  # 44
+    assert C.put_py(cs, ring, C.CH_PC_IN, frame_body, 10, 300) == 0  # 66 > 63: lost
+    assert C.put_py(cs, ring, C.CH_PC_IN, frame_body, 10, 400) == 0
+    assert (cs[C.CS_LOST], cs[C.CS_LOST_T0], cs[C.CS_LOST_T1], cs[C.CS_LOST_TOTAL]) == (2, 300, 400, 2)
+    out = bytearray()
+    for _ in range(44):  # the port takes both records
+        out.append(ring[cs[C.CS_TAIL]])
+        cs[C.CS_TAIL] = (cs[C.CS_TAIL] + 1) & 63
+    assert C.put_py(cs, ring, C.CH_DRV_IN, b"\x02\x03", 2, 500) == 1
+    while cs[C.CS_TAIL] != cs[C.CS_HEAD]:
+        out.append(ring[cs[C.CS_TAIL]])
+        cs[C.CS_TAIL] = (cs[C.CS_TAIL] + 1) & 63
+    recs = parse(out)
+    assert [r[0] for r in recs] == ["pc_in", "pc_in", "lost", "drv_in"]
+    assert recs[2][2] == struct.pack("<I", 2) and recs[2][3:] == (300, 400)
+    assert cs[C.CS_LOST] == 0 and cs[C.CS_TOTAL] == 3
+
+
+def test_nothing_is_written_while_recording_is_off():
+    cs, ring = _state(64)
+    cs[C.CS_ON] = 0
+    assert C.put_py(cs, ring, C.CH_PC_IN, b"\x01", 1, 5) == 0
+    assert native.cap_put(cs, ring, C.CH_PC_IN, b"\x01", 1, 5) == 0
+    assert cs[C.CS_HEAD] == 0 and cs[C.CS_LOST_TOTAL] == 0
+
+
+# --- what the bridge records, on both loops -----------------------------------------
+def test_off_by_default_and_the_hello_says_how_the_jig_is_set():
+    b = SimBench()
+    assert not b.app.capture.on and b.app.params.ram[P.P_CAPTURE] == 0
+    b.transact(frame.encode(2, frame.GET_COMMAND_POS))
+    assert b.app.capture.pending() == 0
+    b = bench(ver8=True, baud=230400, down_baud=57600)
+    name, verdict, data, t0, t1 = parse(b.app.capture.drain_to(bytearray()))[0]
+    assert name == "hello" and t0 == t1
+    version, proto, mode, jig_id, up, down, ibt, ring = struct.unpack_from("<BBBBIIII", data)
+    assert (version, proto, mode, jig_id, up, down, ibt, ring) == (C.VERSION, 1, 0, 1, 230400, 57600, 5000,
+                                                                    C.RING_SIZE)
+    assert data[20:] == b"MotorJig bridge 0.1"
+
+
+def test_a_forwarded_transaction_is_four_records_in_wire_order():
+    b = bench()
+    req = frame.encode(2, frame.GET_COMMAND_POS)
+    reply = b.transact(req)
+    recs = records(b)
+    assert [(r[0], r[1]) for r in recs] == [("pc_in", 0), ("drv_out", 0), ("drv_in", 0), ("pc_out", 0)]
+    assert recs[0][2] == recs[1][2] == body(req)
+    assert recs[2][2] == recs[3][2] == body(reply)
+    t = [(r[3], r[4]) for r in recs]
+    char = 10e6 / 115200
+    # cut through: the copy starts while the request is still arriving, ends after it
+    assert t[0][0] <= t[1][0] < t[0][1] <= t[1][1]
+    assert t[1][1] - t[1][0] == pytest.approx(len(req) * char, abs=char)  # AA CC at once, then as they come
+    # the drive's turnaround (300 µs on this bench) lies between request and reply
+    assert t[2][0] - t[1][1] >= 300 - char
+    assert t[2][0] <= t[3][0] < t[2][1] <= t[3][1]
+
+
+def test_a_local_frame_is_recorded_with_the_stub_on_the_driver_bus_and_the_reply():
+    b = bench()
+    req = frame.encode(1, frame.GET_SLAVE_INFO)
+    reply = b.transact(req)
+    recs = records(b)
+    assert [(r[0], r[1]) for r in recs] == [("drv_out", R.SHORT), ("pc_in", 0), ("pc_out", 0)]
+    assert recs[0][2] == b"\x01"  # AA CC 01 AA EE
+    assert recs[1][2] == body(req) and recs[2][2] == body(reply)
+
+
+def test_bad_frames_are_recorded_with_the_parser_verdict_on_both_buses():
+    b = bench()
+    good = frame.encode(2, frame.GET_COMMAND_POS)
+    bad_crc = good[:-3] + bytes([good[-3] ^ 1]) + good[-2:]
+    b.pc.send(bad_crc)
+    b.run_for(20000)
+    b.pc.send(b"\xaa\xcc\x02\xaa\x11\x22")  # stuffing error
+    b.run_for(20000)
+    b.pc.send(b"\xaa\xcc\x02\x51\x00")  # then silence: timeout
+    b.run_for(20000)
+    recs = [r for r in records(b) if r[0] in ("pc_in", "drv_out")]
+    got = [(r[0], R.verdict_name(r[1]), r[2]) for r in recs]
+    assert got[:2] == [("pc_in", "bad_crc", body(bad_crc)), ("drv_out", "bad_crc", body(bad_crc))]
+    assert got[2:4] == [("pc_in", "bad_stuffing", b"\x02"), ("drv_out", "bad_stuffing", b"\x02")]
+    assert got[4:6] == [("pc_in", "timeout", b"\x02\x51\x00"), ("drv_out", "timeout", b"\x02\x51\x00")]
+    # a frame cut by silence ended with its last byte, not when the silence was noticed
+    t_last = recs[4][4]
+    assert recs[4][3] <= t_last < recs[4][3] + 1000
+
+
+def test_store_and_forward_records_drops_too():
+    b = bench(jig_params={P.P_FORWARD_MODE: P.STORE_AND_FORWARD})
+    good = frame.encode(2, frame.GET_COMMAND_POS)
+    b.pc.send(good[:-3] + bytes([good[-3] ^ 1]) + good[-2:])
+    b.run_for(20000)
+    reply = b.transact(good)
+    recs = records(b)
+    assert [(r[0], R.verdict_name(r[1])) for r in recs] == [
+        ("pc_in", "bad_crc"), ("pc_in", "good"), ("drv_out", "good"), ("drv_in", "good"), ("pc_out", "good")]
+    assert recs[4][2] == body(reply)
+    b.transact(good)  # recording on did not change what the bridge does
+    assert b.counters["forwards"] == 2 and b.counters["replies"] == 2 and b.counters["cut_corrupt"] == 0
+
+
+def test_the_parameter_switches_recording_at_once_and_the_reply_says_so():
+    b = SimBench()
+    set_on = frame.encode(1, frame.SET_PARAMETER, bytes([P.P_CAPTURE]) + struct.pack("<i", 1))
+    assert b.transact(set_on)[4] == 0  # AA CC 01 12 status: OK
+    assert b.app.capture.on
+    b.transact(frame.encode(2, frame.GET_COMMAND_POS))
+    recs = parse(b.app.capture.drain_to(bytearray()))
+    assert recs[0][0] == "hello"
+    assert [r[0] for r in recs[1:] if r[0] != "clock"] == ["pc_in", "drv_out", "drv_in", "pc_out"]
+    off = frame.encode(1, frame.SET_PARAMETER, bytes([P.P_CAPTURE]) + struct.pack("<i", 0))
+    b.transact(off)
+    assert not b.app.capture.on
+    b.transact(frame.encode(2, frame.GET_COMMAND_POS))
+    assert b.app.capture.pending() == 0
+
+
+class HostEnd:
+    """The HAL's capture port as the contract has it (docs/hal.md): a PC on the other
+    end that sends commands and takes ``room`` bytes a write."""
+
+    def __init__(self, room=10 ** 9):
+        self.room = room
+        self.cmds = bytearray()
+        self.got = bytearray()
+
+    def any(self):
+        return len(self.cmds)
+
+    def readinto(self, buf):
+        n = min(len(buf), len(self.cmds))
+        buf[0:n] = self.cmds[0:n]
+        del self.cmds[0:n]
+        return n
+
+    def write(self, buf):
+        n = min(len(buf), self.room)
+        self.got += bytes(buf[0:n])
+        return n
+
+
+def test_start_and_stop_from_the_capture_port_and_a_stream_that_arrives_whole():
+    b = SimBench()
+    port = HostEnd(room=7)  # an odd size: records split across writes
+    b.app.capture.port = port
+    port.cmds += b"S"
+    b.run_for(20000)
+    assert b.app.capture.on and b.app.params.ram[P.P_CAPTURE] == 1
+    for slave in (2, 3, 2):
+        b.transact(frame.encode(slave, frame.GET_COMMAND_POS))
+    b.run_for(50000)
+    recs = parse(port.got)
+    assert recs[0][0] == "hello"
+    assert [r[0] for r in recs[1:] if r[0] != "clock"] == ["pc_in", "drv_out", "drv_in", "pc_out"] * 3
+    assert b.app.capture.pending() == 0
+    port.cmds += b"X"
+    b.run_for(20000)
+    assert not b.app.capture.on and b.app.params.ram[P.P_CAPTURE] == 0
+
+
+def test_a_port_nobody_reads_fills_the_ring_and_the_next_reader_learns_how_much_was_lost():
+    b = bench()
+    cap = b.app.capture
+    port = HostEnd(room=0)
+    cap.port = port
+    req = frame.encode(2, frame.GET_COMMAND_POS)
+    n = 0
+    while cap.cs[C.CS_LOST] == 0:
+        b.transact(req)
+        n += 1
+        assert n < 2000
+    for _ in range(3):
+        b.transact(req)
+    lost = cap.cs[C.CS_LOST]
+    assert lost >= 12  # three transactions' four records each, at least
+    assert b.counters["replies"] == n + 3  # the bridge did not notice
+    port.room = 10 ** 9
+    b.run_for(20000)
+    b.transact(req)
+    b.run_for(20000)
+    recs = parse(port.got)
+    names = [r[0] for r in recs]
+    k = names.index("lost")
+    assert struct.unpack("<I", recs[k][2])[0] == lost
+    assert names[k + 1:] == ["pc_in", "drv_out", "drv_in", "pc_out"]
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["good", "bad_crc", "cut", "garbage", "local", "resync", "long"]),
+                          st.sampled_from([0, 300, 8000])), min_size=1, max_size=10),
+       st.sampled_from([1, 5, 64]))
+def test_the_records_add_up_to_the_parsers_own_counters(steps, chunk):
+    """Every frame and fragment a parser counted is one record with that verdict (noise
+    in bytes): nothing recorded twice, nothing left out."""
+    b = bench(stream_chunk=chunk)
+    good = frame.encode(2, frame.GET_COMMAND_POS)
+    rnd = random.Random(len(steps) * 7 + chunk)
+    for kind, gap in steps:
+        wire = {
+            "good": good, "local": frame.encode(1, frame.GET_AXIS_STATUS),
+            "bad_crc": good[:-3] + bytes([good[-3] ^ 4]) + good[-2:], "cut": good[:5],
+            "garbage": bytes(rnd.randrange(256) for _ in range(9)), "resync": good[:5] + good,
+            "long": b"\xaa\xcc" + bytes(300) + b"\xaa\xee",
+        }[kind]
+        b.pc.send(wire)
+        b.run_for(gap + 20000)
+    recs = records(b)
+    p = b.app.up_parser
+    counted = {}
+    for name, verdict, data, _t0, _t1 in recs:
+        if name == "pc_in":
+            counted[verdict] = counted.get(verdict, 0) + 1
+        elif name == "pc_noise":
+            counted[R.NOISE] = counted.get(R.NOISE, 0) + struct.unpack("<I", data)[0]
+    want = {R.COUNTER_VERDICT[c]: v for c, v in zip(parser.COUNTER_NAMES, p.counters()) if v}
+    assert counted == want
+
+
+def test_the_records_of_the_pump_are_the_portable_loops():
+    """Same traffic, same records, byte for byte (times included: the bench's clock is
+    virtual and both loops take their ticks at the same moments)."""
+    steps = [frame.encode(2, frame.GET_COMMAND_POS), frame.encode(1, frame.GET_SLAVE_INFO),
+             frame.encode(3, frame.GET_AXIS_STATUS)[:6], frame.encode(99, frame.MOVE_STOP),
+             frame.encode(2, frame.GET_ALL_STATUS)]
+    streams = []
+    for fast in (False, True):
+        b = bench(fastpath=fast)
+        for wire in steps:
+            b.pc.send(wire)
+            b.run_for(30000)
+        streams.append(bytes(b.app.capture.drain_to(bytearray())))
+    assert len(parse(streams[0])) >= 14
+    assert streams[0] == streams[1]
