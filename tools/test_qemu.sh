@@ -72,7 +72,10 @@ rm -rf "$OUT/build/frozen_mpy"
 # The stm32 port's VM settings: computed goto, -Os for the VM loop, and (as the
 # STM32H7_JIG board sets it) call frames on a Python stack instead of the heap.
 vm_cflags="-DMICROPY_OPT_COMPUTED_GOTO=1 -include $ROOT/tools/qemu/cmodules/pystack/pystack.h"
-vm_flags="$vm_cflags CSUPEROPT=-Os"
+# The heap: the port's default (140 KB) is less than the suite's rigs take with the
+# capture ring (16 KB an App, as on the board, whose heap is several times this).
+HEAP=393216
+vm_flags="$vm_cflags CSUPEROPT=-Os HEAP=$HEAP"
 if [ "$(cat "$OUT/build/.vm-flags" 2>/dev/null)" != "$vm_flags" ]; then
     rm -rf "$OUT/build"
     mkdir -p "$OUT/build"
@@ -83,7 +86,7 @@ say "building the qemu port (BOARD=MPS2_AN500) with firmware/ frozen in, into $O
 if ! make -C "$MICROPY_DIR/ports/qemu" -j"$JOBS" BOARD=MPS2_AN500 BUILD="$OUT/build" \
         FROZEN_MANIFEST="$gen/manifest.py" MPY_LIB_DIR="$OUT/no-micropython-lib" \
         MPY_CROSS_FLAGS=-march=armv7emdp USER_C_MODULES="$ROOT/tools/qemu/cmodules" \
-        CFLAGS_EXTRA="$vm_cflags" CSUPEROPT=-Os >"$OUT/build.log" 2>&1; then
+        CFLAGS_EXTRA="$vm_cflags" CSUPEROPT=-Os MICROPY_HEAP_SIZE=$HEAP >"$OUT/build.log" 2>&1; then
     tail -n 20 "$OUT/build.log" >&2
     die "the qemu port did not build (full log: $OUT/build.log)."
 fi

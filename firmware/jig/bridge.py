@@ -50,8 +50,8 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
 from jig.parser import (A_END, A_RESYNC, A_STORE, A_STUFF_ERROR, EV_DROP, EV_FRAME, EV_HEAD, EV_START, HEADER, HUNT,
                         MIN_BODY, S_DROP_N, S_EVENT, S_N, S_STATE, S_T_LAST, S_WHY, TABLES)
 from jig.compat import const, ticks_diff
-from jig.capture import (CH_DRV_IN, CH_DRV_OUT, CH_PC_IN, CH_PC_OUT, CS_ON, CS_START, V_BAD_CRC, V_BAD_STUFFING, V_GOOD,
-                         V_OVERLONG, V_RESYNC, V_SHORT, V_TIMEOUT)
+from jig.capture import (CH_DRV_IN, CH_DRV_OUT, CH_PC_IN, CH_PC_OUT, CS_ON, CS_START, CS_T_IN, T_DRV_PASSED,
+                         T_PC_PASSED, V_BAD_CRC, V_BAD_STUFFING, V_OVERLONG, V_RESYNC, V_SHORT, V_TIMEOUT)
 from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
 IDLE = const(0)
@@ -255,6 +255,12 @@ class Bridge:
         last stop bit has just gone)."""
         self.cap_put(self.cs, self.cap_ring, kind, body, n, self._ticks() if t_end < 0 else t_end)
 
+    def _record_passed(self, kind, body, n, t_in):
+        """The record of a frame cut through (kind: T_PC_PASSED or T_DRV_PASSED | verdict
+        << 8): it ended at tick t_in on its own bus, and now on the other."""
+        self.cs[CS_T_IN] = t_in
+        self.cap_put(self.cs, self.cap_ring, kind, body, n, self._ticks())
+
     # --- what other parts of the jig read ------------------------------------------
     def seen(self):
         """Bitmap of the driver ids that answered since boot."""
@@ -373,15 +379,14 @@ class Bridge:
         passed on ends with it."""
         bs = self.bs
         rec = self.cs[CS_ON]
-        if rec:
-            verdict = drop_verdict(st) << 8
-            self._record(CH_PC_IN | verdict, body, st[S_DROP_N], drop_tick(st, now))
         if not bs[B_FWD]:
+            if rec:
+                self._record(CH_PC_IN | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
             return
         bs[B_FWD] = 0
         self.down.finish()
         if rec:
-            self._record(CH_DRV_OUT | verdict, body, st[S_DROP_N])
+            self._record_passed(T_PC_PASSED | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
         if not bs[B_ROUTED]:
             return  # it broke off before its id: no driver was asked anything
         v = self.v
@@ -409,17 +414,17 @@ class Bridge:
         bs[B_PC_FRAMES] += 1
         body = p.body
         rec = self.cs[CS_ON]
-        if rec:
-            self._record(CH_PC_IN, body, p.st[S_N], t_in)
         if bs[B_FWD]:
             # Cut through: the tail has gone out with the raw bytes.
             bs[B_FWD] = 0
             self.down.finish()
             if rec:
-                self._record(CH_DRV_OUT, body, p.st[S_N])
+                self._record_passed(T_PC_PASSED, body, p.st[S_N], t_in)
             if bs[B_STATE] == AWAIT_PC:
                 self._pend_pc(body, p.st[S_N])
             return
+        if rec:
+            self._record(CH_PC_IN, body, p.st[S_N], t_in)
         slave = body[0]
         if slave == self.ram[P_SLAVE_ID]:
             ev = E_PC_LOCAL
@@ -577,18 +582,17 @@ class Bridge:
         being relayed ends with it."""
         bs = self.bs
         rec = self.cs[CS_ON]
-        if rec:
-            verdict = drop_verdict(st) << 8
-            self._record(CH_DRV_IN | verdict, body, st[S_DROP_N], drop_tick(st, now))
         if bs[B_REL]:
             checked = bs[B_CHECKED]
             self._end_relay(False)
             if rec:
-                self._record(CH_PC_OUT | verdict, body, st[S_DROP_N])
+                self._record_passed(T_DRV_PASSED | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
             if checked:
                 self.v[C_RELAY_CORRUPT] += 1
                 self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
             # (else it broke off before its first two bytes: not the answer, still awaited)
+        elif rec:
+            self._record(CH_DRV_IN | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
 
     def gap(self, p, from_pc, now):
         """Slow pass: let parser p judge the silence up to now. True if it dropped a
@@ -677,19 +681,19 @@ class Bridge:
         body = p.body
         bs = self.bs
         rec = self.cs[CS_ON]
-        if rec:
-            self._record(CH_DRV_IN, body, p.st[S_N], t_in)
         if bs[B_REL]:
             # Relayed as it came: the tail has gone with the raw bytes.
             self._end_relay(False)
             if rec:
-                self._record(CH_PC_OUT, body, p.st[S_N])
+                self._record_passed(T_DRV_PASSED, body, p.st[S_N], t_in)
             self._event(E_REPLY)
             if body[0] < SEEN_IDS:
                 bs[B_SEEN] |= 1 << body[0]
             v[C_REPLIES] += 1
             v[C_UP_OUT] += 1
             return
+        if rec:
+            self._record(CH_DRV_IN, body, p.st[S_N], t_in)
         match = bs[B_STATE] != IDLE and p.st[S_N] >= 5 and self._matches(body)
         if match and self.cut_through and self.client is None:
             match = False  # cut through, a reply to the PC is relayed from its head or not at all

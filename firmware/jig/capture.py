@@ -13,13 +13,16 @@ starts every stream; docs/capture.md, "The jig's record stream")::
 
     0  u8   0xA5 (mark)
     1  u8   type: 0..3 a frame on channel (bit 1: 0 PC bus, 1 driver bus;
-            bit 0: 0 received by the jig, 1 sent by it); 0x10 hello, 0x11 lost,
-            0x12 clock, 0x20 | channel: noise bytes counted on a receiving channel
+            bit 0: 0 received by the jig, 1 sent by it); 4 / 6 a frame received
+            on the PC / driver bus and passed on to the other (cut through: the
+            same bytes on both); 0x10 hello, 0x11 lost, 0x12 clock,
+            0x20 | channel: noise bytes counted on a receiving channel
     2  u8   verdict (motorjig.capture.record codes: 0 good, 1 bad CRC, ...)
-    3  u8   n, data bytes that follow
+    3  u8   n, data bytes that follow the header
     4  u32  t_first: the jig's µs tick of the first byte (wraps at 2**30)
     8  u32  t_end: of the last byte
-    12 n    data: a frame's body as the parser holds it (id .. CRC, unstuffed)
+    (types 4, 6 only) 12 u32 t_first, 16 u32 t_end on the other bus
+    12/20 n data: a frame's body as the parser holds it (id .. CRC, unstuffed)
 
 Times of received bytes are the tick at which the main loop read the chunk that
 held them, less one character time for every byte that came after them in that
@@ -37,12 +40,16 @@ from jig.mem import copy
 MARK = const(0xA5)
 VERSION = const(1)
 HEADER_LEN = const(12)
+PASSED_HEADER_LEN = const(20)  # + t_first and t_end on the other bus
 
 # Record types
 CH_PC_IN = const(0)  # received from the PC
 CH_PC_OUT = const(1)  # sent to the PC
 CH_DRV_IN = const(2)  # received from the drives
 CH_DRV_OUT = const(3)  # sent to the drives
+T_PASSED = const(4)  # | in channel: received and passed on to the other bus (cut through)
+T_PC_PASSED = const(4)  # a PC frame passed on to the drives
+T_DRV_PASSED = const(6)  # a driver frame passed on to the PC
 T_HELLO = const(0x10)
 T_LOST = const(0x11)
 T_CLOCK = const(0x12)
@@ -69,12 +76,16 @@ CS_T_LAST = const(7)  # tick of the last record written
 CS_START = const(8)  # 8..11: tick of the first byte of the frame in progress, per channel
 CS_TOTAL = const(12)  # records written since boot (wraps)
 CS_LOST_TOTAL = const(13)  # records lost since boot
-CS_SIZE = const(14)
+CS_T_IN = const(14)  # end of a frame passed on, on the bus it came from (for put)
+CS_SIZE = const(15)
 
 RING_SIZE = const(16384)
 CLOCK_US = const(1000000)  # a clock record after this long without one (the host unwraps ticks)
 STREAM_MAX = const(1024)  # bytes handed to the port per slow pass, at most
 STAGE = const(64)  # one USB full-speed packet
+
+_S_NOISE = const(13)  # jig.parser's (const() takes no imported name)
+_S_T_LAST = const(3)
 
 CMD_START = const(0x53)  # "S"
 CMD_STOP = const(0x58)  # "X"
@@ -86,19 +97,28 @@ def put_py(cs, ring, kind, body, n, t1):
 
     A frame's first tick is ``cs[CS_START + channel]``, which the bridge sets where
     the frame starts (its header read, or handed to the transmitter); it is used
-    once (reset to -1), and t1 stands in where none was set."""
+    once (reset to -1), and the end stands in where none was set. A frame passed on
+    (type ``T_PASSED | in channel``) ended on its own bus at ``cs[CS_T_IN]`` and on
+    the other at t1."""
     if not cs[CS_ON]:
         return 0
-    t0 = t1
     typ = kind & 0xFF
-    if typ < 4:
-        t = cs[CS_START + typ]
-        cs[CS_START + typ] = -1
-        if t >= 0:
-            t0 = t
+    t_in = t1
+    hlen = HEADER_LEN
+    if typ < 8:
+        if typ & T_PASSED:
+            t_in = cs[CS_T_IN]
+            hlen = PASSED_HEADER_LEN
+        ch = typ & 3
+        t0 = cs[CS_START + ch]
+        cs[CS_START + ch] = -1
+        if t0 < 0:
+            t0 = t_in
+    else:
+        t0 = t1
     mask = cs[CS_MASK]
     head = cs[CS_HEAD]
-    need = HEADER_LEN + n
+    need = hlen + n
     lost = cs[CS_LOST]
     if lost:
         need += HEADER_LEN + 4
@@ -111,11 +131,15 @@ def put_py(cs, ring, kind, body, n, t1):
         return 0
     if lost:
         head = _header(ring, mask, head, T_LOST, 4, cs[CS_LOST_T0], cs[CS_LOST_T1])
-        for k in range(4):
-            ring[head] = (lost >> (8 * k)) & 0xFF
-            head = (head + 1) & mask
+        head = _u32(ring, mask, head, lost)
         cs[CS_LOST] = 0
-    head = _header(ring, mask, head, kind, n, t0, t1)
+    head = _header(ring, mask, head, kind, n, t0, t_in)
+    if hlen == PASSED_HEADER_LEN:
+        out = (typ & 3) ^ 3  # the other bus, sent
+        t = cs[CS_START + out]
+        cs[CS_START + out] = -1
+        head = _u32(ring, mask, head, t if t >= 0 else t1)
+        head = _u32(ring, mask, head, t1)
     for i in range(n):
         ring[head] = body[i]
         head = (head + 1) & mask
@@ -125,15 +149,20 @@ def put_py(cs, ring, kind, body, n, t1):
     return 1
 
 
+def _u32(ring, mask, head, v):
+    for k in range(4):
+        ring[head] = (v >> (8 * k)) & 0xFF
+        head = (head + 1) & mask
+    return head
+
+
 def _header(ring, mask, head, kind, n, t0, t1):
     ring[head] = MARK
     ring[(head + 1) & mask] = kind & 0xFF
     ring[(head + 2) & mask] = (kind >> 8) & 0xFF
     ring[(head + 3) & mask] = n
-    for k in range(4):
-        ring[(head + 4 + k) & mask] = (t0 >> (8 * k)) & 0xFF
-        ring[(head + 8 + k) & mask] = (t1 >> (8 * k)) & 0xFF
-    return (head + HEADER_LEN) & mask
+    head = _u32(ring, mask, (head + 4) & mask, t0)
+    return _u32(ring, mask, head, t1)
 
 
 def _put_engine():
@@ -166,6 +195,7 @@ class Capture:
         self.views = [mv[0:k] for k in range(STAGE + 1)]
         self.cmd = bytearray(1)
         self.noise_seen = array("i", [0, 0])  # noise counts of the two parsers, last reported
+        self.up_st = self.down_st = None  # the parsers' state arrays (from start on)
         self.lost_total_seen = 0
 
     @property
@@ -182,8 +212,10 @@ class Capture:
             cs[CS_START + k] = -1
         cs[CS_ON] = 1
         app = self.app
-        self.noise_seen[0] = app.up_parser.st[13]  # parser.S_NOISE
-        self.noise_seen[1] = app.down_parser.st[13]
+        self.up_st = app.up_parser.st
+        self.down_st = app.down_parser.st
+        self.noise_seen[0] = self.up_st[_S_NOISE]
+        self.noise_seen[1] = self.down_st[_S_NOISE]
         n = self._hello_data()
         self.put(cs, self.ring, T_HELLO, self.info, n, now)
 
@@ -221,37 +253,45 @@ class Capture:
     # --- the slow pass ----------------------------------------------------------------
     def slow(self, now):
         """Commands from the host, noise and clock records, and as much of the ring as
-        the port takes. Returns µs until it wants the slow pass again (-1: no need)."""
+        the port takes. Returns 0 if the ring still holds bytes the port is taking
+        (the app comes back sooner), else -1."""
         port = self.port
         if port is not None and port.any():
-            n = port.readinto(self.cmd)
-            if n:
-                c = self.cmd[0]
-                if c == CMD_START:
-                    self.app.set_capture(1, now)
-                elif c == CMD_STOP:
-                    self.app.set_capture(0, now)
+            self._command(now)
         cs = self.cs
         if not cs[CS_ON]:
             return -1
-        self._noise(0, CH_PC_IN, self.app.up_parser.st, now)
-        self._noise(1, CH_DRV_IN, self.app.down_parser.st, now)
+        seen = self.noise_seen
+        st = self.up_st
+        if st[_S_NOISE] != seen[0]:
+            self._noise(0, CH_PC_IN, st)
+        st = self.down_st
+        if st[_S_NOISE] != seen[1]:
+            self._noise(1, CH_DRV_IN, st)
         if ticks_diff(now, cs[CS_T_LAST]) >= CLOCK_US:
             self.put(cs, self.ring, T_CLOCK, self.stage, 0, now)
-        if port is None:
+        if port is None or cs[CS_HEAD] == cs[CS_TAIL]:
             return -1
         return 0 if self._stream() else -1
 
-    def _noise(self, k, ch, st, now):
-        n = st[13] - self.noise_seen[k]  # parser.S_NOISE
-        if n > 0:
-            d = self.stage
-            d[0] = n & 0xFF
-            d[1] = (n >> 8) & 0xFF
-            d[2] = (n >> 16) & 0xFF
-            d[3] = (n >> 24) & 0xFF
-            if self.put(self.cs, self.ring, T_NOISE | ch, d, 4, st[3]):  # parser.S_T_LAST
-                self.noise_seen[k] = st[13]
+    def _command(self, now):
+        if self.port.readinto(self.cmd):
+            c = self.cmd[0]
+            if c == CMD_START:
+                self.app.set_capture(1, now)
+            elif c == CMD_STOP:
+                self.app.set_capture(0, now)
+
+    def _noise(self, k, ch, st):
+        """A noise record: the bytes the parser st counted outside frames since the last."""
+        n = st[_S_NOISE] - self.noise_seen[k]
+        d = self.stage
+        d[0] = n & 0xFF
+        d[1] = (n >> 8) & 0xFF
+        d[2] = (n >> 16) & 0xFF
+        d[3] = (n >> 24) & 0xFF
+        if self.put(self.cs, self.ring, T_NOISE | ch, d, 4, st[_S_T_LAST]):
+            self.noise_seen[k] = st[_S_NOISE]
 
     def _stream(self):
         """Hand the port what it takes (STAGE bytes a write, STREAM_MAX a pass);

@@ -106,6 +106,9 @@ _CH_PC_IN = const(0)
 _CH_PC_OUT = const(1)
 _CH_DRV_IN = const(2)
 _CH_DRV_OUT = const(3)
+_CS_T_IN = const(14)
+_T_PC_PASSED = const(4)
+_T_DRV_PASSED = const(6)
 _STUB = const(3 << 8)  # V_SHORT << 8: the verdict of a stub ended with a tail
 
 
@@ -245,16 +248,14 @@ def pump(ctx, passes: int) -> int:
                     # Bridge.on_down_frame: the reply, relayed as it came
                     v[_C_DOWN_IN] += 1
                     bs[_B_REL] = 0
-                    rec = cs[_CS_ON]
-                    if rec != 0:  # (while the tail leaves the FIFO)
-                        cap_put(cs_arr, cap_ring, _CH_DRV_IN, down_body, dst[_S_N], now)
                     up_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
                         sleep(post)
                     up_de(0)
-                    if rec != 0:
-                        cap_put(cs_arr, cap_ring, _CH_PC_OUT, down_body, dst[_S_N], ticks())
+                    if cs[_CS_ON] != 0:
+                        cs[_CS_T_IN] = now
+                        cap_put(cs_arr, cap_ring, _T_DRV_PASSED, down_body, dst[_S_N], ticks())
                     bs[_B_STATE] = nxt[state * _N_EVENTS + _E_REPLY]
                     b0 = db[0]
                     if b0 < _SEEN_IDS:
@@ -341,16 +342,14 @@ def pump(ctx, passes: int) -> int:
                     bs[_B_T_PC] = now
                     bs[_B_PC_FRAMES] += 1
                     bs[_B_FWD] = 0
-                    rec = cs[_CS_ON]
-                    if rec != 0:  # (while the tail leaves the FIFO)
-                        cap_put(cs_arr, cap_ring, _CH_PC_IN, up_body, ust[_S_N], now)
                     down_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
                         sleep(post)
                     down_de(0)
-                    if rec != 0:
-                        cap_put(cs_arr, cap_ring, _CH_DRV_OUT, up_body, ust[_S_N], ticks())
+                    if cs[_CS_ON] != 0:
+                        cs[_CS_T_IN] = now
+                        cap_put(cs_arr, cap_ring, _T_PC_PASSED, up_body, ust[_S_N], ticks())
                     if state == _AWAIT_PC:
                         # Bridge._pend_pc: the reply wait starts now
                         m = tmult[ub[1]]

@@ -253,8 +253,11 @@ _CS_T_LAST = const(7)
 _CS_START = const(8)
 _CS_TOTAL = const(12)
 _CS_LOST_TOTAL = const(13)
+_CS_T_IN = const(14)
 _CAP_MARK = const(0xA5)
 _CAP_HEADER = const(12)
+_CAP_PASSED_HEADER = const(20)
+_CAP_PASSED = const(4)
 _CAP_LOST = const(0x11)
 
 
@@ -265,18 +268,21 @@ def cap_put(cs, ring, kind: int, body, n: int, t1: int) -> int:
     c = ptr32(cs)
     if c[_CS_ON] == 0:
         return 0
-    t0 = t1
     typ = kind & 0xFF
-    if typ < 4:
-        t = c[_CS_START + typ]
-        c[_CS_START + typ] = -1
-        if t >= 0:
-            t0 = t
-    r = ptr8(ring)
-    b = ptr8(body)
+    t_in = t1
+    hlen = _CAP_HEADER
+    t0 = t1
+    if typ < 8:
+        if typ & _CAP_PASSED:
+            t_in = c[_CS_T_IN]
+            hlen = _CAP_PASSED_HEADER
+        t0 = c[_CS_START + (typ & 3)]
+        c[_CS_START + (typ & 3)] = -1
+        if t0 < 0:
+            t0 = t_in
     mask = c[_CS_MASK]
     head = c[_CS_HEAD]
-    need = _CAP_HEADER + n
+    need = hlen + n
     lost = c[_CS_LOST]
     if lost != 0:
         need += _CAP_HEADER + 4
@@ -287,44 +293,56 @@ def cap_put(cs, ring, kind: int, body, n: int, t1: int) -> int:
         c[_CS_LOST_T1] = t1
         c[_CS_LOST_TOTAL] += 1
         return 0
-    k = 0
-    while k < 2:
-        if k == 0:
-            if lost == 0:
-                k = 1
-                continue
-            typ = _CAP_LOST
-            m = 4
-            a = c[_CS_LOST_T0]
-            z = c[_CS_LOST_T1]
-        else:
-            typ = kind
-            m = n
-            a = t0
-            z = t1
+    r = ptr8(ring)
+    # Up to five words after the mark: [lost record,] type/verdict/n, times.
+    if lost != 0:
         r[head] = _CAP_MARK
-        r[(head + 1) & mask] = typ & 0xFF
-        r[(head + 2) & mask] = (typ >> 8) & 0xFF
-        r[(head + 3) & mask] = m
+        r[(head + 1) & mask] = _CAP_LOST
+        r[(head + 2) & mask] = 0
+        r[(head + 3) & mask] = 4
+        a = c[_CS_LOST_T0]
+        z = c[_CS_LOST_T1]
         j = 0
         while j < 4:
             r[(head + 4 + j) & mask] = (a >> (8 * j)) & 0xFF
             r[(head + 8 + j) & mask] = (z >> (8 * j)) & 0xFF
+            r[(head + 12 + j) & mask] = (lost >> (8 * j)) & 0xFF
             j += 1
-        head = (head + _CAP_HEADER) & mask
-        j = 0
-        if k == 0:
-            while j < 4:
-                r[head] = (lost >> (8 * j)) & 0xFF
-                head = (head + 1) & mask
-                j += 1
-            c[_CS_LOST] = 0
-        else:
-            while j < m:
-                r[head] = b[j]
-                head = (head + 1) & mask
-                j += 1
-        k += 1
+        head = (head + 16) & mask
+        c[_CS_LOST] = 0
+    r[head] = _CAP_MARK
+    r[(head + 1) & mask] = typ
+    r[(head + 2) & mask] = (kind >> 8) & 0xFF
+    r[(head + 3) & mask] = n
+    t2 = t1
+    if hlen == _CAP_PASSED_HEADER:
+        out = (typ & 3) ^ 3
+        t2 = c[_CS_START + out]
+        c[_CS_START + out] = -1
+        if t2 < 0:
+            t2 = t1
+    j = 0
+    while j < 4:
+        sh = 8 * j
+        r[(head + 4 + j) & mask] = (t0 >> sh) & 0xFF
+        r[(head + 8 + j) & mask] = (t_in >> sh) & 0xFF
+        if hlen == _CAP_PASSED_HEADER:
+            r[(head + 12 + j) & mask] = (t2 >> sh) & 0xFF
+            r[(head + 16 + j) & mask] = (t1 >> sh) & 0xFF
+        j += 1
+    head = (head + hlen) & mask
+    b = ptr8(body)
+    j = 0
+    if head + n <= mask:  # no wrap inside the data: a plain copy
+        while j < n:
+            r[head + j] = b[j]
+            j += 1
+        head += n
+    else:
+        while j < n:
+            r[head] = b[j]
+            head = (head + 1) & mask
+            j += 1
     c[_CS_HEAD] = head
     c[_CS_T_LAST] = t1
     c[_CS_TOTAL] += 1

@@ -453,10 +453,32 @@ def heap_lock(on):
         micropython.heap_unlock()
 
 
-class BridgeRig:
-    """jig.app.App on MemHal in one forwarding mode, with the probes of the issue's table."""
+CAPTURE_SINK = 8192  # bytes the capture port stand-in holds; fresh() rewinds it
 
-    def __init__(self, mode):
+
+class CapturePort:
+    """``hal.capture`` whose methods are C, as USB_VCP's are on the board: io.BytesIO's
+    write (into a preallocated buffer, so it never grows) and tell (0: no command
+    from the host). Its cost is in the figures, as the board's USB write would be."""
+
+    def __init__(self):
+        import io
+
+        self.sink = io.BytesIO(bytearray(CAPTURE_SINK))
+        self.sink.seek(0)
+        self.write = self.sink.write
+        self.readinto = self.sink.readinto
+        self.any = io.BytesIO().tell
+
+    def taken(self):
+        return self.sink.tell()
+
+
+class BridgeRig:
+    """jig.app.App on MemHal in one forwarding mode, with the probes of the issue's table;
+    ``capture``: recording both buses (parameter 13) into a CapturePort."""
+
+    def __init__(self, mode, capture=False):
         from jig import params
         from jig.app import App
 
@@ -464,11 +486,13 @@ class BridgeRig:
         self.reply = frame.encode(2, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08")
         self.local = frame.encode(1, frame.GET_SLAVE_INFO)
         hal = MemHal()
+        hal.capture = CapturePort() if capture else None
         fs = bridge_probe.MemFS()
         hal.fs = fs
         pr = params.Params(fs, hal.param_path)
         pr.load()
         pr.set(params.P_FORWARD_MODE, mode)
+        pr.set(params.P_CAPTURE, 1 if capture else 0)
         pr.save()
         self.app = App(hal)
         self.hal = hal
@@ -478,6 +502,13 @@ class BridgeRig:
         # out (run(0)) for each call, counted in runs.
         self.poll = self.app.run  # bound once: making a bound method allocates
         self.runs = 0
+
+    def fresh(self):
+        """Before a measurement: an empty capture ring and port (they must not fill up
+        during it, or records would take the cheaper lost path)."""
+        if self.hal.capture is not None:
+            self.app.capture.start(ticks_us())
+            self.hal.capture.sink.seek(0)
 
     def _done(self, count, w_up, w_down=None):
         """count frames reached the PC bus (and, given w_down, the driver bus)."""
@@ -565,6 +596,8 @@ def measure(fn, count, costs, rig=None, prices=None):
     failure. The stand-in HAL's own instructions (``costs``) are taken out."""
     fn(5)  # warm up: first-use allocations happen here
     setup = rig.setup_cost() if rig is not None else 0
+    if rig is not None:
+        rig.fresh()
     gc.collect()
     calls0 = HAL_CALLS[:]
     runs0 = rig.runs if rig is not None else 0
@@ -601,10 +634,15 @@ def bench_bridge(transactions=200, prices=None):
     from jig import params
 
     costs = hal_call_costs()
+    slow_off = 0
     result("stand-in HAL instructions per call (C methods, as on the board; taken out below): "
            + ", ".join(["%s %d" % (HAL_CALL_NAMES[k], costs[k]) for k in range(len(costs))]))
-    for mode, name in ((params.CUT_THROUGH, "cut-through"), (params.STORE_AND_FORWARD, "store-and-forward")):
-        rig = BridgeRig(mode)
+    for mode, name, capture in ((params.CUT_THROUGH, "cut-through", False),
+                                (params.STORE_AND_FORWARD, "store-and-forward", False),
+                                (params.CUT_THROUGH, "cut-through, capture on", True)):
+        rig = None
+        gc.collect()  # (the last rig's buffers, capture ring included, before the next one's)
+        rig = BridgeRig(mode, capture)
         fast = rig.app.pump is not None
         if compat.NATIVE is not None and fast != (mode == params.CUT_THROUGH):
             fail("bridge %s: the main loop is %s (jig.fastpath.pump is for cut-through on plain ports)"
@@ -630,6 +668,78 @@ def bench_bridge(transactions=200, prices=None):
             result("bridge %s with its HAL calls at the board's prices (board_check): forwarded transaction %d, "
                    "a byte on its own %d/byte, local GetSlaveInfo %d, idle pass %d instructions"
                    % (name, board_t, board_b // rx, board_l, board_i))
+        if capture:
+            bench_stream(rig, transactions // 4, slow_off)
+        elif mode == params.CUT_THROUGH:
+            slow_off = slow_pass_cost(rig, transactions // 4)
+
+
+def slow_pass_cost(rig, n):
+    """Instructions of the app's slow pass with nothing due (App._slow), heap locked."""
+    app = rig.app
+    gc.collect()
+    heap_lock(True)
+    try:
+        t0 = ticks_us()
+        for _ in range(n):
+            app._slow(ticks_us())
+        dt = ticks_diff(ticks_us(), t0)
+    except MemoryError:
+        heap_lock(False)
+        fail("slow pass: allocated with the heap locked")
+        return 0
+    heap_lock(False)
+    return instr(dt) // n
+
+
+def bench_stream(rig, n, slow_off):
+    """Capture on: what the whole slow pass costs with nothing to stream, and what
+    capture's own share (Capture.slow) costs with nothing to stream and streaming one
+    forwarded transaction's records to the capture port (heap locked)."""
+    cap = rig.app.capture
+    rig.fresh()
+    cap.drain_to(bytearray())  # (the hello)
+    whole = slow_pass_cost(rig, n)
+    empty = 0
+    total = 0
+    moved = 0
+    streams = 0
+    records = 0
+    gc.collect()
+    for _ in range(n):
+        rig.fresh()
+        cap.cs[1] = cap.cs[2] = 0  # CS_HEAD, CS_TAIL: the hello out of the way
+        total0 = cap.cs[12]  # CS_TOTAL
+        rig.forward(1)
+        if cap.pending() == 0:
+            continue  # the loop's own slow pass streamed it already: not this probe
+        records += cap.cs[12] - total0
+        before = rig.hal.capture.taken()
+        heap_lock(True)
+        try:
+            t0 = ticks_us()
+            cap.slow(ticks_us())
+            t1 = ticks_us()
+            cap.slow(ticks_us())  # nothing left to stream
+            t2 = ticks_us()
+        except MemoryError:
+            heap_lock(False)
+            fail("capture: streaming allocated with the heap locked")
+            return
+        heap_lock(False)
+        total += ticks_diff(t1, t0)
+        empty += ticks_diff(t2, t1)
+        moved += rig.hal.capture.taken() - before
+        streams += 1
+        if cap.pending():
+            fail("capture: one transaction's records did not fit one slow pass")
+    if streams == 0 or records != 2 * streams:
+        fail("capture: a forwarded transaction should leave two records (request and reply, each passed on)")
+        return
+    result("capture on: whole slow pass with nothing to stream %d instructions (capture off: %d); its "
+           "Capture.slow share: nothing to stream %d, streaming one forwarded transaction's 2 records (%d bytes) "
+           "to the capture port %d (io.BytesIO.write standing in for USB_VCP.write); heap allocated 0 (heap locked)"
+           % (whole, slow_off, instr(empty) // streams, moved // streams, instr(total) // streams))
 
 
 def probe_cross_check(n=200):
@@ -646,6 +756,18 @@ def probe_cross_check(n=200):
             fail("bridge_probe: transactions did not complete")
         if used or used_l:
             fail("bridge_probe: %d/%d heap bytes allocated in steady state (expected 0)" % (used, used_l))
+
+
+def capture_alloc():
+    if not compat.IS_MICROPYTHON:
+        return 0
+    gc.collect()
+    used, ok = bridge_probe.forward_alloc(200, capture=True)
+    if not ok:
+        fail("bridge_probe with capture on: transactions or records missing")
+    if used:
+        fail("bridge_probe with capture on: %d heap bytes allocated in steady state (expected 0)" % used)
+    return used
 
 
 def check_board():
@@ -674,5 +796,7 @@ def main(quick=False):
         prices = check_board()
         bench_bridge(prices=prices)
         probe_cross_check()
+        result("bridge_probe heap with capture on: forward %+d bytes over 200 transactions (records streamed)"
+               % capture_alloc())
     result("%s" % ("all checks passed" if not failures else "%d FAILED" % len(failures)))
     return len(failures)
