@@ -9,6 +9,7 @@ crash and Ctrl-C paths. The pure boot modules are in test_boot.py.
 """
 
 import importlib
+import os
 import sys
 import types
 
@@ -656,3 +657,48 @@ def test_a_port_without_registers_has_only_the_blocking_write(fakes, monkeypatch
 
     rs = Rs485(NoClockHal(), b.down)
     assert rs.plain and not rs.queued and rs.raw_part == b.down.write
+
+
+# --- the capture port (the second USB CDC port) ------------------------------------------
+class FakeVCP:
+    """pyb.USB_VCP as the stm32 port has it: flow control set by init(flow=...)."""
+
+    CTS = 2
+    made = []
+
+    def __init__(self, index):
+        self.index = index
+        self.flow = -1
+        FakeVCP.made.append(self)
+
+    def init(self, flow=-1):
+        self.flow = flow
+
+
+def test_the_capture_port_is_the_second_usb_cdc_port_with_cts_flow(fakes, monkeypatch):
+    pyb = types.ModuleType("pyb")
+    pyb.USB_VCP = FakeVCP
+    FakeVCP.made = []
+    monkeypatch.setitem(sys.modules, "pyb", pyb)
+    b = fakes.board.Board("STM32H7_JIG")
+    assert b.capture is FakeVCP.made[0]
+    # CTS flow: a write takes only what fits and nothing while no PC has the port open
+    assert b.capture.index == 1 and b.capture.flow == FakeVCP.CTS
+
+
+def test_no_capture_port_without_pyb(fakes):
+    assert fakes.board.Board("STM32H7_JIG").capture is None
+
+
+def test_the_usb_boot_file_asks_for_two_cdc_ports(monkeypatch):
+    pyb = types.ModuleType("pyb")
+    modes = []
+    pyb.usb_mode = modes.append
+    monkeypatch.setitem(sys.modules, "pyb", pyb)
+    sys.modules.pop("jigusb", None)
+    importlib.import_module("jigusb")
+    sys.modules.pop("jigusb", None)
+    assert modes == ["VCP+VCP"]
+    board_h = open(os.path.join(os.path.dirname(__file__), "..", "boards", "STM32H7_JIG", "mpconfigboard.h")).read()
+    assert "#define MICROPY_HW_USB_CDC_NUM      (2)" in board_h
+    assert '#define MICROPY_BOARD_FROZEN_BOOT_FILE "jigusb.py"' in board_h

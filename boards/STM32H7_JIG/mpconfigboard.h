@@ -82,6 +82,11 @@
 #define MICROPY_HW_USB_VBUS_DETECT_PIN (pyb_pin_USB_VBUS)  // PA9
 // The flash holds littlefs, which a PC cannot mount: USB is CDC (REPL) only.
 #define MICROPY_HW_USB_MSC          (0)
+// Two CDC ports: the REPL, and the stream of records of both RS-485 buses
+// (jig.capture). USB starts in that mode from the frozen boot file, which the
+// port runs before boot.py.
+#define MICROPY_HW_USB_CDC_NUM      (2)
+#define MICROPY_BOARD_FROZEN_BOOT_FILE "jigusb.py"
 #define MICROPY_HW_USB_MANUFACTURER_STRING "MotorJig"
 #define MICROPY_HW_USB_PRODUCT_FS_STRING   "MotorJig STM32H7_JIG RS-485 bridge"
 

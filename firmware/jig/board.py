@@ -120,12 +120,28 @@ class Board:
         self.error_on = False
         self.seen_overflows = 0
         self.streak_cleared = False
+        self.capture = self._capture_port()
 
     def open(self, up_baud, down_baud):
         """Open both ports at the given baud rates (called once by jig.app.App)."""
         p = self.profile
         self.up = UartPort(p["up"], up_baud, p["echo_free"])
         self.down = UartPort(p["down"], down_baud, p["echo_free"])
+
+    # the capture port ---------------------------------------------------------------
+    def _capture_port(self):
+        """The second USB CDC port (jigusb.py selects two), the HAL's ``capture``:
+        ``USB_VCP(1)`` with CTS flow control, so a write takes only what fits in its
+        buffer and nothing while no PC has the port open -- it never blocks the
+        bridge. None where the build has one CDC port or no pyb module."""
+        try:
+            import pyb
+
+            vcp = pyb.USB_VCP(1)
+            vcp.init(flow=pyb.USB_VCP.CTS)
+            return vcp
+        except (ImportError, AttributeError, ValueError, OSError, TypeError):
+            return None
 
     # jig I/O ------------------------------------------------------------------------
     def set_outputs(self, mask):
