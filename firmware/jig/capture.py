@@ -24,10 +24,13 @@ starts every stream; docs/capture.md, "The jig's record stream")::
     (types 4, 6 only) 12 u32 t_first, 16 u32 t_end on the other bus
     12/20 n data: a frame's body as the parser holds it (id .. CRC, unstuffed)
 
-Times of received bytes are the tick at which the main loop read the chunk that
-held them, less one character time for every byte that came after them in that
-chunk; of sent bytes, the tick the first was handed to the transmitter and the
-tick its last stop bit had gone. ``put`` is machine code on the board
+Times: a received frame ends at the tick at which the main loop read the chunk
+holding its last byte (on the board within a pass of its stop bit) and starts at
+the tick of the read that brought its header (cut through; store-and-forward and a
+frame that began with a resync have only the end, and give it twice: the host
+dates the first byte back by the frame's wire time). A sent frame starts at the
+tick its header was handed to the transmitter and ends when its last stop bit had
+gone. ``put`` is machine code on the board
 (``jig.native.cap_put``) and the same logic in Python elsewhere (``put_py``); the
 host tests compare the two.
 """

@@ -236,8 +236,9 @@ def build_parser():
 
     sp = add("results", cmd_results, "the results database of the test runs: list, show, yield, stats, export")
     add_results_arguments(sp)
-    sp = add("capture", cmd_capture, "record a Plus-R bus to pcapng for Wireshark (--sniff PORT -w FILE), "
-                                     "with a live line per frame; install the dissector and the extcap")
+    sp = add("capture", cmd_capture, "record both buses through the jig (--jig CAPTURE_PORT) or one bus through a "
+                                     "listen-only adapter (--sniff PORT) to pcapng for Wireshark, with a live line "
+                                     "per frame; install the dissector and the extcaps")
     from motorjig.capture.command import add_capture_arguments
 
     add_capture_arguments(sp)

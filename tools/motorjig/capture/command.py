@@ -2,21 +2,26 @@
 
     jigctl capture --sniff /dev/ttyUSB1 [-w bus.pcapng [--max-size 10M --files 5]] [--bus pc]
     jigctl capture --sniff /dev/ttyUSB1 -w - | wireshark -k -i -
+    jigctl capture --jig /dev/ttyACM1 -w both.pcapng   # the jig's own recording of both buses
     jigctl capture --install-dissector      # plusr.lua into Wireshark's personal plugin folder
-    jigctl capture --install-extcap         # the motorjig-sniff interface for Wireshark/tshark
+    jigctl capture --install-extcap         # the motorjig-sniff and motorjig-jig interfaces
 
 ``--sniff`` listens through a listen-only USB-RS-485 adapter (or any pyserial URL)
-and frames what it hears with the firmware's parser; every frame, dropped fragment
-and run of noise becomes a pcapng packet with the parser's verdict in its comment.
-The live view goes to standard output (standard error when that carries the
-pcapng; ``-q`` switches it off); ``--json`` prints it as JSON lines.
+and frames what it hears with the firmware's parser; ``--jig`` reads the jig's own
+record stream from its capture port (both buses, directions, the jig's µs clock,
+``jigport``). Either way every frame, dropped fragment and run of noise becomes a
+pcapng packet with the parser's verdict in its comment. The live view goes to
+standard output (standard error when that carries the pcapng; ``-q`` switches it
+off); ``--json`` prints it as JSON lines.
 """
 
 import json
+import os
 import sys
 
 from motorjig.capture import install, pcapng
 from motorjig.capture import record as R
+from motorjig.capture.jigport import HELLO_WAIT_S, JigCapture
 from motorjig.capture.sniff import DEFAULT_INTERBYTE_MS, Sniffer, open_port
 from motorjig.capture.textview import TextView
 from motorjig.commands import EXIT_OK, UsageError
@@ -38,17 +43,22 @@ def size(text):
 
 
 def add_capture_arguments(sp):
-    src = sp.add_argument_group("what to capture")
+    src = sp.add_argument_group("what to capture (one of --sniff, --jig)")
     src.add_argument("--sniff", metavar="PORT",
                      help="listen on a Plus-R bus through this listen-only adapter (/dev/ttyUSB1, COM7) or "
                           "pyserial URL (socket://host:port); --baud sets its baud rate")
-    src.add_argument("--bus", choices=R.BUS_NAMES, default="pc",
-                     help="which bus the adapter listens on: names the pcapng interface (default pc)")
-    src.add_argument("--interbyte-timeout", type=float, default=DEFAULT_INTERBYTE_MS, metavar="MS",
-                     help="silence inside a frame that drops it, in ms (default %g: longer than a USB "
+    src.add_argument("--jig", metavar="PORT",
+                     help="the jig's own recording of both buses, from its capture port (the board's second USB "
+                          "port, /dev/ttyACM1) or a pyserial URL (socket://127.0.0.1:N on the virtual bench): "
+                          "directions and the jig's microsecond clock; the bauds come from the jig")
+    src.add_argument("--bus", choices=R.BUS_NAMES, default=None,
+                     help="with --sniff: which bus the adapter listens on, names the pcapng interface (default pc)")
+    src.add_argument("--interbyte-timeout", type=float, default=None, metavar="MS",
+                     help="with --sniff: silence inside a frame that drops it, in ms (default %g: longer than a USB "
                           "adapter's usual hold-back; the jig itself uses 5)" % DEFAULT_INTERBYTE_MS)
     src.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: Ctrl-C)")
-    src.add_argument("--count", type=int, metavar="N", help="stop after N records (frames, fragments, noise)")
+    src.add_argument("--count", type=int, metavar="N",
+                     help="stop after N records (frames, fragments, noise; with --jig also lost-records reports)")
     out = sp.add_argument_group("output")
     out.add_argument("-w", "--write", metavar="FILE",
                      help="write pcapng to FILE, or '-' for standard output (for wireshark -k -i -)")
@@ -61,7 +71,8 @@ def add_capture_arguments(sp):
     inst.add_argument("--install-dissector", action="store_true",
                       help="copy the Plus-R dissector into Wireshark's personal Lua plugin folder and say where")
     inst.add_argument("--install-extcap", action="store_true",
-                      help="install the motorjig-sniff capture interface for Wireshark and tshark and say where")
+                      help="install the capture interfaces motorjig-sniff (an adapter) and motorjig-jig (the jig's "
+                           "recording) for Wireshark and tshark and say where")
 
 
 def _install(args):
@@ -80,8 +91,9 @@ def _install(args):
             raise UsageError("cannot install the extcap: %s" % exc) from None
         for path, why in written:
             lines.append("extcap installed: %s (%s)" % (path, why))
-        lines.append("capture interface: %s (tshark -D lists it; in tshark: -i %s -o extcap.%s.port:PORT)"
-                     % (install.EXTCAP_NAME, install.EXTCAP_NAME, install.EXTCAP_NAME.replace("-", "_")))
+        for name in install.EXTCAP_NAMES:
+            lines.append("capture interface: %s (tshark -D lists it; in tshark: -i %s -o extcap.%s.port:PORT)"
+                         % (name, name, name.replace("-", "_")))
     if not folders:
         lines.append("(tshark was not found: installed into the default folders of Wireshark 4.2 and later)")
     print("\n".join(lines))
@@ -89,8 +101,19 @@ def _install(args):
 
 
 def _check(args):
-    if args.sniff is None:
-        raise UsageError("give --sniff PORT (a listen-only adapter on the bus), or --install-dissector / --install-extcap")
+    if args.sniff is None and args.jig is None:
+        raise UsageError("give --sniff PORT (a listen-only adapter on the bus) or --jig PORT (the jig's capture "
+                         "port), or --install-dissector / --install-extcap")
+    if args.sniff is not None and args.jig is not None:
+        raise UsageError("give --sniff PORT or --jig PORT, not both (one capture at a time)")
+    if args.jig is not None:
+        for name, value in (("--bus", args.bus), ("--interbyte-timeout", args.interbyte_timeout)):
+            if value is not None:
+                raise UsageError("%s is for --sniff: the jig records both buses with its own parser" % name)
+    if args.bus is None:
+        args.bus = "pc"
+    if args.interbyte_timeout is None:
+        args.interbyte_timeout = DEFAULT_INTERBYTE_MS
     if args.max_size is not None:
         args.max_size = size(args.max_size)
         if args.write in (None, "-"):
@@ -108,79 +131,146 @@ def _check(args):
         raise UsageError("--count must be at least 1")
 
 
-def _open_writer(args, buses):
+def _check_output(args):
+    """A -w FILE that cannot be written fails before the port is asked anything (the
+    jig's recording is started only when the output can take it)."""
+    if args.write in (None, "-"):
+        return
+    path = os.path.abspath(args.write)
+    folder = os.path.dirname(path)
+    if not os.path.isdir(folder):
+        raise UsageError("cannot write %s: No such file or directory" % args.write)
+    if os.path.isdir(path):
+        raise UsageError("cannot write %s: Is a directory" % args.write)
+    if not os.access(folder, os.W_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        raise UsageError("cannot write %s: Permission denied" % args.write)
+
+
+def _open_writer(args, buses, hardware=None):
     if args.write is None:
         return None
     if args.write == "-":
-        return pcapng.Writer(sys.stdout.buffer, buses, flush_each=True)
+        return pcapng.Writer(sys.stdout.buffer, buses, flush_each=True, hardware=hardware)
     try:
         if args.max_size is not None:
-            return pcapng.RotatingWriter(args.write, buses, args.max_size, args.files)
-        return pcapng.Writer(open(args.write, "wb"), buses)
+            return pcapng.RotatingWriter(args.write, buses, args.max_size, args.files, hardware=hardware)
+        return pcapng.Writer(open(args.write, "wb"), buses, hardware=hardware)
     except OSError as exc:
         raise UsageError("cannot write %s: %s" % (args.write, exc.strerror)) from None
+
+
+class _Sinks:
+    """The writer, the live view and the verdict counts of one capture."""
+
+    def __init__(self, args, buses, writer, forced):
+        self.args = args
+        self.writer = writer
+        self.counts = {}
+        self.view = TextView(buses, forced)
+        self.shown = None if args.quiet else (sys.stderr if args.write == "-" else sys.stdout)
+        self.sinks = ([writer.write] if writer is not None else []) + [self.show]
+
+    def show(self, rec):
+        name = R.verdict_name(rec.verdict)
+        self.counts[name] = self.counts.get(name, 0) + 1
+        if self.shown is not None:
+            d = self.view.as_dict(rec)
+            self.shown.write((json.dumps(d) if self.args.json else self.view.line(rec, d)) + "\n")
+            self.shown.flush()
+
+    def banner(self, text):
+        if self.shown is not None and not self.args.json:
+            sys.stderr.write("capturing %s%s; Ctrl-C ends\n" % (text, "" if self.args.write is None else (
+                ", pcapng to %s" % ("standard output" if self.args.write == "-" else self.args.write))))
+
+
+def _close_writer(args, writer):
+    if writer is not None:
+        try:
+            writer.flush() if args.write == "-" else writer.close()
+        except OSError:
+            pass
 
 
 def cmd_capture(args):
     if args.install_dissector or args.install_extcap:
         return _install(args)
     _check(args)
+    if args.jig is not None:
+        return _capture_jig(args)
     forced = 8 if args.ver8 else 6 if args.ver6 else None
     bus = R.make_bus(args.bus, args.baud, args.sniff)
     port = open_port(args.sniff, args.baud)
     sniffer = Sniffer(port, args.sniff, args.baud, interbyte_timeout_ms=args.interbyte_timeout,
                       ver8=True if forced == 8 else None)
     writer = None
-    counts = {}
     try:
         writer = _open_writer(args, [bus])
-        view = TextView([bus], forced)
-        shown = None if args.quiet else (sys.stderr if args.write == "-" else sys.stdout)
-
-        def show(rec):
-            name = R.verdict_name(rec.verdict)
-            counts[name] = counts.get(name, 0) + 1
-            if shown is not None:
-                d = view.as_dict(rec)
-                shown.write((json.dumps(d) if args.json else view.line(rec, d)) + "\n")
-                shown.flush()
-
-        sinks = ([writer.write] if writer is not None else []) + [show]
-        if shown is not None and not args.json:
-            sys.stderr.write("capturing %s (%s) at %d baud%s; Ctrl-C ends\n" % (
-                args.sniff, bus.name, args.baud, "" if args.write is None else ", pcapng to %s" % (
-                    "standard output" if args.write == "-" else args.write)))
+        out = _Sinks(args, [bus], writer, forced)
+        out.banner("%s (%s) at %d baud" % (args.sniff, bus.name, args.baud))
         try:
-            sniffer.run(sinks, duration=args.duration, count=args.count)
+            sniffer.run(out.sinks, duration=args.duration, count=args.count)
         except KeyboardInterrupt:
             pass
         try:
-            sniffer.finish(sinks)
+            sniffer.finish(out.sinks)
         except KeyboardInterrupt:
             pass
     except BrokenPipeError:  # the reader of -w - (or of the live view) went away
         return EXIT_OK
     finally:
         port.close()
-        if writer is not None:
-            try:
-                writer.flush() if args.write == "-" else writer.close()
-            except OSError:
-                pass
-    _summary(args, sniffer, counts, writer)
+        _close_writer(args, writer)
+    _summary(args, sniffer.records, sniffer.bytes, out.counts, writer)
     return EXIT_OK
 
 
-def _summary(args, sniffer, counts, writer):
+def _capture_jig(args):
+    """--jig PORT: X and S, the hello, records until the end, X (also after Ctrl-C, a broken
+    pipe or a failure)."""
+    forced = 8 if args.ver8 else 6 if args.ver6 else None
+    _check_output(args)
+    cap = JigCapture(args.jig)
+    writer = None
+    try:
+        try:
+            hello = cap.start(HELLO_WAIT_S)
+        except KeyboardInterrupt:
+            return EXIT_OK
+        buses = cap.stream.buses()
+        writer = _open_writer(args, buses, hardware=cap.stream.description())
+        out = _Sinks(args, buses, writer, forced)
+        out.banner("the jig's recording from %s: PC bus %d baud, driver bus %d baud (%s, jig id %d)" % (
+            args.jig, hello["up_baud"], hello["down_baud"], hello["variant"], hello["slave_id"]))
+        try:
+            cap.run(out.sinks, duration=args.duration, count=args.count)
+        except KeyboardInterrupt:
+            pass
+    except BrokenPipeError:  # the reader of -w - (or of the live view) went away
+        return EXIT_OK
+    finally:
+        cap.close()
+        _close_writer(args, writer)
+    _summary(args, cap.records, cap.bytes, out.counts, writer, cap.stream)
+    return EXIT_OK
+
+
+def _summary(args, records, nbytes, counts, writer, jig=None):
     files = []
     if isinstance(writer, pcapng.RotatingWriter):
         files = writer.written
     elif writer is not None and args.write != "-":
         files = [args.write]
     if args.json and args.write != "-":
-        print(json.dumps({"summary": {"records": sniffer.records, "bytes": sniffer.bytes, "verdicts": counts,
-                                      "files": files}}), flush=True)
+        summary = {"records": records, "bytes": nbytes, "verdicts": counts, "files": files}
+        if jig is not None:
+            summary.update(lost=jig.lost, noise={"pc": jig.noise[0], "drivers": jig.noise[1]}, jig=jig.hello)
+        print(json.dumps({"summary": summary}), flush=True)
         return
     parts = ", ".join("%s %d" % kv for kv in sorted(counts.items())) or "nothing heard"
-    sys.stderr.write("%d records (%d bytes): %s%s\n" % (
-        sniffer.records, sniffer.bytes, parts, "; written: %s" % ", ".join(files) if files else ""))
+    extra = ""
+    if jig is not None:
+        extra = "; the jig lost %d records, counted %d + %d noise bytes (PC bus + driver bus)" % (
+            jig.lost, jig.noise[0], jig.noise[1])
+    sys.stderr.write("%d records (%d bytes): %s%s%s\n" % (
+        records, nbytes, parts, extra, "; written: %s" % ", ".join(files) if files else ""))

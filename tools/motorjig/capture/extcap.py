@@ -1,17 +1,21 @@
-"""Wireshark extcap: the ``motorjig-sniff`` interface, a Plus-R bus through a listen-only adapter.
+"""Wireshark extcap: the MotorJig interfaces, ``motorjig-sniff`` (a Plus-R bus through a
+listen-only adapter) and ``motorjig-jig`` (the jig's own recording of both buses).
 
-Wireshark runs this program (the launcher ``jigctl capture --install-extcap``
-writes) in the steps of the extcap interface::
+Wireshark runs this program (the launchers ``jigctl capture --install-extcap``
+writes, one per interface) in the steps of the extcap interface::
 
     --extcap-interfaces                          the interface list
-    --extcap-interface motorjig-sniff --extcap-dlts     its link type (USER0, the dissector's)
+    --extcap-interface motorjig-sniff --extcap-dlts     its link types (USER0/USER1, the dissector's)
     --extcap-interface motorjig-sniff --extcap-config   its options: port/URL, baud, bus, timeout
     --extcap-interface motorjig-sniff --capture --fifo PATH --port URL [--baud N] ...
+    --extcap-interface motorjig-jig --extcap-config     its option: the jig's capture port/URL
+    --extcap-interface motorjig-jig --capture --fifo PATH --port URL
 
 and the capture writes pcapng into the fifo (the same writer as ``jigctl capture
--w``) until Wireshark closes it or stops the program. In tshark the options are
-preferences: ``-o extcap.motorjig_sniff.port:/dev/ttyUSB1`` (also ``baud``, ``bus``,
-``interbytetimeout``).
+-w``; for the jig two interfaces, the PC bus and the driver bus) until Wireshark
+closes it or stops the program. In tshark the options are preferences:
+``-o extcap.motorjig_sniff.port:/dev/ttyUSB1`` (also ``baud``, ``bus``,
+``interbytetimeout``), ``-o extcap.motorjig_jig.port:/dev/ttyACM1``.
 """
 
 import argparse
@@ -21,11 +25,16 @@ import sys
 
 from motorjig.capture import pcapng
 from motorjig.capture import record as R
+from motorjig.capture.jigport import JigCapture
 from motorjig.capture.sniff import DEFAULT_INTERBYTE_MS, Sniffer, open_port
 from motorjig.errors import JigError
 from motorjig.master import BAUD_RATES, DEFAULT_BAUD
 
 INTERFACE = "motorjig-sniff"
+JIG_INTERFACE = "motorjig-jig"
+INTERFACES = (INTERFACE, JIG_INTERFACE)
+_DISPLAY = {INTERFACE: "MotorJig: FASTECH Plus-R bus (listen-only RS-485 adapter)",
+            JIG_INTERFACE: "MotorJig jig: PC bus and driver bus (the jig's own recording)"}
 
 
 def _version():
@@ -37,9 +46,9 @@ def _version():
         return "0.1.0"
 
 
-def interfaces():
-    return ["extcap {version=%s}{display=MotorJig}" % _version(),
-            "interface {value=%s}{display=MotorJig: FASTECH Plus-R bus (listen-only RS-485 adapter)}" % INTERFACE]
+def interfaces(which=INTERFACES):
+    return ["extcap {version=%s}{display=MotorJig}" % _version()] + [
+        "interface {value=%s}{display=%s}" % (name, _DISPLAY[name]) for name in which]
 
 
 def dlts():
@@ -48,7 +57,11 @@ def dlts():
             % pcapng.LINKTYPES["drivers"]]
 
 
-def config():
+def config(interface=INTERFACE):
+    if interface == JIG_INTERFACE:
+        return ["arg {number=0}{call=--port}{display=Capture port or URL}{type=string}{required=true}"
+                "{tooltip=The jig's capture port (its second USB port, /dev/ttyACM1, COM8) or a pyserial URL "
+                "(socket://127.0.0.1:N on the virtual bench)}"]
     lines = ["arg {number=0}{call=--port}{display=Port or URL}{type=string}{required=true}"
              "{tooltip=The listen-only adapter (/dev/ttyUSB1, COM7) or a pyserial URL (socket://host:port)}"]
     lines.append("arg {number=1}{call=--baud}{display=Baud rate}{type=selector}{tooltip=The bus's baud rate}")
@@ -64,7 +77,8 @@ def config():
 
 
 def parser():
-    ap = argparse.ArgumentParser(prog=INTERFACE, description="Wireshark extcap for a FASTECH Plus-R bus (MotorJig).")
+    ap = argparse.ArgumentParser(prog="motorjig extcap",
+                                 description="Wireshark extcap for FASTECH Plus-R buses (MotorJig).")
     ap.add_argument("--extcap-interfaces", action="store_true", help="list the interfaces")
     ap.add_argument("--extcap-interface", help="the interface to work on")
     ap.add_argument("--extcap-dlts", action="store_true", help="list the interface's link types")
@@ -73,7 +87,7 @@ def parser():
     ap.add_argument("--extcap-capture-filter", help="a capture filter (not supported: ignored)")
     ap.add_argument("--capture", action="store_true", help="capture into --fifo")
     ap.add_argument("--fifo", help="where Wireshark reads the pcapng stream")
-    ap.add_argument("--port", help="the listen-only adapter or a pyserial URL")
+    ap.add_argument("--port", help="the listen-only adapter, the jig's capture port, or a pyserial URL")
     ap.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="baud rate (default %d)" % DEFAULT_BAUD)
     ap.add_argument("--bus", choices=R.BUS_NAMES, default="pc", help="which bus it is (default pc)")
     ap.add_argument("--interbyte-timeout", type=float, default=DEFAULT_INTERBYTE_MS,
@@ -81,8 +95,8 @@ def parser():
     return ap
 
 
-def _fail(text):
-    sys.stderr.write("%s: %s.\n" % (INTERFACE, text.rstrip(".")))
+def _fail(text, name=INTERFACE):
+    sys.stderr.write("%s: %s.\n" % (name, text.rstrip(".")))
     return 1
 
 
@@ -128,22 +142,50 @@ def capture(args):
     return 0
 
 
-def main(argv=None):
+def capture_jig(args):
+    name = JIG_INTERFACE
+    if not args.fifo:
+        return _fail("no --fifo given", name)
+    if not args.port:
+        return _fail("no port given: set the interface's Capture port or URL option", name)
+    try:
+        cap = JigCapture(args.port)
+    except JigError as exc:
+        return _fail(str(exc), name)
+    signal.signal(signal.SIGTERM, lambda *_: cap.stop())
+    try:
+        cap.start()
+        with open(args.fifo, "wb") as fifo:
+            writer = pcapng.Writer(fifo, cap.stream.buses(), flush_each=True, hardware=cap.stream.description())
+            cap.run([writer.write], alive=_reader_alive(fifo))
+    except (BrokenPipeError, KeyboardInterrupt):
+        pass  # Wireshark closed the fifo, or the user stopped the capture
+    except JigError as exc:
+        return _fail(str(exc), name)
+    finally:
+        cap.close()
+    return 0
+
+
+def main(argv=None, interface=None):
+    """``interface``: the one interface a launcher offers (None: both)."""
+    offered = INTERFACES if interface is None else (interface,)
     args = parser().parse_args(argv)
     if args.extcap_interfaces:
-        print("\n".join(interfaces()))
+        print("\n".join(interfaces(offered)))
         return 0
-    if args.extcap_interface and args.extcap_interface != INTERFACE:
-        return _fail("unknown interface %r (this program has %s)" % (args.extcap_interface, INTERFACE))
+    name = args.extcap_interface or offered[0]
+    if name not in offered:
+        return _fail("unknown interface %r (this program has %s)" % (name, ", ".join(offered)), offered[0])
     if args.extcap_dlts:
         print("\n".join(dlts()))
         return 0
     if args.extcap_config:
-        print("\n".join(config()))
+        print("\n".join(config(name)))
         return 0
     if args.capture:
-        return capture(args)
-    return _fail("nothing to do (Wireshark calls this with --extcap-interfaces, --extcap-config or --capture)")
+        return capture_jig(args) if name == JIG_INTERFACE else capture(args)
+    return _fail("nothing to do (Wireshark calls this with --extcap-interfaces, --extcap-config or --capture)", name)
 
 
 if __name__ == "__main__":

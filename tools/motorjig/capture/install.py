@@ -9,8 +9,10 @@ Where they go is asked of Wireshark itself when ``tshark`` is on the PATH
   ``extcap/`` in their personal configuration folder (``~/.config/wireshark/extcap/``),
   so for those it goes there as well.
 
-Without tshark the defaults above are used. The extcap is a small launcher that
-runs ``motorjig.capture.extcap`` with the Python that installed it.
+Without tshark the defaults above are used. The extcap is a small launcher per
+interface (``motorjig-sniff``: a listen-only adapter; ``motorjig-jig``: the jig's
+own recording of both buses) that runs ``motorjig.capture.extcap`` for that
+interface with the Python that installed it.
 """
 
 import os
@@ -20,17 +22,21 @@ import subprocess
 import sys
 
 EXTCAP_NAME = "motorjig-sniff"
+EXTCAP_JIG_NAME = "motorjig-jig"
+EXTCAP_NAMES = (EXTCAP_NAME, EXTCAP_JIG_NAME)
 PLUGIN_NAME = "plusr.lua"
 
 _LAUNCHER = '''#!{python}
-"""Wireshark extcap: the MotorJig Plus-R bus sniffer (written by jigctl capture --install-extcap)."""
+"""Wireshark extcap {name}: {what} (written by jigctl capture --install-extcap)."""
 import sys
 
 sys.path[:0] = [p for p in {paths!r} if p not in sys.path]
 from motorjig.capture.extcap import main
 
-sys.exit(main())
+sys.exit(main(interface={name!r}))
 '''
+_WHAT = {EXTCAP_NAME: "a Plus-R bus through a listen-only adapter",
+         EXTCAP_JIG_NAME: "the jig's own recording of the PC bus and the driver bus"}
 
 
 def dissector_source():
@@ -100,20 +106,22 @@ def _import_paths():
     return [os.path.dirname(os.path.dirname(os.path.abspath(m.__file__))) for m in (jig, motorjig)]
 
 
-def launcher_text(python=None):
-    return _LAUNCHER.format(python=python or sys.executable, paths=_import_paths())
+def launcher_text(python=None, name=EXTCAP_NAME):
+    """The launcher of one interface: it lists and captures only that one, so the two
+    launchers never offer the same interface twice."""
+    return _LAUNCHER.format(python=python or sys.executable, paths=_import_paths(), name=name, what=_WHAT[name])
 
 
 def install_extcap(folders=None):
-    """Write the launcher into each extcap folder; returns [(path, why)]."""
+    """Write a launcher per interface into each extcap folder; returns [(path, why)]."""
     folders = wireshark_folders() if folders is None else folders
-    text = launcher_text()
     written = []
     for folder, why in extcap_dirs(folders):
         _mkdir(folder)
-        path = os.path.join(folder, EXTCAP_NAME)
-        with open(path, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(path, os.stat(path).st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
-        written.append((path, why))
+        for name in EXTCAP_NAMES:
+            path = os.path.join(folder, name)
+            with open(path, "w", encoding="utf-8") as f:
+                f.write(launcher_text(name=name))
+            os.chmod(path, os.stat(path).st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
+            written.append((path, why))
     return written

@@ -2,7 +2,8 @@
 
 Layout (pcapng, little-endian, every block 32-bit aligned)::
 
-    SHB   section header, shb_userappl = the writer
+    SHB   section header, shb_userappl = the writer; shb_hardware = the recording
+          device when it is known (the jig: its name, record format, protocol)
     IDB   one per bus: link type LINKTYPE_USER0 (147) for the PC bus, USER1 (148)
           for the driver bus (the dissector registers on both and tells the
           buses apart by it), snaplen 0, if_name ("pc", "drivers"),
@@ -10,6 +11,9 @@ Layout (pcapng, little-endian, every block 32-bit aligned)::
           if_speed = baud, if_tsresol = 6 (µs)
     EPB   one per record: interface = the record's bus, timestamp in µs, the
           wire bytes, opt_comment = the verdict ("parser: bad_crc (...)"),
+          for the jig's records a second opt_comment with the frame's start
+          ("start: 694 us before the end (...)") or, for its noise and lost
+          records (no bytes), the count ("jig: 3 records lost (...)"),
           epb_flags = direction (1 inbound, 2 outbound; absent when unknown)
           plus the link-layer error bit of the verdict (CRC error, too long,
           too short, wrong inter-frame gap = timeout, symbol error = stuffing)
@@ -33,7 +37,7 @@ LINKTYPE = LINKTYPES["pc"]
 SHB, IDB, EPB = 0x0A0D0D0A, 0x00000001, 0x00000006
 BYTE_ORDER_MAGIC = 0x1A2B3C4D
 OPT_END, OPT_COMMENT = 0, 1
-SHB_USERAPPL = 4
+SHB_HARDWARE, SHB_USERAPPL = 2, 4
 IF_NAME, IF_DESCRIPTION, IF_SPEED, IF_TSRESOL = 2, 3, 8, 9
 EPB_FLAGS = 2
 
@@ -69,9 +73,11 @@ def _block(kind, body):
     return struct.pack("<II", kind, length) + body + struct.pack("<I", length)
 
 
-def section_header(application):
-    return _block(SHB, struct.pack("<IHHq", BYTE_ORDER_MAGIC, 1, 0, -1)
-                  + _options([(SHB_USERAPPL, application.encode("utf-8"))]))
+def section_header(application, hardware=None):
+    opts = [(SHB_USERAPPL, application.encode("utf-8"))]
+    if hardware:
+        opts.insert(0, (SHB_HARDWARE, hardware.encode("utf-8")))
+    return _block(SHB, struct.pack("<IHHq", BYTE_ORDER_MAGIC, 1, 0, -1) + _options(opts))
 
 
 def interface_description(bus, linktype=None):
@@ -88,6 +94,9 @@ def packet(rec):
     """The EPB of one Record."""
     flags = rec.direction | VERDICT_FLAGS.get(rec.verdict, 0)
     opts = [(OPT_COMMENT, R.comment(rec.verdict).encode("utf-8"))]
+    more = R.count_comment(rec) if rec.count is not None else R.start_comment(rec)
+    if more:
+        opts.append((OPT_COMMENT, more.encode("utf-8")))
     if flags:
         opts.append((EPB_FLAGS, struct.pack("<I", flags)))
     n = len(rec.data)
@@ -108,13 +117,13 @@ def application_name():
 class Writer:
     """pcapng onto one binary stream; ``flush_each`` for pipes (live viewing)."""
 
-    def __init__(self, stream, buses, flush_each=False, application=None):
+    def __init__(self, stream, buses, flush_each=False, application=None, hardware=None):
         self.stream = stream
         self.buses = tuple(buses)
         self.flush_each = flush_each
         self.size = 0
         self.packets = 0
-        head = section_header(application or application_name())
+        head = section_header(application or application_name(), hardware)
         head += b"".join(interface_description(b) for b in self.buses)
         self._put(head)
 
@@ -150,12 +159,13 @@ class RotatingWriter:
     """Files of at most max_size bytes (a packet never splits; each file is a whole
     pcapng with its own header), the newest ``files`` kept (None: all)."""
 
-    def __init__(self, path, buses, max_size, files=None, application=None):
+    def __init__(self, path, buses, max_size, files=None, application=None, hardware=None):
         self.path = path
         self.buses = tuple(buses)
         self.max_size = max_size
         self.files = files
         self.application = application
+        self.hardware = hardware
         self.index = 0
         self.written = []  # paths, oldest first
         self.packets = 0
@@ -167,7 +177,7 @@ class RotatingWriter:
             self._w.close()
         self.index += 1
         name = ring_name(self.path, self.index)
-        self._w = Writer(open(name, "wb"), self.buses, application=self.application)
+        self._w = Writer(open(name, "wb"), self.buses, application=self.application, hardware=self.hardware)
         self.written.append(name)
         while self.files is not None and len(self.written) > self.files:
             old = self.written.pop(0)

@@ -13,6 +13,12 @@
 -- slave's variant seen last on that bus decides, else Ver6. The same rule
 -- runs in motorjig.capture.variant for `jigctl capture`'s text view.
 --
+-- The jig's own recording (`jigctl capture --jig`) also says when each frame
+-- started (a packet comment "start: N us before the end"): replies then get
+-- plusr.turnaround (reply start - request end) beside plusr.time; its reports
+-- of dropped records and of noise bytes are packets without bytes, named by
+-- their comment ("jig: 3 records lost ...").
+--
 -- Installed by `jigctl capture --install-dissector`; the tables below are
 -- generated from the project's Python tables (see docs/capture.md).
 
@@ -29,6 +35,8 @@ G.MAX_DATA = 249
 G.VAR = -1
 G.STATUS_OK = 0
 G.COMMENT_PREFIX = "parser: "
+G.START_PREFIX = "start: "
+G.JIG_PREFIX = "jig: "
 G.DIR_INBOUND = 1
 G.DIR_OUTBOUND = 2
 G.PAIR_MS = 5000
@@ -325,6 +333,7 @@ G.JIG_PARAMS = {
   [10] = {"safety_action", "0=MoveStop 1=EmergencyStop"},
   [11] = {"scan_timeout_ms", "ms"},
   [12] = {"forward_mode", "0=cut-through 1=store-and-forward"},
+  [13] = {"capture", "0=off 1=record both buses"},
 }
 G.REQUEST_LEN = {
   [0x01] = {0},
@@ -647,6 +656,7 @@ G.VERDICTS = {
   [6] = "resync",
   [7] = "noise",
   [8] = "unfinished",
+  [10] = "lost",
 }
 -- END GENERATED
 
@@ -682,10 +692,10 @@ local function crc16(bytes, n)
 end
 
 -- --- problems the dissector finds in the bytes (verdict codes where they agree) ---
-local P_NONE, P_BAD_CRC, P_BAD_STUFFING, P_SHORT, P_OVERLONG, P_NOISE, P_NO_TAIL = 0, 1, 2, 3, 4, 7, 9
+local P_NONE, P_BAD_CRC, P_BAD_STUFFING, P_SHORT, P_OVERLONG, P_NOISE, P_NO_TAIL, P_LOST = 0, 1, 2, 3, 4, 7, 9, 10
 local PROBLEMS = {
   [P_NONE] = "none", [P_BAD_CRC] = G.VERDICTS[1], [P_BAD_STUFFING] = G.VERDICTS[2], [P_SHORT] = G.VERDICTS[3],
-  [P_OVERLONG] = G.VERDICTS[4], [P_NOISE] = G.VERDICTS[7], [P_NO_TAIL] = "no_tail",
+  [P_OVERLONG] = G.VERDICTS[4], [P_NOISE] = G.VERDICTS[7], [P_NO_TAIL] = "no_tail", [P_LOST] = G.VERDICTS[10],
 }
 local K_REQUEST, K_REPLY, K_BROADCAST = 0, 1, 2
 local KINDS = { [K_REQUEST] = "request", [K_REPLY] = "reply", [K_BROADCAST] = "broadcast" }
@@ -712,6 +722,10 @@ local f = {
   response_in = ProtoField.framenum("plusr.response_in", "Response in", base.NONE, frametype.RESPONSE),
   request_in = ProtoField.framenum("plusr.request_in", "Request in", base.NONE, frametype.REQUEST),
   time = ProtoField.relative_time("plusr.time", "Response time"),
+  turnaround = ProtoField.relative_time("plusr.turnaround", "Turnaround (reply start - request end)"),
+  wire_time = ProtoField.relative_time("plusr.wire_time", "On the wire (first start bit to the end)"),
+  lost = ProtoField.uint32("plusr.lost", "Records the jig lost (capture ring full)", base.DEC),
+  noise_bytes = ProtoField.uint32("plusr.noise_bytes", "Bytes outside any frame (counted by the jig)", base.DEC),
   position = ProtoField.int32("plusr.position", "Position [pulse]", base.DEC),
   speed = ProtoField.uint32("plusr.speed", "Speed [pps]", base.DEC),
   direction = ProtoField.uint8("plusr.direction", "Direction", base.DEC, { [0] = "- (0)", [1] = "+ (1)" }),
@@ -799,9 +813,11 @@ local e = {
                            expert.group.PROTOCOL, expert.severity.WARN),
   flag_error = ProtoExpert.new("plusr.flags.error", "Axis error flag set", expert.group.RESPONSE_CODE,
                                expert.severity.NOTE),
+  lost = ProtoExpert.new("plusr.lost.records", "The jig lost records (its capture ring was full)",
+                         expert.group.SEQUENCE, expert.severity.WARN),
 }
 plusr.experts = { e.crc, e.stuffing, e.short, e.overlong, e.no_tail, e.no_header, e.trailing, e.status,
-                  e.length, e.flag_error }
+                  e.length, e.flag_error, e.lost }
 
 plusr.prefs.variant = Pref.enum("Protocol variant", 0,
   "Auto: each frame read the way that fits (then the slave's last variant); or every frame as Ver6 / Ver8",
@@ -836,7 +852,7 @@ local function unstuff(tvb)
   while i < n do
     local b = tvb(i, 1):uint()
     if b == 0xAA then
-      if i + 1 >= n then break end
+      if i + 1 >= n then r.lone_aa = i; break end
       local c = tvb(i + 1, 1):uint()
       if c == 0xAA then
         body[#body + 1] = 0xAA
@@ -975,6 +991,7 @@ local function frame_info(pinfo, body, iface)
       -- abs_ts is a double (about 0.2 µs apart at today's epoch): round to the recordings' µs
       local us = math.floor((info.ts - req.ts) * 1e6 + 0.5)
       info.dt = NSTime.new(math.floor(us / 1e6), (us % 1000000) * 1000)
+      info.dt_us = us
       info.param = req.param
       req.response_in = num
       pending[rkey] = nil
@@ -1254,13 +1271,52 @@ local function frame_name(ftype)
   return G.FRAME_NAMES[ftype] or string.format("Frame0x%02X", ftype)
 end
 
-local function verdict_of_comment()
-  local c = f_comment()
-  if not c then return nil end
-  local text = tostring(c.value)
-  local p = G.COMMENT_PREFIX
-  if text:sub(1, #p) ~= p then return nil end
-  return text:sub(#p + 1):match("^([%w_]+)")
+-- What the packet comments say (a tree pass only, see f_comment): the recording
+-- parser's verdict, the frame's start in µs before its end, the jig's count text.
+local function read_comments()
+  local out = {}
+  for _, c in ipairs({ f_comment() }) do
+    local text = tostring(c.value)
+    if text:sub(1, #G.COMMENT_PREFIX) == G.COMMENT_PREFIX then
+      out.verdict = out.verdict or text:sub(#G.COMMENT_PREFIX + 1):match("^([%w_]+)")
+    elseif text:sub(1, #G.START_PREFIX) == G.START_PREFIX then
+      out.start_us = tonumber(text:sub(#G.START_PREFIX + 1):match("^(%-?%d+) us"))
+    elseif text:sub(1, #G.JIG_PREFIX) == G.JIG_PREFIX then
+      out.jig = text:sub(#G.JIG_PREFIX + 1)
+      out.count = tonumber(out.jig:match("^(%d+) "))
+    end
+  end
+  return out
+end
+
+-- µs as a relative time (negative ones too)
+local function us_time(us)
+  local a = math.abs(us)
+  local secs, nsecs = math.floor(a / 1e6), (a % 1000000) * 1000
+  if us < 0 then return NSTime.new(-secs, -nsecs) end
+  return NSTime.new(secs, nsecs)
+end
+
+-- A packet without bytes: the jig's report of lost records or of noise it counted.
+local function jig_report(tree, tvb, pinfo, c)
+  pinfo.cols.src, pinfo.cols.dst = "jig", "capture"
+  if c.verdict == G.VERDICTS[10] then
+    local n = c.count or 0
+    local item = tree:add(f.lost, n):set_generated()
+    item:add_proto_expert_info(e.lost, string.format("The jig lost %d record%s here (its capture ring was full): " ..
+      "frames of both buses are missing", n, n == 1 and "" or "s"))
+    pinfo.cols.info = string.format("Records lost: %d (the jig's capture ring was full)", n)
+    return P_LOST
+  end
+  if c.count then
+    local item = tree:add(f.noise_bytes, c.count):set_generated()
+    item:add_proto_expert_info(e.no_header, c.jig)
+    pinfo.cols.info = string.format("Noise, %d byte%s (counted by the jig, not recorded)", c.count,
+      c.count == 1 and "" or "s")
+  else
+    pinfo.cols.info = "No bytes"
+  end
+  return P_NOISE
 end
 
 local function broken(tree, tvb, r, pinfo, verdict)
@@ -1273,12 +1329,18 @@ local function broken(tree, tvb, r, pinfo, verdict)
   end
   tree:add(f.header, tvb(0, 2))
   local text
-  if r.problem == P_BAD_STUFFING then
+  if r.problem == P_BAD_STUFFING and r.bad_at + 1 >= n then
+    tree:add_proto_expert_info(e.stuffing, string.format(
+      "0xAA at byte %d followed by a byte that is neither AA, CC nor EE (stuffing error; the jig keeps the body only, " ..
+      "not that byte)", r.bad_at + 1))
+    text = "Stuffing error"
+  elseif r.problem == P_BAD_STUFFING then
     local c = tvb(r.bad_at + 1, 1):uint()
     tree:add_proto_expert_info(e.stuffing, string.format("0xAA followed by 0x%02X at byte %d (stuffing error)", c, r.bad_at + 1))
     text = "Stuffing error"
   elseif r.problem == P_OVERLONG then
-    tree:add_proto_expert_info(e.overlong, string.format("The body passes %d bytes without a tail", G.MAX_BODY - 1))
+    tree:add_proto_expert_info(e.overlong, string.format("The body passes %d bytes without a tail%s", G.MAX_BODY - 1,
+      r.cut and " (the jig keeps the body up to its limit, not the byte that overflowed it)" or ""))
     text = "Frame too long"
   elseif r.problem == P_SHORT then
     tree:add_proto_expert_info(e.short, string.format("Body of %d byte%s: id, type and a 2-byte CRC are at least %d",
@@ -1286,7 +1348,10 @@ local function broken(tree, tvb, r, pinfo, verdict)
     tree:add(f.tail, tvb(r.tail_at, 2))
     text = "Frame too short"
   else
-    local why = r.bad_at and "a new header (AA CC) inside the frame" or "the record ends inside the frame"
+    local why = r.bad_at and "a new header (AA CC) inside the frame"
+      or (verdict == G.VERDICTS[5] and "the line went silent inside the frame (inter-byte timeout)")
+      or (verdict == G.VERDICTS[6] and "a new header (AA CC) inside the frame starts the next record")
+      or "the record ends inside the frame"
     tree:add_proto_expert_info(e.no_tail, "No tail (AA EE): " .. why)
     text = "No tail"
   end
@@ -1303,9 +1368,24 @@ function plusr.dissector(tvb, pinfo, tree)
   pinfo.cols.protocol = "Plus-R"
   local r = unstuff(tvb)
   local root = tree:add(plusr, tvb())
-  root:add(f.problem, r.problem):set_generated()
-  local verdict = verdict_of_comment()
+  local c = read_comments()
+  local verdict = c.verdict
   if verdict then root:add(f.verdict, verdict):set_generated() end
+  if tvb:len() == 0 then
+    local problem = jig_report(root, tvb, pinfo, c)
+    root:add(f.problem, problem):set_generated()
+    root:append_text(", " .. PROBLEMS[problem])
+    return 0
+  end
+  -- The jig's records end where its parser stopped keeping bytes: a frame that
+  -- overflowed ends at the body's limit, a stuffing error at its 0xAA.
+  if r.problem == P_NO_TAIL and verdict == G.VERDICTS[4] then
+    r.problem, r.cut = P_OVERLONG, true
+  elseif r.problem == P_NO_TAIL and verdict == G.VERDICTS[2] and r.lone_aa then
+    r.problem, r.bad_at = P_BAD_STUFFING, r.lone_aa
+  end
+  root:add(f.problem, r.problem):set_generated()
+  if c.start_us then root:add(f.wire_time, us_time(c.start_us)):set_generated() end
   if r.problem ~= P_NONE and r.problem ~= P_BAD_CRC then
     broken(root, tvb, r, pinfo, verdict)
     root:append_text(", " .. PROBLEMS[r.problem])
@@ -1372,6 +1452,9 @@ function plusr.dissector(tvb, pinfo, tree)
   if info.request_in then
     root:add(f.request_in, info.request_in):set_generated()
     root:add(f.time, info.dt):set_generated()
+    if c.start_us and info.dt_us then
+      root:add(f.turnaround, us_time(info.dt_us - c.start_us)):set_generated()
+    end
   end
   if info.response_in then root:add(f.response_in, info.response_in):set_generated() end
 

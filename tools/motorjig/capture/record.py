@@ -3,13 +3,17 @@
 A ``Record`` is what one frame, one dropped fragment or one run of noise looked
 like on one bus: the bytes exactly as they were on the wire (header, stuffing and
 tail included), the time its last byte arrived, which way it went when that is
-known, and the parser's verdict. Sources today: ``motorjig.capture.framer`` (a
-listen-only adapter framed on the host). The jig's own recording of both buses
-(a later firmware session) is meant to yield the same records, so the pcapng
-writer, the text view and the dissector need nothing new for it.
+known, and the parser's verdict. Sources: ``motorjig.capture.framer`` (a
+listen-only adapter framed on the host) and ``motorjig.capture.jigstream`` (the
+jig's own recording of both buses), so the pcapng writer, the text view and the
+dissector take both alike. The jig's records also know when a frame started
+(``t_first_us``), and two of them carry a count instead of bytes: ``noise`` (bytes
+the jig's parser counted outside any frame, not recorded) and ``lost`` (records
+the jig dropped because its capture ring was full).
 
 Verdicts are the parser's counters (``jig.parser.COUNTER_NAMES``) seen from one
-frame, plus ``unfinished`` for a frame the capture ended in the middle of.
+frame, plus ``unfinished`` for a frame the capture ended in the middle of and
+``lost`` for the jig's report of dropped records.
 """
 
 from collections import namedtuple
@@ -24,7 +28,7 @@ DIR_INBOUND = 1
 DIR_OUTBOUND = 2
 DIRECTION_NAMES = ("?", "in", "out")
 
-# Verdict codes (stable: the firmware's records will carry them as one byte).
+# Verdict codes (stable: the jig's records carry them as one byte, jig.capture V_*).
 GOOD = 0
 BAD_CRC = 1
 BAD_STUFFING = 2
@@ -34,6 +38,8 @@ TIMEOUT = 5
 RESYNC = 6
 NOISE = 7
 UNFINISHED = 8
+# 9 is left out: the dissector's plusr.problem uses it for "no tail"
+LOST = 10
 
 #: code -> (name, text for people)
 VERDICTS = {
@@ -46,6 +52,7 @@ VERDICTS = {
     RESYNC: ("resync", "dropped: a new header (AA CC) inside the frame"),
     NOISE: ("noise", "bytes outside any frame"),
     UNFINISHED: ("unfinished", "the capture ended inside this frame"),
+    LOST: ("lost", "records the jig dropped: its capture ring was full"),
 }
 VERDICT_CODES = {name: code for code, (name, _) in VERDICTS.items()}
 
@@ -59,6 +66,10 @@ COUNTER_VERDICT = {counter: code for code, counter in VERDICT_COUNTER.items()}
 
 #: the start of every packet comment the writer puts in; the dissector reads the word after it
 COMMENT_PREFIX = "parser: "
+#: the start of the comment with a frame's start: "start: 694 us before the end (...)"
+START_PREFIX = "start: "
+#: the start of the comment of a count record (noise, lost): "jig: 3 records lost (...)"
+JIG_PREFIX = "jig: "
 
 
 def verdict_name(code):
@@ -71,9 +82,34 @@ def comment(code):
     return "%s%s (%s)" % (COMMENT_PREFIX, name, text)
 
 
-class Record(namedtuple("Record", "bus t_us direction data verdict")):
+def start_comment(rec):
+    """The packet comment with a frame's start (None when it is not known)."""
+    if rec.t_first_us is None or rec.count is not None:
+        return None
+    return "%s%d us before the end (the start bit of the first byte, by the jig's clock)" % (
+        START_PREFIX, rec.t_us - rec.t_first_us)
+
+
+def count_text(rec):
+    """What a count record says: '3 records lost (...)', '5 bytes outside any frame (...)'."""
+    if rec.count is None:
+        return None
+    n = rec.count
+    if rec.verdict == LOST:
+        return "%d record%s lost (the jig's capture ring was full)" % (n, "" if n == 1 else "s")
+    return "%d byte%s outside any frame (counted by the jig's parser, not recorded)" % (n, "" if n == 1 else "s")
+
+
+def count_comment(rec):
+    text = count_text(rec)
+    return None if text is None else JIG_PREFIX + text
+
+
+class Record(namedtuple("Record", "bus t_us direction data verdict t_first_us count", defaults=(None, None))):
     """bus: index into the capture's interface list; t_us: host or jig time of the last
-    byte, µs since the Unix epoch; direction: DIR_*; data: wire bytes; verdict: code."""
+    byte, µs since the Unix epoch; direction: DIR_*; data: wire bytes; verdict: code;
+    t_first_us: the start bit of the first byte, when known (the jig's records);
+    count: for the jig's noise and lost records (no data), bytes / records counted."""
 
     __slots__ = ()
 

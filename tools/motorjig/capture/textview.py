@@ -5,7 +5,10 @@
 
 Good frames are read as Ver6 or Ver8 by ``variant.VariantReader`` and described by
 ``motorjig.decode`` (the text ``jigctl monitor`` prints); with the direction known
-(the jig's own recording), request or reply follows from it.
+(the jig's own recording), request or reply follows from it. The jig's noise and
+lost records have no bytes, only a count:
+
+    12:00:01.200000  pc      ?    lost      3 records lost (the jig's capture ring was full)
 """
 
 import time
@@ -43,6 +46,10 @@ class TextView:
         bus = self.buses[rec.bus]
         out = {"t": rec.t_us / 1e6, "bus": bus.name, "dir": R.DIRECTION_NAMES[rec.direction],
                "verdict": R.verdict_name(rec.verdict), "wire": rec.data.hex(" ")}
+        if rec.t_first_us is not None:
+            out["t_first"] = rec.t_first_us / 1e6
+        if rec.count is not None:
+            out["count"] = rec.count
         if rec.verdict != R.GOOD:
             return out
         body = _body(rec.data)
@@ -61,6 +68,8 @@ class TextView:
         head = "%s  %-7s %-3s " % (stamp(rec.t_us), d["bus"], d["dir"])
         if "frame" in d:
             what = describe_dict(d["frame"])
+        elif rec.count is not None:
+            return "%s %-9s %s" % (head, d["verdict"], R.count_text(rec))
         else:
             what = "%-9s %s" % (d["verdict"], R.VERDICTS.get(rec.verdict, ("", ""))[1])
         return "%s %s  | %s" % (head, what.rstrip(), d["wire"].upper())
