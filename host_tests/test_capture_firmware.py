@@ -280,6 +280,16 @@ def test_start_and_stop_from_the_capture_port_and_a_stream_that_arrives_whole():
     assert recs[0][0] == "hello"
     assert [r[0] for r in recs[1:] if r[0] != "clock"] == ["pc_in", "drv_out", "drv_in", "pc_out"] * 3
     assert b.app.capture.pending() == 0
+    # a second S (a new reader) starts the stream afresh: the ring emptied, a hello first
+    b.transact(frame.encode(2, frame.GET_COMMAND_POS))
+    port.room = 0
+    b.transact(frame.encode(2, frame.GET_COMMAND_POS))
+    assert b.app.capture.pending() > 0
+    port.room = 7
+    port.got = bytearray()
+    port.cmds += b"S"
+    b.run_for(20000)
+    assert [r[0] for r in parse(port.got)] == ["hello"]
     port.cmds += b"X"
     b.run_for(20000)
     assert not b.app.capture.on and b.app.params.ram[P.P_CAPTURE] == 0

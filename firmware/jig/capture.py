@@ -281,7 +281,10 @@ class Capture:
         if self.port.readinto(self.cmd):
             c = self.cmd[0]
             if c == CMD_START:
-                self.app.set_capture(1, now)
+                if self.cs[CS_ON]:
+                    self.start(now)  # a new reader: a fresh stream, from a hello
+                else:
+                    self.app.set_capture(1, now)
             elif c == CMD_STOP:
                 self.app.set_capture(0, now)
 
