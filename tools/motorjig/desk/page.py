@@ -7,6 +7,10 @@ bus never freezes the page; a per-tab timer copies the session's state into the
 widgets ten times a second, touching only what changed. Elements that tests and
 people look for carry a ``data-testid``.
 
+The raw-frames tab also records both buses through the jig (``capture.DeskCapture``,
+one per server like the session): Start, Stop and Download pcapng, greyed out with
+the reason beside them when the Desk has no capture port.
+
 Esc is EMERGENCY STOP wherever the focus is, except while a dialog or a dropdown
 is open: then Esc is theirs (it closes them) and stops nothing.
 """
@@ -71,8 +75,9 @@ class Changed:
         return True
 
 
-def build(session, station=None):
-    """Register the page (and the run files' route) for one BusSession and its Station."""
+def build(session, station=None, capture=None):
+    """Register the page (and the run files' route) for one BusSession, its Station and its
+    DeskCapture (None: a Desk without a capture port)."""
     from nicegui import app
     from fastapi import HTTPException
     from fastapi.responses import FileResponse
@@ -81,7 +86,7 @@ def build(session, station=None):
 
     @ui.page("/")
     async def index():
-        DeskPage(session, station).build()
+        DeskPage(session, station, capture).build()
 
     @app.get("/runs/{name}")
     def run_file(name: str):
@@ -103,9 +108,14 @@ def build(session, station=None):
 class DeskPage:
     """One browser tab's widgets and the callbacks that feed them."""
 
-    def __init__(self, session, station=None):
+    def __init__(self, session, station=None, capture=None):
         self.s = session
         self.station = station
+        if capture is None:
+            from motorjig.desk.capture import DeskCapture
+
+            capture = DeskCapture()
+        self.capture = capture
         self.test_panel = None
         self.last_move = ("abs", 1)  # what Enter in a move field repeats
         self.changed = Changed()
@@ -607,6 +617,50 @@ class DeskPage:
             tid(ui.button("Clear", on_click=self._clear_log), "btn-log-clear").props("outline")
             tid(ui.button("Save log", icon="download", on_click=self._save_log), "btn-log-save").props("outline")
         self.log_view = tid(ui.log(max_lines=1000), "log").classes("w-full h-96 text-xs")
+        self._capture_row()
+
+    def _capture_row(self):
+        cap = self.capture
+        ui.label("Recording both buses through the jig").classes("text-subtitle2 q-mt-md")
+        with ui.row().classes("items-center"):
+            self.cap_start = tid(ui.button("Start recording", icon="fiber_manual_record",
+                                           on_click=self._capture_start), "btn-capture-start").props("outline")
+            self.cap_stop = tid(ui.button("Stop", icon="stop", on_click=self._capture_stop),
+                                "btn-capture-stop").props("outline")
+            self.cap_download = tid(ui.button("Download pcapng", icon="download", on_click=self._capture_download),
+                                    "btn-capture-download").props("outline")
+            self.cap_state = tid(ui.label(cap.summary()), "capture-state").classes("text-caption")
+        ui.label("Every frame the jig receives or sends on the PC bus and on the driver bus, with its own "
+                 "microsecond clock and its parser's verdict; open the file in Wireshark with the Plus-R "
+                 "dissector (jigctl capture --install-dissector).").classes("text-caption text-grey-7")
+        self._capture_buttons()
+
+    def _capture_buttons(self):
+        cap = self.capture
+        key = (cap.unavailable, cap.state, cap.buses is not None)
+        if not self.changed("capture_buttons", key):
+            return
+        off = bool(cap.unavailable)
+        for button, enabled in ((self.cap_start, not off and cap.state not in ("recording", "starting")),
+                                (self.cap_stop, not off and cap.state == "recording"),
+                                (self.cap_download, not off and cap.buses is not None)):
+            button.enable() if enabled else button.disable()
+        if off:
+            for button in (self.cap_start, self.cap_stop, self.cap_download):
+                button.tooltip(cap.unavailable)
+
+    async def _capture_start(self):
+        await self.act(self.capture.start)
+        self._capture_buttons()
+
+    async def _capture_stop(self):
+        await self.act(self.capture.stop)
+        self._capture_buttons()
+
+    async def _capture_download(self):
+        data = await self.act(self.capture.pcapng, quiet=True)
+        if data is not None:
+            ui.download.content(data, self.capture.file_name(), "application/x-pcapng")
 
     async def _send_raw(self):
         await self.act(self.s.send_raw, self.raw_id.value, self.raw_type.value, self.raw_data.value,
@@ -663,6 +717,10 @@ class DeskPage:
         self._refresh_test()
         if self.test_panel is not None:
             self.test_panel.refresh()
+        cap_text = self.capture.summary()
+        if ch("capture", cap_text):
+            self.cap_state.text = cap_text
+        self._capture_buttons()
         new = s.log_since(self.log_seq)
         for e in new:
             self.log_view.push("%s  %-5s %s" % (stamp(e.t), e.kind.upper(), e.text))

@@ -2,7 +2,12 @@
 
     jigctl gui [--port PORT] [--baud B] [--http-port N] [--host 127.0.0.1] [--open]
                [--plans DIR] [--out DIR] [--operator NAME] [--station NAME] [--read-only]
+               [--capture-port PORT]
     python -m motorjig.desk --bench [--drivers 2,3]     the virtual bench and the page on it (`make`)
+
+``--capture-port`` is the jig's capture port (its second USB port): the raw-frames
+tab then records both buses through the jig and offers the recording as pcapng
+(``capture``); with ``--bench`` the bench's own capture port is used.
 
 The page listens on 127.0.0.1 unless another address is asked for. Bound to any
 other address it needs a token: a random one is made at start and printed in the
@@ -135,6 +140,10 @@ def add_gui_arguments(p):
                         "the records in --out)")
     p.add_argument("--read-only", action="store_true",
                    help="show the status and the runs, refuse everything that would send to the bus")
+    p.add_argument("--capture-port", metavar="PORT",
+                   help="the jig's capture port (its second USB port, e.g. /dev/ttyACM1, or a pyserial URL): the "
+                        "raw-frames tab records both buses through the jig and downloads them as pcapng (with "
+                        "--bench: the bench's own)")
 
 
 def build_parser():
@@ -162,14 +171,16 @@ def open_results(db, out):
         return None
 
 
-def stop_desk(session, station=None, store=None, bench=None, timeout=10.0):
+def stop_desk(session, station=None, store=None, bench=None, timeout=10.0, capture=None):
     """What the Desk does when it stops: a running test is aborted and waited for (its tearDown:
-    stop, emergency stop, servo off), then the bus session, the results database and the bench
-    are closed, in that order."""
+    stop, emergency stop, servo off), then the recording (X), the bus session, the results
+    database and the bench are closed, in that order."""
     try:
         if station is not None and not station.shutdown(timeout):
             session.log("error", "the test run did not end within %g s of the Desk stopping" % timeout)
     finally:
+        if capture is not None:
+            capture.close()
         session.stop()
         if store is not None:
             store.close()
@@ -186,6 +197,7 @@ def serve(args, out=None):
         sys.stderr.write("jigctl gui: the web GUI needs NiceGUI: run `make setup` (pip extra [gui]).\n")
         return 2
     from motorjig.desk import auth, page
+    from motorjig.desk.capture import DeskCapture
     from motorjig.desk.session import BusSession, UserError
     from motorjig.desk.testrun import Station
 
@@ -202,6 +214,7 @@ def serve(args, out=None):
 
     bench = None
     port = getattr(args, "port", None)
+    capture_port = getattr(args, "capture_port", None)
     if args.bench:
         from motorjig.sim import Bench
 
@@ -225,9 +238,12 @@ def serve(args, out=None):
             sys.stderr.write("jigctl gui: cannot start the virtual bench: %s.\n" % exc)
             return 1
         port = bench.tcp_url
+        if capture_port is None:
+            capture_port = bench.capture_url
         out.write("virtual bench: jig = slave 1, drivers %s; other programs can use %s%s\n" % (
             ",".join(map(str, args.drivers)), bench.tcp_url,
             " or %s" % bench.pty_path if bench.pty_path else ""))
+        out.write("  the jig's capture port: %s (the raw-frames tab records through it)\n" % bench.capture_url)
         if wiring is not None:
             out.write("  wired as %s says: jig relays and inputs to drive %s\n" % (wiring.source, wiring.slave))
 
@@ -250,14 +266,15 @@ def serve(args, out=None):
                       operator=getattr(args, "operator", ""), station=getattr(args, "station", None), store=store)
     if station.unavailable:
         out.write("Test tab: %s\n" % station.unavailable)
-    page.build(session, station)
+    capture = DeskCapture(capture_port)
+    page.build(session, station, capture)
     token = None
     if not is_loopback(args.host):
         token = auth.new_token()
         app.add_middleware(auth.TokenGate, token=token, port=args.http_port)
     else:  # no token needed, but only under this computer's own names (no DNS rebinding)
         app.add_middleware(auth.HostGate, host=args.host, port=args.http_port)
-    app.on_shutdown(lambda: stop_desk(session, station, store, bench))
+    app.on_shutdown(lambda: stop_desk(session, station, store, bench, capture=capture))
     url = page_url(args.host, args.http_port, token)
     out.write("MotorJig Desk: %s  (Ctrl-C stops)%s\n" % (url, "  read-only" if read_only else ""))
     if args.host in ("0.0.0.0", "::"):

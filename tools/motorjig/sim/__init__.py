@@ -5,7 +5,8 @@ real jig firmware on a simulated HAL. ``python -m motorjig.sim`` runs it interac
 from .bench import Bench, SimBench
 from .clock import PacedClock, VirtualClock
 from .driver import SimDriver
-from .hal import PowerLoss, SimFS, SimHAL
+from .hal import PowerLoss, SimCapturePort, SimFS, SimHAL
 from .link import Bus
 
-__all__ = ["Bench", "SimBench", "SimDriver", "SimFS", "SimHAL", "PowerLoss", "Bus", "VirtualClock", "PacedClock"]
+__all__ = ["Bench", "SimBench", "SimDriver", "SimFS", "SimHAL", "SimCapturePort", "PowerLoss", "Bus", "VirtualClock",
+           "PacedClock"]

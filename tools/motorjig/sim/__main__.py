@@ -2,9 +2,10 @@
 
 Starts the simulated jig and drivers in real time, prints the jig's protocol and
 each driver's variant, the wiring and the injected faults, the pseudo-terminal path
-and the pyserial TCP URL of the PC side, runs a short demo session (scan with variant
-detection -> servo on -> move -> status) through that TCP port, then keeps serving
-until Ctrl-C (or --duration seconds). Each driver is Ver6 or Ver8 on its own:
+and the pyserial TCP URL of the PC side and of the jig's capture port (its recording
+of both buses: `jigctl capture --jig URL`), runs a short demo session (scan with
+variant detection -> servo on -> move -> status) through the PC side's TCP port, then
+keeps serving until Ctrl-C (or --duration seconds). Each driver is Ver6 or Ver8 on its own:
 --drivers 2,3:v8. --wiring connects the jig's relays and inputs to a drive's I/O,
 --fault makes drives fail the way real ones do.
 """
@@ -79,8 +80,11 @@ def parse_args(argv):
                     help="the jig's protocol parameter: 6 (Ver6, default) or 8 (Ver8)")
     ap.add_argument("--baud", type=int, default=115200, help="baud rate of both buses (default 115200)")
     ap.add_argument("--tcp-port", type=int, default=0, help="TCP port for socket:// (default: a free one)")
+    ap.add_argument("--capture-port", type=int, default=0, metavar="N",
+                    help="TCP port of the jig's capture stream, one reader at a time (default: a free one)")
     ap.add_argument("--no-demo", action="store_true", help="skip the scripted demo session")
-    ap.add_argument("--no-pty", action="store_true", help="do not create a pseudo-terminal")
+    ap.add_argument("--no-pty", action="store_true",
+                    help="create no pseudo-terminals (neither the PC side's nor the capture port's)")
     ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: run until Ctrl-C)")
     ap.add_argument("--wiring", metavar="FILE",
                     help="wire the jig's relays and inputs to a drive's I/O: a TOML file with a [wiring] table")
@@ -166,8 +170,12 @@ def main(argv=None):
     if args.baud not in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600):
         print("error: --baud must be one of 9600 19200 38400 57600 115200 230400 460800 921600", file=sys.stderr)
         return 2
-    if not 0 <= args.tcp_port <= 65535:
-        print("error: --tcp-port must be 0..65535", file=sys.stderr)
+    for name, value in (("--tcp-port", args.tcp_port), ("--capture-port", args.capture_port)):
+        if not 0 <= value <= 65535:
+            print("error: %s must be 0..65535" % name, file=sys.stderr)
+            return 2
+    if args.capture_port and args.capture_port == args.tcp_port:
+        print("error: --capture-port and --tcp-port must differ", file=sys.stderr)
         return 2
     try:
         wiring, faults = check_setup(args)
@@ -175,6 +183,7 @@ def main(argv=None):
         print("error: %s" % exc, file=sys.stderr)
         return 2
     bench = Bench(driver_ids=tuple(args.drivers), baud=args.baud, tcp_port=args.tcp_port, pty=not args.no_pty,
+                  capture_port=args.capture_port,
                   jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8, wiring=wiring, faults=faults)
     try:
         bench.start()
@@ -190,6 +199,9 @@ def main(argv=None):
         if bench.pty_path:
             print("  pty: %s" % bench.pty_path)
         print("  tcp: %s" % bench.tcp_url)
+        print("  capture: %s" % bench.capture_url)
+        if bench.capture_pty_path:
+            print("  capture pty: %s" % bench.capture_pty_path)
         sys.stdout.flush()
         if not args.no_demo:
             demo(bench.tcp_url, args.drivers)

@@ -21,6 +21,13 @@ connects the jig's relays to one drive's inputs and that drive's outputs to the
 jig's inputs, evaluated whenever either side reads them; ``faults`` and
 ``set_fault`` make drives fail (``SimDriver.set_fault``).
 
+The jig's capture port (``jig.capture``: its recording of both buses) is
+``SimHAL.capture``; ``SimBench.capture_start`` / ``capture_read`` / ``capture_stop``
+are the host's side of it. ``Bench`` serves it on a TCP port of its own
+(``capture_url``) and a pseudo-terminal (``capture_pty_path``): one reader at a
+time; while none is attached the port is closed (it takes nothing, and the jig's
+ring fills and counts what it loses, as on the board with the port not opened).
+
 In real time the bench runs on ``PacedClock``: simulated time follows the wall
 clock but never jumps over a pending event, so a stall of the host (a garbage
 collection, a busy machine) delays the whole simulated world alike instead of
@@ -31,6 +38,7 @@ import os
 import queue
 import select
 import socket
+import termios
 import threading
 
 from jig import frame as F
@@ -52,6 +60,8 @@ VIRTUAL_START_US = float((1 << 30) - 3000000)
 # portable loop, on CPython), True for jig.fastpath's source run as Python (the host
 # tests run the bridge suites both ways: conftest.py).
 DEFAULT_FASTPATH = None
+
+PTY_READER = "pty"  # Bench: the capture reader is the pty
 
 
 class PcPort:
@@ -291,6 +301,45 @@ class SimBench:
         (the PC sees a CRC error; see ``link.flip_for_crc``)."""
         self.hal.up.node.corrupt(frames)
 
+    # --- the capture port (jig.capture) ---------------------------------------------
+    @property
+    def capture(self):
+        """The jig's capture port (``hal.SimCapturePort``); the host's side is ``host_*``."""
+        return self.hal.capture
+
+    def capture_start(self, timeout_us=50000.0):
+        """Open the capture port as a host would, send ``X`` and ``S`` (the jig starts
+        only from off: so a recording already on starts afresh too) and run until the
+        jig records (its slow pass reads one command a pass: within 20 ms). True if it
+        does; the stream then starts with a hello."""
+        port = self.hal.capture
+        port.host_open()
+        port.host_send(b"XS")
+        return self.clock.run_while(lambda: port.rx or not self.app.capture.on, timeout_us)
+
+    def capture_read(self, drain=True, limit_us=200000.0):
+        """The capture stream's bytes the host has received since the last read. With
+        ``drain`` the bench first runs until everything recorded so far has reached the
+        host (the jig's ring and the port's buffer empty; at most ``limit_us``)."""
+        port = self.hal.capture
+        if drain and port.is_open:
+            cap = self.app.capture
+            self.clock.run_while(lambda: cap.pending() or port.busy, limit_us)
+        return port.host_read()
+
+    def capture_stop(self, drain=True, close=False, timeout_us=50000.0):
+        """Send ``X`` (after draining, see ``capture_read``) and run until the jig has
+        stopped recording; returns what the host received before the stop. ``close``:
+        the host closes the port afterwards."""
+        port = self.hal.capture
+        data = self.capture_read(drain)
+        port.host_send(b"X")
+        self.clock.run_while(lambda: port.rx or self.app.capture.on, timeout_us)
+        data += port.host_read()
+        if close:
+            port.host_close()
+        return data
+
     # --- running -----------------------------------------------------------------
     def run_for(self, us):
         self.clock.run_until(self.clock.now + us)
@@ -359,12 +408,21 @@ DIAG_NAMES = _diag_names()
 
 
 class Bench:
-    """The bench in real time on a background thread, reachable by pty and TCP."""
+    """The bench in real time on a background thread, reachable by pty and TCP.
 
-    def __init__(self, driver_ids=(2, 3), baud=115200, tcp_port=0, pty=True, **kw):
+    The PC bus: ``tcp_url`` (``tcp_port``, 0: a free one) and ``pty_path``. The jig's
+    capture stream: ``capture_url`` (``capture_port``) and ``capture_pty_path``
+    (none with ``pty=False``). One capture reader at a time: a TCP client that
+    connects while another reader is attached is closed at once; the pty is attached
+    while a program has it open and no TCP client is. A reader that goes away closes
+    the port (``SimCapturePort.host_close``).
+    """
+
+    def __init__(self, driver_ids=(2, 3), baud=115200, tcp_port=0, pty=True, capture_port=0, **kw):
         self.driver_ids = tuple(driver_ids)
         self.baud = baud
         self.tcp_port = tcp_port
+        self.capture_port = capture_port
         self.want_pty = pty
         self.kw = kw
         self.sim = None
@@ -378,6 +436,13 @@ class Bench:
         self._master = self._slave = None
         self._server = None
         self.error = None
+        self.capture_url = None
+        self.capture_pty_path = None
+        self._cap_server = None
+        self._cap_new = queue.Queue()  # accepted capture connections, for the simulation thread
+        self._cap_reader = None  # the attached capture reader: a socket, PTY_READER or None
+        self._cap_pty = None  # the capture pty's master fd
+        self._cap_poll = None
 
     # --- lifecycle -----------------------------------------------------------------
     def start(self):
@@ -394,7 +459,17 @@ class Bench:
         self._server.settimeout(0.2)
         port = self._server.getsockname()[1]
         self.tcp_url = "socket://127.0.0.1:%d" % port
+        self.sim.hal.capture.sink = self._cap_sink
+        self._cap_server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._cap_server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._cap_server.bind(("127.0.0.1", self.capture_port))
+        self._cap_server.listen(2)
+        self._cap_server.settimeout(0.2)
+        self.capture_url = "socket://127.0.0.1:%d" % self._cap_server.getsockname()[1]
+        if self.want_pty:
+            self._open_capture_pty()
         self._spawn(self._accept_loop)
+        self._spawn(self._cap_accept_loop)
         self._spawn(self._sim_loop)
         return self
 
@@ -409,6 +484,19 @@ class Bench:
             t.join(2.0)
         if self._server is not None:
             self._server.close()
+        if self._cap_server is not None:
+            self._cap_server.close()
+        if self._cap_reader is not None and self._cap_reader is not PTY_READER:
+            self._cap_reader.close()
+        self._cap_reader = None
+        while not self._cap_new.empty():
+            self._cap_new.get_nowait().close()
+        if self._cap_pty is not None:
+            try:
+                os.close(self._cap_pty)
+            except OSError:
+                pass
+            self._cap_pty = None
         with self._lock:
             for c in self._clients:
                 try:
@@ -451,6 +539,106 @@ class Bench:
                 if data:
                     self._inbox.put(data)
 
+    # --- the capture port -------------------------------------------------------------
+    def _open_capture_pty(self):
+        import tty
+
+        master, slave = os.openpty()
+        tty.setraw(slave)  # kept by the pty for whoever opens it next
+        self.capture_pty_path = os.ttyname(slave)
+        # Not kept open here: the master then reports POLLHUP while no program has the
+        # pty open, which is how the bench tells an opened port from a closed one.
+        os.close(slave)
+        os.set_blocking(master, False)
+        self._cap_pty = master
+        self._cap_poll = select.poll()
+        self._cap_poll.register(master, select.POLLIN)
+
+    def _cap_accept_loop(self):
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._cap_server.accept()
+            except (socket.timeout, OSError):
+                continue
+            self._cap_new.put(conn)
+
+    def _cap_pump(self):
+        """The host's side of the capture port, in the simulation thread: readers
+        coming and going, their commands to the jig."""
+        port = self.sim.hal.capture
+        while True:
+            try:
+                conn = self._cap_new.get_nowait()
+            except queue.Empty:
+                break
+            if self._cap_reader is not None:
+                conn.close()  # one reader at a time
+                continue
+            conn.setblocking(False)
+            self._cap_attach(conn)
+        reader = self._cap_reader
+        if reader is not None and reader is not PTY_READER:
+            try:
+                data = reader.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                data = None
+            except OSError:
+                data = b""
+            if data == b"":
+                self._cap_detach()
+            elif data:
+                port.host_send(data)
+        if self._cap_pty is None:
+            return
+        events = 0
+        for _, ev in self._cap_poll.poll(0):
+            events |= ev
+        hup = events & (select.POLLHUP | select.POLLERR)
+        if reader is None and not hup:
+            self._cap_attach(PTY_READER)
+        elif reader is PTY_READER and hup:
+            self._cap_detach()
+        if events & select.POLLIN and not hup:
+            try:
+                data = os.read(self._cap_pty, 4096)
+            except OSError:
+                data = b""
+            if data and self._cap_reader is PTY_READER:  # else: a second reader, ignored
+                port.host_send(data)
+
+    def _cap_attach(self, reader):
+        self._cap_reader = reader
+        self.sim.hal.capture.host_open()
+
+    def _cap_detach(self):
+        reader, self._cap_reader = self._cap_reader, None
+        if reader is PTY_READER:
+            try:
+                termios.tcflush(self._cap_pty, termios.TCIOFLUSH)  # the next reader gets no stale bytes
+            except (OSError, termios.error):
+                pass
+        elif reader is not None:
+            try:
+                reader.close()
+            except OSError:
+                pass
+        self.sim.hal.capture.host_close()
+
+    def _cap_sink(self, data):
+        """What the reader takes now of one USB frame's bytes (never blocks)."""
+        reader = self._cap_reader
+        if reader is None:
+            return 0
+        try:
+            if reader is PTY_READER:
+                return os.write(self._cap_pty, data)
+            return reader.send(data)
+        except (BlockingIOError, InterruptedError):
+            return 0
+        except OSError:
+            self._cap_detach()
+            return 0
+
     # --- TCP -----------------------------------------------------------------------
     def _accept_loop(self):
         while not self._stop.is_set():
@@ -488,6 +676,7 @@ class Bench:
         # Bytes from outside reach the bus when they arrived (the wall clock), not at
         # the simulated time the bench is catching up through after a stall: they
         # cannot have been on the wire earlier.
+        self._cap_pump()
         try:
             while True:
                 data = self._inbox.get_nowait()
