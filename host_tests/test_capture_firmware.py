@@ -314,7 +314,10 @@ def test_a_port_nobody_reads_fills_the_ring_and_the_next_reader_learns_how_much_
     port.room = 10 ** 9
     b.run_for(20000)
     b.transact(req)
-    b.run_for(20000)
+    for _ in range(100):  # the whole ring reaches the port, a slow pass at a time
+        b.run_for(20000)
+        if cap.pending() == 0:
+            break
     recs = parse(port.got)
     names = [r[0] for r in recs]
     k = names.index("lost")
@@ -339,8 +342,8 @@ def test_the_records_add_up_to_the_parsers_own_counters(steps, chunk):
             "garbage": bytes(rnd.randrange(256) for _ in range(9)), "resync": good[:5] + good,
             "long": b"\xaa\xcc" + bytes(300) + b"\xaa\xee",
         }[kind]
-        b.pc.send(wire)
-        b.run_for(gap + 20000)
+        end = b.pc.send(wire)  # (when its last byte will have gone)
+        b.run_for(max(0.0, end - b.clock.now) + gap + 20000)
     recs = records(b)
     p = b.app.up_parser
     counted = {}
@@ -368,3 +371,57 @@ def test_the_records_of_the_pump_are_the_portable_loops():
         streams.append(bytes(b.app.capture.drain_to(bytearray())))
     assert len(parse(streams[0])) >= 14
     assert streams[0] == streams[1]
+
+
+class TimedHostEnd(HostEnd):
+    """HostEnd that notes the bench time of every write that took bytes."""
+
+    def __init__(self, clock):
+        HostEnd.__init__(self)
+        self.clock = clock
+        self.times = []
+
+    def write(self, buf):
+        n = HostEnd.write(self, buf)
+        if n:
+            self.times.append(self.clock.now)
+        return n
+
+
+def test_records_go_out_while_the_drive_thinks_not_while_the_pc_talks():
+    """The stream window: a forwarded request awaiting its reply (the drive's
+    turnaround), or a PC bus quiet for QUIET_US; never in the middle of PC traffic
+    the bridge must pass on at once."""
+    b = bench()
+    port = TimedHostEnd(b.clock)
+    b.app.capture.port = port
+    b.run_for(20000)  # the hello goes (the bus is quiet)
+    port.times = []
+    # the PC keeps talking to the jig itself, a frame every 500 µs: no window
+    local = frame.encode(1, frame.GET_AXIS_STATUS)
+    t0 = b.clock.now
+    for _ in range(8):
+        end = b.pc.send(local)
+        b.run_for(max(0.0, end - b.clock.now) + 500)
+    assert b.app.capture.pending() > 0 and port.times == []
+    # ... then falls silent: out after QUIET_US
+    b.run_for(C.QUIET_US + 12000)
+    assert b.app.capture.pending() == 0 and port.times and port.times[0] > t0
+    # a forwarded request: out in the drive's turnaround, before its reply starts
+    port.times = []
+    port.got = bytearray()
+    b.run_for(C.STREAM_US)
+    req = frame.encode(2, frame.GET_COMMAND_POS)
+    end = b.pc.send(req)
+    reply_start = []
+    char = 10e6 / 115200
+
+    def spy(data, t_end):  # the drive's reply comes as one segment, the jig's copy in pieces
+        if len(data) > 4 and data[2] == 2:
+            reply_start.append(t_end - len(data) * char)
+
+    b.down_bus.add_node("spy", spy, record=False)
+    b.run_for(max(0.0, end - b.clock.now) + 5000)
+    recs = parse(port.got)
+    assert [r[0] for r in recs[:2]] == ["pc_in", "drv_out"]  # the request's record, alone first
+    assert len(reply_start) == 1 and port.times[0] < reply_start[0]

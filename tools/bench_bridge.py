@@ -98,16 +98,40 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 #   8 + 13 bytes in two bursts (two passes): 18 187             = 2 PASS + 21 BYTE
 # (firmware alone: 1 268 and 9 795). The per-byte share carries the frame events
 # (routing, the reply wait) spread over the bytes. Update after `make test-qemu`.
+# The slow pass (timeouts, scan, safety, watchdog; `make test-qemu`, capture off:
+# 18 920 instructions) is charged where it feeds the watchdog.
+# Capture on (parameter 13, records streamed to a capture port that takes them), from
+# `make test-qemu` (2026-12-01, the higher of two builds): the forwarded transaction
+# costs 22 932 instead of 18 217 at board prices, 4 715 more, spread over its 21
+# bytes as 225 a byte (charged before the bytes are acted on, although the records
+# are written after the frames have gone: the model errs on the slow side); the slow
+# pass 21 360; each write of records to the port 9 000 (Capture.slow streaming one
+# transaction's 53 bytes of records 10 600, minus its 3 760 with nothing to stream,
+# plus 2 000 for a full 256-byte write's copy). The firmware streams in the drive's
+# turnaround (jig.capture: the stream window), so those stalls mostly cost nothing.
 M7_HZ = 400e6
 PASS_INSTR = 2366  # one main-loop pass that read input, without the bytes
 FORWARD_INSTR_PER_BYTE = 641  # each byte read (parse + forward/relay share)
-JIG_CPU_MODEL = (PASS_INSTR / M7_HZ * 1e6, FORWARD_INSTR_PER_BYTE / M7_HZ * 1e6)  # (us/pass, us/byte)
+SLOW_PASS_INSTR = 18920
+CAPTURE_INSTR_PER_BYTE = 225
+CAPTURE_SLOW_PASS_INSTR = 21360
+CAPTURE_WRITE_INSTR = 9000
+
+
+def _us(instr):
+    return instr / M7_HZ * 1e6
+
+
+# (us/pass, us/byte, us/slow pass[, us/capture write]): SimHAL.cpu_model
+JIG_CPU_MODEL = (_us(PASS_INSTR), _us(FORWARD_INSTR_PER_BYTE), _us(SLOW_PASS_INSTR))
+JIG_CPU_MODEL_CAPTURE = (_us(PASS_INSTR), _us(FORWARD_INSTR_PER_BYTE + CAPTURE_INSTR_PER_BYTE),
+                         _us(CAPTURE_SLOW_PASS_INSTR), _us(CAPTURE_WRITE_INSTR))
 
 POLL_SLAVE = 2
 
 
 def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model=JIG_CPU_MODEL,
-                 stream_chunk=1, warmup=3):
+                 stream_chunk=1, warmup=3, capture=False):
     """A pyserial-style master polls GetAllStatus from driver 2 on the virtual timeline.
 
     The PC sends, waits for the complete reply frame and sends the next request at
@@ -115,15 +139,22 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
     req_bytes/rep_bytes (wire bytes), and, through the jig, req_hop_us (PC's last
     stop bit -> jig's last stop bit of the forwarded request on the driver bus) and
     rep_hop_us (driver's last stop bit -> jig's last stop bit of the relayed reply),
-    each the mean over the n polls (min and max in *_hop_min/max_us).
-    Raises RuntimeError if a poll gets no good reply.
+    each the mean over the n polls (min and max in *_hop_min/max_us). ``capture``: the
+    jig records both buses (parameter 13) and streams the records to its capture
+    port, which a host reads (``records``: how many reached it, ``lost``: how many
+    the jig could not keep). Raises RuntimeError if a poll gets no good reply.
     """
     kw = dict(driver_ids=(POLL_SLAVE,), baud=baud, turnaround_us=DRIVER_TURNAROUND_US, record=False,
               stream_chunk=stream_chunk)
     if direct:
         b = SimBench(direct=True, **kw)
     else:
-        b = SimBench(jig_params={P.P_FORWARD_MODE: forward_mode}, cpu_model=cpu_model, **kw)
+        params = {P.P_FORWARD_MODE: forward_mode}
+        if capture:
+            params[P.P_CAPTURE] = 1
+        b = SimBench(jig_params=params, cpu_model=cpu_model, **kw)
+        if capture:
+            b.capture.host_open()
     ends = {}  # node name -> end of its last segment on the wire
 
     def seen(seg, data):
@@ -155,6 +186,10 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
                    req_hop_min_us=min(req_hops), req_hop_max_us=max(req_hops),
                    rep_hop_min_us=min(rep_hops), rep_hop_max_us=max(rep_hops),
                    jig_cpu_us=b.hal.cpu_us)
+    if capture:
+        cap = b.app.capture
+        b.run_for(5000)  # the last records reach the host
+        out.update(records=cap.cs[12], lost=cap.cs[13], streamed=b.capture.taken)  # CS_TOTAL, CS_LOST_TOTAL
     return out
 
 
@@ -163,28 +198,40 @@ def direct_period_us(req_bytes, rep_bytes, baud, turnaround_us=DRIVER_TURNAROUND
     return (req_bytes + rep_bytes) * 10e6 / baud + turnaround_us
 
 
-def print_polling_table(cpu_model, n):
+def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
     print("  GetAllStatus polling rate of a pyserial-style master, driver %d, virtual timeline" % POLL_SLAVE)
     print("  (drive turnaround %.0f us; jig CPU model %.1f us per pass + %.2f us per byte read ="
           % (DRIVER_TURNAROUND_US, cpu_model[0], cpu_model[1]))
     print("   %d + %d instructions at %.0f MHz, 1 instruction per cycle: an assumption)"
           % (round(cpu_model[0] * M7_HZ / 1e6), round(cpu_model[1] * M7_HZ / 1e6), M7_HZ / 1e6))
-    names = {P.CUT_THROUGH: "cut-through (param 12 = 0)", P.STORE_AND_FORWARD: "store-and-forward (param 12 = 1)"}
+    print("   + the slow pass %d instructions)" % round(cpu_model[2] * M7_HZ / 1e6) if len(cpu_model) > 2 else "")
+    names = {P.CUT_THROUGH: "cut-through (param 12 = 0)", P.STORE_AND_FORWARD: "store-and-forward (param 12 = 1)",
+             "capture": "cut-through, recording both buses (param 13 = 1), the capture port read by a host"}
     direct = {baud: polling_rate(baud, direct=True, n=n) for baud in P.BAUD_RATES}
-    for mode in (P.CUT_THROUGH, P.STORE_AND_FORWARD):
-        print("    %s:" % names[mode])
+    for mode in (P.CUT_THROUGH, P.STORE_AND_FORWARD, "capture"):
+        capture = mode == "capture"
+        model = capture_model if capture else cpu_model
+        if capture:
+            mode = P.CUT_THROUGH
+            print("    %s:" % names["capture"])
+            print("    (CPU model: + %d instructions a byte, slow pass %d, %d a write of records to the port)"
+                  % (round((model[1] - cpu_model[1]) * M7_HZ / 1e6), round(model[2] * M7_HZ / 1e6),
+                     round(model[3] * M7_HZ / 1e6)))
+        else:
+            print("    %s:" % names[mode])
         print("    %7s %10s %10s %7s %13s %13s %8s" % ("baud", "direct /s", "jig /s", "ratio",
                                                    "req hop us", "reply hop us", "byte us"))
         for baud in P.BAUD_RATES:
             d = direct[baud]
             try:
-                j = polling_rate(baud, forward_mode=mode, n=n, cpu_model=cpu_model)
+                j = polling_rate(baud, forward_mode=mode, n=n, cpu_model=model, capture=capture)
             except RuntimeError as exc:  # a firmware that loses replies: say so, measure the rest
                 print("    %7d %10.1f  FAILED: %s" % (baud, d["rate"], exc))
                 continue
-            print("    %7d %10.1f %10.1f %6.1f%% %13.1f %13.1f %8.1f"
+            print("    %7d %10.1f %10.1f %6.1f%% %13.1f %13.1f %8.1f%s"
                   % (baud, d["rate"], j["rate"], 100.0 * j["rate"] / d["rate"], j["req_hop_us"],
-                     j["rep_hop_us"], j["byte_us"]))
+                     j["rep_hop_us"], j["byte_us"],
+                     "   records %d, lost %d" % (j["records"], j["lost"]) if capture else ""))
     print("    (hop = last stop bit of the frame on one bus -> last stop bit of the same frame")
     print("     leaving the jig on the other; a wire would add 0, cut-through about 1-2 byte times)")
 
@@ -230,9 +277,10 @@ def main(argv=None):
     if args.polls < 1:
         print("error: --polls must be at least 1", file=sys.stderr)
         return 2
-    cpu_model = (0.0, 0.0) if args.no_cpu_model else JIG_CPU_MODEL
+    cpu_model = (0.0, 0.0, 0.0) if args.no_cpu_model else JIG_CPU_MODEL
+    capture_model = (0.0, 0.0, 0.0, 0.0) if args.no_cpu_model else JIG_CPU_MODEL_CAPTURE
     if args.polling_only:
-        print_polling_table(cpu_model, args.polls)
+        print_polling_table(cpu_model, args.polls, capture_model)
         return 0
     print("bridge benchmark (%s %s)" % (sys.implementation.name, sys.version.split()[0]))
     fwd, loc, idle = cpu_per_transaction(args.n)
@@ -258,7 +306,7 @@ def main(argv=None):
               % (baud, t["byte_us"], t["pre"], t["fwd"], t["rel"], t["rt"], t["sf"], "ok" if ok else "OVER"))
     print("    (round trip = PC request start to relayed reply end; S&F bound = direct")
     print("     connection + both frames sent twice, i.e. pure store-and-forward)")
-    print_polling_table(cpu_model, args.polls)
+    print_polling_table(cpu_model, args.polls, capture_model)
     return 0
 
 

@@ -47,7 +47,7 @@ from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
-from jig.capture import Capture
+from jig.capture import QUIET_US, Capture
 from jig.compat import NATIVE, const, ticks_add, ticks_diff
 from jig.frame import MAX_BODY
 from jig.handlers import Handlers
@@ -58,7 +58,6 @@ from jig.scan import Scanner
 RX_CHUNK = const(256)
 HEARTBEAT_US = const(500000)
 SLOW_US = const(10000)  # the slow pass runs at least this often
-STREAM_US = const(1000)  # ... and this often while the capture port takes records
 TICKS_MASK = const(0x3FFFFFFF)
 TICKS_HALF = const(0x20000000)
 PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
@@ -265,7 +264,7 @@ class App:
         bridge.poll(now)
         self.scanner.poll(now)
         self.safety.poll(now)
-        stream = self.capture.slow(now)
+        stream = self.capture.slow(now, bridge.stream_window(now))
         self.hal.wdt_feed()
         if ticks_diff(now, self.t_beat) >= HEARTBEAT_US:
             self.t_beat = now
@@ -275,7 +274,7 @@ class App:
         due = _earlier(due, now, bridge.wait_us(now))
         due = _earlier(due, now, self.safety.wait_us(now))
         if stream == 0:
-            due = _earlier(due, now, STREAM_US)  # more for the capture port
+            due = _earlier(due, now, QUIET_US)  # more for the capture port
         if ticks_diff(due, now) <= 0:
             due = ticks_add(now, 1)
         self.due[0] = due

@@ -50,8 +50,9 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
 from jig.parser import (A_END, A_RESYNC, A_STORE, A_STUFF_ERROR, EV_DROP, EV_FRAME, EV_HEAD, EV_START, HEADER, HUNT,
                         MIN_BODY, S_DROP_N, S_EVENT, S_N, S_STATE, S_T_LAST, S_WHY, TABLES)
 from jig.compat import const, ticks_diff
-from jig.capture import (CH_DRV_IN, CH_DRV_OUT, CH_PC_IN, CH_PC_OUT, CS_ON, CS_START, CS_T_IN, T_DRV_PASSED,
-                         T_PC_PASSED, V_BAD_CRC, V_BAD_STUFFING, V_OVERLONG, V_RESYNC, V_SHORT, V_TIMEOUT)
+from jig.capture import (CH_DRV_IN, CH_DRV_OUT, CH_PC_IN, CH_PC_OUT, CS_HEAD, CS_NEXT, CS_ON, CS_START, CS_T_IN,
+                         CS_TAIL, QUIET_US, T_DRV_PASSED, T_PC_PASSED, V_BAD_CRC, V_BAD_STUFFING, V_OVERLONG,
+                         V_RESYNC, V_SHORT, V_TIMEOUT)
 from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
 IDLE = const(0)
@@ -266,6 +267,22 @@ class Bridge:
         """Bitmap of the driver ids that answered since boot."""
         return self.bs[B_SEEN]
 
+    def stream_window(self, now):
+        """True when a stall of the main loop costs nothing (jig.capture streams then):
+        a forwarded request awaits its reply and nothing is being passed on, or the PC
+        has sent no frame for QUIET_US."""
+        bs = self.bs
+        if bs[B_STATE] == AWAIT_PC and not bs[B_FWD] and not bs[B_REL]:
+            return True
+        return ticks_diff(now, bs[B_T_PC]) > QUIET_US
+
+    def _ask_window(self, now):
+        """A forwarded request has gone: the drive is thinking. If records wait, run
+        the slow pass now, in that window (at most every STREAM_US)."""
+        cs = self.cs
+        if cs[CS_HEAD] != cs[CS_TAIL] and (now - cs[CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
+            self.due[0] = now
+
     def busy(self):
         bs = self.bs
         return bs[B_STATE] != IDLE or bs[B_FWD] != 0
@@ -422,6 +439,7 @@ class Bridge:
                 self._record_passed(T_PC_PASSED, body, p.st[S_N], t_in)
             if bs[B_STATE] == AWAIT_PC:
                 self._pend_pc(body, p.st[S_N])
+                self._ask_window(t_in)
             return
         if rec:
             self._record(CH_PC_IN, body, p.st[S_N], t_in)
@@ -443,6 +461,7 @@ class Bridge:
             if flags & F_FORWARD:
                 v[C_FORWARDS] += 1
                 self._pend_pc(body, p.st[S_N])
+                self._ask_window(t_in)
             else:
                 v[C_BROADCASTS] += 1
 

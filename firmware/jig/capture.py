@@ -80,13 +80,17 @@ CS_START = const(8)  # 8..11: tick of the first byte of the frame in progress, p
 CS_TOTAL = const(12)  # records written since boot (wraps)
 CS_LOST_TOTAL = const(13)  # records lost since boot
 CS_T_IN = const(14)  # end of a frame passed on, on the bus it came from (for put)
-CS_SIZE = const(15)
+CS_NEXT = const(15)  # tick before which the bridge asks for no stream window
+CS_SIZE = const(16)
 
 RING_SIZE = const(16384)
 CLOCK_US = const(1000000)  # a clock record after this long without one (the host unwraps ticks)
-STREAM_MAX = const(1024)  # bytes handed to the port per slow pass, at most
-STAGE = const(64)  # one USB full-speed packet
+STREAM_MAX = const(1024)  # bytes handed to the port per slow pass, at most (its buffer's size)
+STREAM_US = const(4000)  # the bridge asks for a stream window at most this often
+QUIET_US = const(2000)  # a PC bus silent this long is a window too
+STAGE = const(256)  # bytes a write (the CDC's transmit buffer holds 1 KB)
 
+_TICKS_MASK = const(0x3FFFFFFF)
 _S_NOISE = const(13)  # jig.parser's (const() takes no imported name)
 _S_T_LAST = const(3)
 
@@ -254,10 +258,15 @@ class Capture:
         return 20 + len(name)
 
     # --- the slow pass ----------------------------------------------------------------
-    def slow(self, now):
+    def slow(self, now, window=True):
         """Commands from the host, noise and clock records, and as much of the ring as
         the port takes. Returns 0 if the ring still holds bytes the port is taking
-        (the app comes back sooner), else -1."""
+        (the app comes back sooner), else -1.
+
+        The records go out in a *window* (``window``), when a stall of the main loop
+        costs the bridge nothing: a forwarded request waits for its reply (the drive
+        is thinking: the bridge asks for a slow pass then, ``CS_NEXT``), or the PC
+        bus has been silent for QUIET_US. A ring half full goes out anyway."""
         port = self.port
         if port is not None and port.any():
             self._command(now)
@@ -275,6 +284,9 @@ class Capture:
             self.put(cs, self.ring, T_CLOCK, self.stage, 0, now)
         if port is None or cs[CS_HEAD] == cs[CS_TAIL]:
             return -1
+        if not window and ((cs[CS_HEAD] - cs[CS_TAIL]) & cs[CS_MASK]) < (cs[CS_MASK] >> 1):
+            return -1  # the next window, or the next slow pass
+        cs[CS_NEXT] = (now + STREAM_US) & _TICKS_MASK
         return 0 if self._stream() else -1
 
     def _command(self, now):

@@ -107,6 +107,9 @@ _CH_PC_OUT = const(1)
 _CH_DRV_IN = const(2)
 _CH_DRV_OUT = const(3)
 _CS_T_IN = const(14)
+_CS_HEAD = const(1)
+_CS_TAIL = const(2)
+_CS_NEXT = const(15)
 _T_PC_PASSED = const(4)
 _T_DRV_PASSED = const(6)
 _STUB = const(3 << 8)  # V_SHORT << 8: the verdict of a stub ended with a tail
@@ -361,6 +364,9 @@ def pump(ctx, passes: int) -> int:
                         bs[_B_DEADLINE] = d
                         if ((d - due[0]) & _MASK) >= _HALF:
                             due[0] = d
+                        # Bridge._ask_window: records wait, the drive is thinking: the slow pass now
+                        if cs[_CS_HEAD] != cs[_CS_TAIL] and ((now - cs[_CS_NEXT]) & _MASK) < _HALF:
+                            due[0] = now
                 elif ev == _EV_FRAME and bs[_B_FWD] == 0 and ub[0] == int(ram[_P_SLAVE_ID]):
                     # Bridge.on_pc_frame and _local: a frame for the jig, answered here
                     v[_C_UP_IN] += 1

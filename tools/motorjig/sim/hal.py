@@ -9,12 +9,14 @@ filesystem that can lose power in the middle of a write.
 
 The ports are streaming receivers on their buses (see ``link``): bytes reach the
 ring buffer one chunk at a time while a frame is still arriving, as the UART
-interrupt would put them there. ``SimHAL.cpu_model`` = (µs per pass, µs per byte)
-charges the jig's CPU time on the virtual timeline: the first read that returns
-bytes in a main-loop pass advances the clock by the per-pass cost, and every read
-by the per-byte cost times the bytes it returned, so whatever the pass does with
-them (forwarding, answering) happens that much later. Bytes keep arriving
-meanwhile. Default (0, 0): the CPU is infinitely fast.
+interrupt would put them there. ``SimHAL.cpu_model`` = (µs per pass, µs per byte
+[, µs per slow pass [, µs per capture write]]) charges the jig's CPU time on the
+virtual timeline: the first read that returns bytes in a main-loop pass advances
+the clock by the per-pass cost, and every read by the per-byte cost times the
+bytes it returned, so whatever the pass does with them (forwarding, answering)
+happens that much later; each slow pass costs its share where it feeds the
+watchdog, and each write that hands records to the capture port its own. Bytes
+keep arriving meanwhile. Default (0, 0): the CPU is infinitely fast.
 
 The jig's I/O can be wired to a simulated drive (``SimBench(wiring=...)``):
 ``input_source`` adds bits to what ``get_inputs`` returns, computed when it is
@@ -187,6 +189,7 @@ class SimCapturePort:
         self.taken = 0  # bytes the jig handed over, ever
         self.refused = 0  # write calls that took nothing
         self._frame_due = None  # the time of the scheduled USB frame, if any
+        self.cpu_us_per_write = 0.0  # the jig's CPU time per write that takes bytes (SimHAL.cpu_model)
 
     # --- the jig's side -------------------------------------------------------------
     def any(self):
@@ -205,6 +208,8 @@ class SimCapturePort:
         if n <= 0:
             self.refused += 1
             return 0
+        if self.cpu_us_per_write:
+            self.clock.run_until(self.clock.now + self.cpu_us_per_write)  # (SimHAL.cpu_model)
         self.tx += bytes(buf[0:n])
         self.taken += n
         self._schedule()
@@ -279,12 +284,16 @@ class SimHAL:
         self.up = None
         self.down = None
         self.rx_callback = None  # the bench's "wake the main loop"
-        self.us_per_pass, self.us_per_byte = (float(x) for x in cpu_model)
-        if self.us_per_pass < 0 or self.us_per_byte < 0:
+        model = tuple(float(x) for x in cpu_model) + (0.0, 0.0)
+        if len(cpu_model) not in (2, 3, 4):
+            raise ValueError("cpu_model: (us per pass, us per byte[, us per slow pass[, us per capture write]])")
+        self.us_per_pass, self.us_per_byte, self.us_per_slow_pass, us_per_write = model[:4]
+        if min(model) < 0:
             raise ValueError("cpu_model: times must not be negative")
         self.pass_charged = True  # set False by the bench at the start of each pass
         self.cpu_us = 0.0  # CPU time charged so far
         self.capture = SimCapturePort(clock, capture_tx)  # jig.capture's port (the second USB CDC)
+        self.capture.cpu_us_per_write = us_per_write
 
     def open(self, up_baud, down_baud):
         self.up_bus.set_baud(up_baud)
@@ -315,7 +324,11 @@ class SimHAL:
         self.beats += 1
 
     def wdt_feed(self):
+        """The app feeds the watchdog once per slow pass: the slow pass's CPU time."""
         self.wdt_feeds += 1
+        if self.us_per_slow_pass:
+            self.cpu_us += self.us_per_slow_pass
+            self.clock.run_until(self.clock.now + self.us_per_slow_pass)
 
     def begin_pass(self):
         """Called by the bench before each main-loop pass (for ``cpu_model``)."""
