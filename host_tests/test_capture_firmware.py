@@ -425,3 +425,56 @@ def test_records_go_out_while_the_drive_thinks_not_while_the_pc_talks():
     recs = parse(port.got)
     assert [r[0] for r in recs[:2]] == ["pc_in", "drv_out"]  # the request's record, alone first
     assert len(reply_start) == 1 and port.times[0] < reply_start[0]
+
+
+def test_a_reply_the_pc_talks_over_is_recorded_as_far_as_it_went_on_the_pc_bus():
+    from jig import bridge as B
+
+    b = bench()
+    sent = []
+    b.up_bus.monitor = lambda seg, data: sent.append(bytes(seg.data)) if seg.node.name == "jig-up" else None
+    b.pc.send(frame.encode(2, frame.GET_ALL_STATUS))
+    b.clock.run_while(lambda: not b.app.bridge.bs[B.B_REL], 50000)
+    b.run_for(300)  # a few bytes of the reply relayed to the PC
+    b.pc.send(frame.encode(3, frame.GET_COMMAND_POS))  # the PC talks over it
+    b.run_for(50000)
+    cut = [r for r in records(b) if r[0] == "pc_out"]
+    wire = b"".join(sent)
+    assert cut[0][1] == R.TIMEOUT and len(cut[0][2]) >= 2
+    # what the record holds is what went out: AA CC and the body so far, no tail
+    assert wire.startswith(b"\xaa\xcc" + cut[0][2]) and b"\xaa\xee" not in wire[:2 + len(cut[0][2])]
+
+
+def test_a_full_ring_counts_only_records_it_dropped_not_its_own_retries():
+    b = bench()
+    cap = b.app.capture
+    cap.port = HostEnd(room=0)  # nobody reads
+    req = frame.encode(2, frame.GET_COMMAND_POS)
+    while cap.cs[C.CS_LOST] == 0:
+        b.transact(req)
+    lost = cap.cs[C.CS_LOST]
+    b.run_for(5000000)  # 5 s without traffic: clock records are due, and wait for room
+    b.pc.send(b"\x00\x11\x22")  # noise: its record waits too
+    b.run_for(200000)
+    assert cap.cs[C.CS_LOST] == lost and cap.cs[C.CS_LOST_TOTAL] == lost
+    feeds = b.hal.wdt_feeds  # one per slow pass
+    b.run_for(100000)
+    assert b.hal.wdt_feeds - feeds <= 12  # a port that takes nothing is asked at the slow pace (10 ms)
+
+
+def test_the_hello_says_how_the_jig_runs_not_what_takes_effect_at_the_next_boot():
+    b = bench()
+    port = HostEnd()
+    b.app.capture.port = port
+    for num, value in ((P.P_UP_BAUD, 921600), (P.P_PROTOCOL, 1), (P.P_FORWARD_MODE, 1)):  # restart parameters
+        assert b.transact(frame.encode(1, frame.SET_PARAMETER, bytes([num]) + struct.pack("<i", value)))[4] == 0
+    port.cmds += b"S"  # a new reader
+    b.run_for(20000)
+    hello = [r for r in parse(port.got) if r[0] == "hello"][-1][2]
+    assert struct.unpack_from("<BBBBII", hello) == (C.VERSION, 0, 0, 1, 115200, 115200)
+    # an immediate parameter it reports: a new hello with it
+    port.got = bytearray()
+    b.transact(frame.encode(1, frame.SET_PARAMETER, bytes([P.P_INTERBYTE_US]) + struct.pack("<i", 2500)))
+    b.run_for(20000)
+    hellos = [r[2] for r in parse(port.got) if r[0] == "hello"]
+    assert len(hellos) == 1 and struct.unpack_from("<I", hellos[0], 12)[0] == 2500

@@ -359,6 +359,21 @@ def test_only_motorjig_boards_are_switched_to_dfu(monkeypatch):
     assert flash.micropython_boards() == ["/dev/ttyACM1"]
 
 
+def test_of_a_jigs_two_usb_ports_auto_picks_the_repl_not_the_capture_port(monkeypatch):
+    from serial.tools import list_ports
+
+    class P:
+        def __init__(self, device, location, serial="3254335D3037"):
+            self.device, self.location, self.serial_number = device, location, serial
+            self.vid, self.product, self.description = 0xF055, "MotorJig STM32H7_JIG RS-485 bridge", ""
+
+    # pyserial lists ports in no particular order: the capture port (interface 2) first
+    ports = [P("/dev/ttyACM5", "1-1.2:1.2"), P("/dev/ttyACM4", "1-1.2:1.0"),
+             P("/dev/ttyACM7", "1-1.3:1.2", "OTHERJIG"), P("/dev/ttyACM6", "1-1.3:1.0", "OTHERJIG")]
+    monkeypatch.setattr(list_ports, "comports", lambda: ports)
+    assert flash.micropython_boards() == ["/dev/ttyACM4", "/dev/ttyACM6"]
+
+
 def test_auto_switches_a_running_jig_to_dfu_then_flashes(env, monkeypatch):
     state = env.tmp / "in-dfu"
     script = env.tmp / "bin" / "dfu-util"

@@ -407,19 +407,34 @@ def cmd_info(args, runner, ser=None):
 
 
 # --- auto: the README's main job ----------------------------------------------------------
+def _usb_interface(location):
+    """The USB interface number in a port's location ("1-1.2:1.0" -> 0), or -1."""
+    if not location or ":" not in location:
+        return -1
+    try:
+        return int(location.rsplit(".", 1)[-1])
+    except ValueError:
+        return -1
+
+
 def micropython_boards():
-    """Serial ports of running jigs: MicroPython's USB vendor id and our product string
-    (so an unrelated MicroPython board is never switched to DFU mode)."""
+    """The REPL ports of running jigs: MicroPython's USB vendor id and our product string
+    (so an unrelated MicroPython board is never switched to DFU mode). A jig has two CDC
+    ports with the same ids, the REPL and the capture stream: per board (serial number)
+    the one on the lowest USB interface, the REPL's, is kept."""
     try:
         from serial.tools import list_ports
     except ImportError:
         return []
-    found = []
+    found = {}
     for p in list_ports.comports():
         text = "%s %s" % (getattr(p, "product", "") or "", getattr(p, "description", "") or "")
         if getattr(p, "vid", None) == MICROPYTHON_USB_VID and USB_PRODUCT_TAG in text:
-            found.append(p.device)
-    return found
+            key = getattr(p, "serial_number", None) or p.device
+            rank = (_usb_interface(getattr(p, "location", None)), p.device)
+            if key not in found or rank < found[key][0]:
+                found[key] = (rank, p.device)
+    return sorted(device for _rank, device in found.values())
 
 
 def bench_command():

@@ -110,10 +110,13 @@ class App:
         self.t_beat = hal.ticks_us()
         self.due = array("i", [self.t_beat])  # the tick at which the slow pass must next run
         self.cut = cut
+        self.ver8 = ver8  # (how this boot runs: the RESTART parameters may differ in RAM)
+        self.up_baud = pr[P.P_UP_BAUD]
+        self.down_baud = pr[P.P_DOWN_BAUD]
         # The recording of both buses (parameter capture; the HAL's capture port, if any).
         self.capture = Capture(self, getattr(hal, "capture", None))
         self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due,
-                             self.capture)
+                             self.capture, self.down_parser)
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
         self.up_rx = bytearray(RX_CHUNK)
@@ -158,6 +161,8 @@ class App:
         self.down_parser.interbyte_timeout_us = pr[P.P_INTERBYTE_US]
         if (pr[P.P_CAPTURE] != 0) != self.capture.on:
             self.set_capture(pr[P.P_CAPTURE], self._ticks())
+        elif self.capture.on:
+            self.capture.hello(self._ticks())  # the id or the timeout it reports may have changed
 
     def save_params(self):
         ok = self.params.save()

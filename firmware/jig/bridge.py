@@ -204,7 +204,7 @@ def drop_verdict(st):
 
 class Bridge:
     def __init__(self, hal, up, down, handlers, params, counters, ver8=False, cut_through=True, due=None,
-                 capture=None):
+                 capture=None, down_parser=None):
         self.hal = hal
         self.up = up  # rs485.Rs485 on the PC bus
         self.down = down  # rs485.Rs485 on the driver bus
@@ -249,6 +249,7 @@ class Bridge:
         self.cs = capture.cs
         self.cap_ring = capture.ring
         self.cap_put = capture.put
+        self.down_p = down_parser  # what a relay the PC talks over had passed on (its record)
 
     def _record(self, kind, body, n, t_end=-1):
         """One capture record (kind: channel | verdict << 8) of body[0:n] whose last
@@ -687,9 +688,14 @@ class Bridge:
         self._watch_line(now)
 
     def _end_relay(self, count_abort):
+        """Stop relaying a driver frame to the PC; ``count_abort``: the PC talks over it
+        (the copy on the PC bus ends there, without a tail: recorded as such)."""
         bs = self.bs
         bs[B_REL] = 0
         self.up.finish()
+        if count_abort and self.cs[CS_ON] and self.down_p is not None:
+            p = self.down_p
+            self._record(CH_PC_OUT | V_TIMEOUT << 8, p.body, p.st[S_N])
         if count_abort and bs[B_CHECKED]:
             self.v[C_ABORTS] += 1
             self._event(E_CUT_SHORT)

@@ -203,7 +203,6 @@ class Capture:
         self.cmd = bytearray(1)
         self.noise_seen = array("i", [0, 0])  # noise counts of the two parsers, last reported
         self.up_st = self.down_st = None  # the parsers' state arrays (from start on)
-        self.lost_total_seen = 0
 
     @property
     def on(self):
@@ -223,8 +222,13 @@ class Capture:
         self.down_st = app.down_parser.st
         self.noise_seen[0] = self.up_st[_S_NOISE]
         self.noise_seen[1] = self.down_st[_S_NOISE]
+        self.hello(now)
+
+    def hello(self, now):
+        """A hello record: the stream's version and how the jig runs (again after an
+        immediate parameter change that it reports)."""
         n = self._hello_data()
-        self.put(cs, self.ring, T_HELLO, self.info, n, now)
+        self.put(self.cs, self.ring, T_HELLO, self.info, n, now)
 
     def stop(self):
         """Recording off; what is in the ring is dropped."""
@@ -243,14 +247,17 @@ class Capture:
         from jig import params as P
         from jig.frame import put_u32
 
-        pr = self.app.params.ram
+        app = self.app
+        pr = app.params.ram
         d = self.info
         d[0] = VERSION
-        d[1] = pr[P.P_PROTOCOL]
-        d[2] = pr[P.P_FORWARD_MODE]
+        # protocol, forward mode and baud rates as the jig booted with them (changed in
+        # RAM they apply from the next boot); the id and timeout as they are now
+        d[1] = 1 if app.ver8 else 0
+        d[2] = P.CUT_THROUGH if app.cut else P.STORE_AND_FORWARD
         d[3] = pr[P.P_SLAVE_ID]
-        put_u32(d, 4, pr[P.P_UP_BAUD])
-        put_u32(d, 8, pr[P.P_DOWN_BAUD])
+        put_u32(d, 4, app.up_baud)
+        put_u32(d, 8, app.down_baud)
         put_u32(d, 12, pr[P.P_INTERBYTE_US])
         put_u32(d, 16, len(self.ring))
         name = b"MotorJig bridge 0.1"
@@ -281,7 +288,10 @@ class Capture:
         if st[_S_NOISE] != seen[1]:
             self._noise(1, CH_DRV_IN, st)
         if ticks_diff(now, cs[CS_T_LAST]) >= CLOCK_US:
-            self.put(cs, self.ring, T_CLOCK, self.stage, 0, now)
+            if self._fits(0):
+                self.put(cs, self.ring, T_CLOCK, self.stage, 0, now)
+            else:
+                cs[CS_T_LAST] = now  # (a full ring is no news: the next lost record says it)
         if port is None or cs[CS_HEAD] == cs[CS_TAIL]:
             return -1
         if not window and ((cs[CS_HEAD] - cs[CS_TAIL]) & cs[CS_MASK]) < (cs[CS_MASK] >> 1):
@@ -300,8 +310,18 @@ class Capture:
             elif c == CMD_STOP:
                 self.app.set_capture(0, now)
 
+    def _fits(self, n):
+        """True if a record of n data bytes (and a pending lost record) fits the ring:
+        the slow pass's own records wait for room rather than count as lost."""
+        cs = self.cs
+        need = HEADER_LEN + n + (HEADER_LEN + 4 if cs[CS_LOST] else 0)
+        return ((cs[CS_HEAD] - cs[CS_TAIL]) & cs[CS_MASK]) + need <= cs[CS_MASK]
+
     def _noise(self, k, ch, st):
-        """A noise record: the bytes the parser st counted outside frames since the last."""
+        """A noise record: the bytes the parser st counted outside frames since the last
+        (they add up in the parser while the ring has no room)."""
+        if not self._fits(4):
+            return
         n = st[_S_NOISE] - self.noise_seen[k]
         d = self.stage
         d[0] = n & 0xFF
@@ -334,7 +354,7 @@ class Capture:
                 copy(stage, first, ring, 0, k - first)
             w = port.write(self.views[k])
             if not w:
-                return True
+                return False  # the port takes nothing now (full, or not open): back to the slow pace
             cs[CS_TAIL] = (tail + w) & mask
             sent += w
         return cs[CS_HEAD] != cs[CS_TAIL]
