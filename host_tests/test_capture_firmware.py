@@ -79,6 +79,12 @@ def test_constants_agree_across_the_modules_that_share_them():
             fastpath._CH_DRV_OUT, fastpath._STUB >> 8) == (C.CS_ON, C.CS_START, C.CH_PC_IN, C.CH_PC_OUT,
                                                             C.CH_DRV_IN, C.CH_DRV_OUT, C.V_SHORT)
     assert native._S_DROP_N == parser.S_DROP_N
+    from jig import bridge
+
+    folded = [n for n in vars(bridge) if n.startswith(("_CS_", "_CH_", "_V_", "_T_")) or n == "_QUIET_US"]
+    assert len(folded) == 19
+    for name in folded:
+        assert getattr(bridge, name) == getattr(C, name[1:]), name
     assert (C._S_NOISE, C._S_T_LAST) == (parser.S_NOISE, parser.S_T_LAST)
     # the verdict codes are motorjig.capture.record's (jigctl, pcapng, dissector)
     assert (C.V_GOOD, C.V_BAD_CRC, C.V_BAD_STUFFING, C.V_SHORT, C.V_OVERLONG, C.V_TIMEOUT, C.V_RESYNC) == (

@@ -105,8 +105,8 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 # costs 22 932 instead of 18 217 at board prices, 4 715 more, spread over its 21
 # bytes as 225 a byte (charged before the bytes are acted on, although the records
 # are written after the frames have gone: the model errs on the slow side); the slow
-# pass 21 360; each write of records to the port 9 000 (Capture.slow streaming one
-# transaction's 53 bytes of records 10 600, minus its 3 760 with nothing to stream,
+# pass 23 220; each write of records to the port 9 000 (Capture.slow streaming one
+# transaction's 52 bytes of records 12 020, minus its 3 880 with nothing to stream,
 # plus 2 000 for a full 256-byte write's copy). The firmware streams in the drive's
 # turnaround (jig.capture: the stream window), so those stalls mostly cost nothing.
 M7_HZ = 400e6
@@ -114,7 +114,7 @@ PASS_INSTR = 2366  # one main-loop pass that read input, without the bytes
 FORWARD_INSTR_PER_BYTE = 641  # each byte read (parse + forward/relay share)
 SLOW_PASS_INSTR = 18920
 CAPTURE_INSTR_PER_BYTE = 225
-CAPTURE_SLOW_PASS_INSTR = 21360
+CAPTURE_SLOW_PASS_INSTR = 23220
 CAPTURE_WRITE_INSTR = 9000
 
 

@@ -269,7 +269,10 @@ class App:
         bridge.poll(now)
         self.scanner.poll(now)
         self.safety.poll(now)
-        stream = self.capture.slow(now, bridge.stream_window(now))
+        cap = self.capture
+        stream = -1
+        if cap.port is not None or cap.cs[0]:  # (CS_ON) commands to read, or records to move
+            stream = cap.slow(now, bridge)
         self.hal.wdt_feed()
         if ticks_diff(now, self.t_beat) >= HEARTBEAT_US:
             self.t_beat = now

@@ -50,9 +50,6 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
 from jig.parser import (A_END, A_RESYNC, A_STORE, A_STUFF_ERROR, EV_DROP, EV_FRAME, EV_HEAD, EV_START, HEADER, HUNT,
                         MIN_BODY, S_DROP_N, S_EVENT, S_N, S_STATE, S_T_LAST, S_WHY, TABLES)
 from jig.compat import const, ticks_diff
-from jig.capture import (CH_DRV_IN, CH_DRV_OUT, CH_PC_IN, CH_PC_OUT, CS_HEAD, CS_NEXT, CS_ON, CS_START, CS_T_IN,
-                         CS_TAIL, QUIET_US, T_DRV_PASSED, T_PC_PASSED, V_BAD_CRC, V_BAD_STUFFING, V_OVERLONG,
-                         V_RESYNC, V_SHORT, V_TIMEOUT)
 from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
 IDLE = const(0)
@@ -177,7 +174,29 @@ _TICKS_HALF = const(0x20000000)
 # jig.frame's values, folded here (a module attribute is a dictionary look-up per use)
 _STUFF = const(0xAA)
 _BROADCAST_ID = const(99)
-_SHORT_STUB = const(3 << 8)  # V_SHORT << 8: a stub ended with a tail (const() takes no imported name)
+# jig.capture's indices, record types and verdicts, folded here (const() takes no
+# imported name, and a module attribute is a dictionary look-up per use; a host test
+# checks they agree)
+_CH_DRV_IN = const(2)
+_CH_DRV_OUT = const(3)
+_CH_PC_IN = const(0)
+_CH_PC_OUT = const(1)
+_CS_HEAD = const(1)
+_CS_NEXT = const(15)
+_CS_ON = const(0)
+_CS_START = const(8)
+_CS_T_IN = const(14)
+_CS_TAIL = const(2)
+_QUIET_US = const(2000)
+_T_DRV_PASSED = const(6)
+_T_PC_PASSED = const(4)
+_V_BAD_CRC = const(1)
+_V_BAD_STUFFING = const(2)
+_V_OVERLONG = const(4)
+_V_RESYNC = const(6)
+_V_SHORT = const(3)
+_V_TIMEOUT = const(5)
+_SHORT_STUB = const(3 << 8)  # _V_SHORT << 8: a stub ended with a tail (const() takes no imported name)
 
 
 def drop_tick(st, now):
@@ -190,16 +209,16 @@ def drop_verdict(st):
     """The capture verdict of the frame parser st just dropped (EV_DROP)."""
     why = st[S_WHY]
     if why == _WHY_TIMEOUT:
-        return V_TIMEOUT
+        return _V_TIMEOUT
     if why == A_END:
-        return V_SHORT if st[S_DROP_N] < MIN_BODY else V_BAD_CRC
+        return _V_SHORT if st[S_DROP_N] < MIN_BODY else _V_BAD_CRC
     if why == A_STORE:
-        return V_OVERLONG
+        return _V_OVERLONG
     if why == A_RESYNC:
-        return V_RESYNC
+        return _V_RESYNC
     if why == A_STUFF_ERROR:
-        return V_BAD_STUFFING
-    return V_BAD_CRC
+        return _V_BAD_STUFFING
+    return _V_BAD_CRC
 
 
 class Bridge:
@@ -241,7 +260,7 @@ class Bridge:
         self.fwd_part = down.raw_part if down.tx_blocks and not down.track_echo else down.part
         self.rel_part = up.raw_part if up.tx_blocks and not up.track_echo else up.part
         # The recording of both buses (jig.capture): a record per frame received or
-        # sent while cs[CS_ON]; cs[CS_START + channel] is where a frame's first byte was.
+        # sent while cs[_CS_ON]; cs[_CS_START + channel] is where a frame's first byte was.
         if capture is None:
             from jig.capture import Capture
 
@@ -258,9 +277,9 @@ class Bridge:
         self.cap_put(self.cs, self.cap_ring, kind, body, n, self._ticks() if t_end < 0 else t_end)
 
     def _record_passed(self, kind, body, n, t_in):
-        """The record of a frame cut through (kind: T_PC_PASSED or T_DRV_PASSED | verdict
+        """The record of a frame cut through (kind: _T_PC_PASSED or _T_DRV_PASSED | verdict
         << 8): it ended at tick t_in on its own bus, and now on the other."""
-        self.cs[CS_T_IN] = t_in
+        self.cs[_CS_T_IN] = t_in
         self.cap_put(self.cs, self.cap_ring, kind, body, n, self._ticks())
 
     # --- what other parts of the jig read ------------------------------------------
@@ -271,18 +290,11 @@ class Bridge:
     def stream_window(self, now):
         """True when a stall of the main loop costs nothing (jig.capture streams then):
         a forwarded request awaits its reply and nothing is being passed on, or the PC
-        has sent no frame for QUIET_US."""
+        has sent no frame for _QUIET_US."""
         bs = self.bs
         if bs[B_STATE] == AWAIT_PC and not bs[B_FWD] and not bs[B_REL]:
             return True
-        return ticks_diff(now, bs[B_T_PC]) > QUIET_US
-
-    def _ask_window(self, now):
-        """A forwarded request has gone: the drive is thinking. If records wait, run
-        the slow pass now, in that window (at most every STREAM_US)."""
-        cs = self.cs
-        if cs[CS_HEAD] != cs[CS_TAIL] and (now - cs[CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
-            self.due[0] = now
+        return ticks_diff(now, bs[B_T_PC]) > _QUIET_US
 
     def busy(self):
         bs = self.bs
@@ -338,12 +350,12 @@ class Bridge:
         request is out, the driver bus is its: wait for the id then."""
         bs = self.bs
         cs = self.cs
-        cs[CS_START + CH_PC_IN] = now
+        cs[_CS_START + _CH_PC_IN] = now
         if bs[B_REL]:  # the PC talks over a reply in progress: stop relaying
             self._end_relay(True)
         if bs[B_STATE] == AWAIT_INT:
             return
-        cs[CS_START + CH_DRV_OUT] = now
+        cs[_CS_START + _CH_DRV_OUT] = now
         self.down.begin(self.hdr, 0, 2)
         bs[B_FWD] = 1
         bs[B_ROUTED] = 0
@@ -363,8 +375,8 @@ class Bridge:
                 bs[B_FWD] = 0
                 self.fwd_part(self.tail, 0, 2)
                 self.down.finish()
-                if self.cs[CS_ON]:
-                    self._record(CH_DRV_OUT | _SHORT_STUB, body, 1)
+                if self.cs[_CS_ON]:
+                    self._record(_CH_DRV_OUT | _SHORT_STUB, body, 1)
             return  # answered when complete
         if not bs[B_FWD]:
             # Not passed on from its header (the jig's own request was out, or the
@@ -375,7 +387,7 @@ class Bridge:
             if slave == _STUFF:
                 hdr[3] = slave
                 k = 4
-            self.cs[CS_START + CH_DRV_OUT] = now
+            self.cs[_CS_START + _CH_DRV_OUT] = now
             self.down.begin(hdr, 0, k)
             bs[B_FWD] = 1
             self._watch_line(now)
@@ -396,15 +408,15 @@ class Bridge:
         """A PC frame ended without being good (recorded); cut through, the copy being
         passed on ends with it."""
         bs = self.bs
-        rec = self.cs[CS_ON]
+        rec = self.cs[_CS_ON]
         if not bs[B_FWD]:
             if rec:
-                self._record(CH_PC_IN | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
+                self._record(_CH_PC_IN | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
             return
         bs[B_FWD] = 0
         self.down.finish()
         if rec:
-            self._record_passed(T_PC_PASSED | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
+            self._record_passed(_T_PC_PASSED | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
         if not bs[B_ROUTED]:
             return  # it broke off before its id: no driver was asked anything
         v = self.v
@@ -431,19 +443,21 @@ class Bridge:
         bs[B_T_PC] = t_in
         bs[B_PC_FRAMES] += 1
         body = p.body
-        rec = self.cs[CS_ON]
+        rec = self.cs[_CS_ON]
         if bs[B_FWD]:
             # Cut through: the tail has gone out with the raw bytes.
             bs[B_FWD] = 0
             self.down.finish()
             if rec:
-                self._record_passed(T_PC_PASSED, body, p.st[S_N], t_in)
+                self._record_passed(_T_PC_PASSED, body, p.st[S_N], t_in)
             if bs[B_STATE] == AWAIT_PC:
                 self._pend_pc(body, p.st[S_N])
-                self._ask_window(t_in)
+                cs = self.cs
+                if cs[_CS_HEAD] != cs[_CS_TAIL] and (t_in - cs[_CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
+                    self.due[0] = t_in  # records wait, the drive thinks: the slow pass streams now
             return
         if rec:
-            self._record(CH_PC_IN, body, p.st[S_N], t_in)
+            self._record(_CH_PC_IN, body, p.st[S_N], t_in)
         slave = body[0]
         if slave == self.ram[P_SLAVE_ID]:
             ev = E_PC_LOCAL
@@ -462,7 +476,9 @@ class Bridge:
             if flags & F_FORWARD:
                 v[C_FORWARDS] += 1
                 self._pend_pc(body, p.st[S_N])
-                self._ask_window(t_in)
+                cs = self.cs
+                if cs[_CS_HEAD] != cs[_CS_TAIL] and (t_in - cs[_CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
+                    self.due[0] = t_in  # records wait, the drive thinks: the slow pass streams now
             else:
                 v[C_BROADCASTS] += 1
 
@@ -473,9 +489,9 @@ class Bridge:
         n = frame.stuff_into(self.txbuf, body, blen)
         rs.send(self.txbuf, n)
         self._turnaround(ticks_diff(rs.t_tx_start, t_in))
-        if self.cs[CS_ON]:
-            ch = CH_DRV_OUT if rs is self.down else CH_PC_OUT
-            self.cs[CS_START + ch] = rs.t_tx_start
+        if self.cs[_CS_ON]:
+            ch = _CH_DRV_OUT if rs is self.down else _CH_PC_OUT
+            self.cs[_CS_START + ch] = rs.t_tx_start
             self._record(ch, body, blen)
 
     def _pend_pc(self, body, n):
@@ -559,9 +575,9 @@ class Bridge:
         blen = frame.build_body(self.body, slave, ftype, data, 0, n, sync)
         m = frame.stuff_into(self.txbuf, self.body, blen)
         self.down.send(self.txbuf, m)
-        if self.cs[CS_ON]:
-            self.cs[CS_START + CH_DRV_OUT] = self.down.t_tx_start
-            self._record(CH_DRV_OUT, self.body, blen)
+        if self.cs[_CS_ON]:
+            self.cs[_CS_START + _CH_DRV_OUT] = self.down.t_tx_start
+            self._record(_CH_DRV_OUT, self.body, blen)
         v = self.v
         v[C_INT_REQUESTS] += 1
         v[C_DOWN_OUT] += 1
@@ -601,18 +617,18 @@ class Bridge:
         """A driver frame ended without being good (recorded); cut through, the copy
         being relayed ends with it."""
         bs = self.bs
-        rec = self.cs[CS_ON]
+        rec = self.cs[_CS_ON]
         if bs[B_REL]:
             checked = bs[B_CHECKED]
             self._end_relay(False)
             if rec:
-                self._record_passed(T_DRV_PASSED | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
+                self._record_passed(_T_DRV_PASSED | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
             if checked:
                 self.v[C_RELAY_CORRUPT] += 1
                 self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
             # (else it broke off before its first two bytes: not the answer, still awaited)
         elif rec:
-            self._record(CH_DRV_IN | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
+            self._record(_CH_DRV_IN | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
 
     def gap(self, p, from_pc, now):
         """Slow pass: let parser p judge the silence up to now. True if it dropped a
@@ -643,10 +659,10 @@ class Bridge:
         it goes on to the PC at once; its first two bytes confirm it (``_down_head``)."""
         bs = self.bs
         cs = self.cs
-        cs[CS_START + CH_DRV_IN] = now
+        cs[_CS_START + _CH_DRV_IN] = now
         if bs[B_STATE] != AWAIT_PC or bs[B_FWD]:
             return
-        cs[CS_START + CH_PC_OUT] = now
+        cs[_CS_START + _CH_PC_OUT] = now
         self.up.begin(self.hdr, 0, 2)
         bs[B_REL] = 1
         bs[B_CHECKED] = 0
@@ -665,8 +681,8 @@ class Bridge:
             if relaying:
                 self.rel_part(self.tail, 0, 2)
                 self._end_relay(False)
-                if self.cs[CS_ON]:
-                    self._record(CH_PC_OUT | _SHORT_STUB, body, 2)
+                if self.cs[_CS_ON]:
+                    self._record(_CH_PC_OUT | _SHORT_STUB, body, 2)
             return
         if relaying:
             bs[B_CHECKED] = 1
@@ -681,7 +697,7 @@ class Bridge:
         if b1 == _STUFF:
             hdr[4] = b1
             k = 5
-        self.cs[CS_START + CH_PC_OUT] = now
+        self.cs[_CS_START + _CH_PC_OUT] = now
         self.up.begin(hdr, 0, k)
         bs[B_REL] = 1
         bs[B_CHECKED] = 1
@@ -693,9 +709,9 @@ class Bridge:
         bs = self.bs
         bs[B_REL] = 0
         self.up.finish()
-        if count_abort and self.cs[CS_ON] and self.down_p is not None:
+        if count_abort and self.cs[_CS_ON] and self.down_p is not None:
             p = self.down_p
-            self._record(CH_PC_OUT | V_TIMEOUT << 8, p.body, p.st[S_N])
+            self._record(_CH_PC_OUT | _V_TIMEOUT << 8, p.body, p.st[S_N])
         if count_abort and bs[B_CHECKED]:
             self.v[C_ABORTS] += 1
             self._event(E_CUT_SHORT)
@@ -705,12 +721,12 @@ class Bridge:
         v[C_DOWN_IN] += 1
         body = p.body
         bs = self.bs
-        rec = self.cs[CS_ON]
+        rec = self.cs[_CS_ON]
         if bs[B_REL]:
             # Relayed as it came: the tail has gone with the raw bytes.
             self._end_relay(False)
             if rec:
-                self._record_passed(T_DRV_PASSED, body, p.st[S_N], t_in)
+                self._record_passed(_T_DRV_PASSED, body, p.st[S_N], t_in)
             self._event(E_REPLY)
             if body[0] < SEEN_IDS:
                 bs[B_SEEN] |= 1 << body[0]
@@ -718,7 +734,7 @@ class Bridge:
             v[C_UP_OUT] += 1
             return
         if rec:
-            self._record(CH_DRV_IN, body, p.st[S_N], t_in)
+            self._record(_CH_DRV_IN, body, p.st[S_N], t_in)
         match = bs[B_STATE] != IDLE and p.st[S_N] >= 5 and self._matches(body)
         if match and self.cut_through and self.client is None:
             match = False  # cut through, a reply to the PC is relayed from its head or not at all

@@ -265,15 +265,16 @@ class Capture:
         return 20 + len(name)
 
     # --- the slow pass ----------------------------------------------------------------
-    def slow(self, now, window=True):
+    def slow(self, now, bridge=None):
         """Commands from the host, noise and clock records, and as much of the ring as
         the port takes. Returns 0 if the ring still holds bytes the port is taking
         (the app comes back sooner), else -1.
 
-        The records go out in a *window* (``window``), when a stall of the main loop
-        costs the bridge nothing: a forwarded request waits for its reply (the drive
-        is thinking: the bridge asks for a slow pass then, ``CS_NEXT``), or the PC
-        bus has been silent for QUIET_US. A ring half full goes out anyway."""
+        The records go out in a *window* (``bridge.stream_window``; always without a
+        bridge), when a stall of the main loop costs the bridge nothing: a forwarded
+        request waits for its reply (the drive is thinking: the bridge asks for a slow
+        pass then, ``CS_NEXT``), or the PC bus has been silent for QUIET_US. A ring
+        half full goes out anyway."""
         port = self.port
         if port is not None and port.any():
             self._command(now)
@@ -294,7 +295,8 @@ class Capture:
                 cs[CS_T_LAST] = now  # (a full ring is no news: the next lost record says it)
         if port is None or cs[CS_HEAD] == cs[CS_TAIL]:
             return -1
-        if not window and ((cs[CS_HEAD] - cs[CS_TAIL]) & cs[CS_MASK]) < (cs[CS_MASK] >> 1):
+        if (bridge is not None and ((cs[CS_HEAD] - cs[CS_TAIL]) & cs[CS_MASK]) < (cs[CS_MASK] >> 1)
+                and not bridge.stream_window(now)):
             return -1  # the next window, or the next slow pass
         cs[CS_NEXT] = (now + STREAM_US) & _TICKS_MASK
         return 0 if self._stream() else -1
