@@ -484,3 +484,20 @@ def test_the_hello_says_how_the_jig_runs_not_what_takes_effect_at_the_next_boot(
     b.run_for(20000)
     hellos = [r[2] for r in parse(port.got) if r[0] == "hello"]
     assert len(hellos) == 1 and struct.unpack_from("<I", hellos[0], 12)[0] == 2500
+
+
+def test_the_jigs_counters_report_records_written_and_lost_and_reset_with_the_others():
+    b = bench()
+    cap = b.app.capture
+    cap.port = HostEnd(room=0)
+    req = frame.encode(2, frame.GET_COMMAND_POS)
+    while cap.cs[C.CS_LOST] == 0:
+        b.transact(req)
+    b.transact(req)
+    c = b.counters  # (ReadCounters' layout: jig.diag.WIRE_NAMES)
+    assert c["capture_records"] == cap.cs[C.CS_TOTAL] > 100 and c["capture_lost"] == cap.cs[C.CS_LOST_TOTAL] >= 2
+    b.transact(frame.encode(1, 0xF1))  # ResetCounters
+    b.transact(req)
+    c = b.counters
+    # the ring is still full: ResetCounters' own reply (recorded after the reset) and both records of req dropped
+    assert c["capture_records"] == 0 and c["capture_lost"] == 3

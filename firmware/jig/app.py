@@ -133,6 +133,7 @@ class App:
         self.base_echo = 0
         self.base_up_ovf = hal.up.overflows
         self.base_down_ovf = hal.down.overflows
+        self.base_cap = array("i", [0, 0])  # the capture totals at the last counter reset
         self.beat = False
         # The hot path in machine code: cut-through between two plain ports.
         fast = _fastpath_module(fastpath) if cut and self.up.plain and self.down.plain else None
@@ -177,6 +178,9 @@ class App:
         v[K.C_ECHO] = self.up.echo_bytes + self.down.echo_bytes - self.base_echo
         v[K.C_UP_OVERFLOWS] = self.hal.up.overflows - self.base_up_ovf
         v[K.C_DOWN_OVERFLOWS] = self.hal.down.overflows - self.base_down_ovf
+        cs = self.capture.cs
+        v[K.C_CAPTURE_RECORDS] = cs[12] - self.base_cap[0]  # (CS_TOTAL, CS_LOST_TOTAL: since boot)
+        v[K.C_CAPTURE_LOST] = cs[13] - self.base_cap[1]
 
     def counter_values(self, out):
         """All counters in diag.WIRE_NAMES order into out (a list); returns out."""
@@ -202,6 +206,8 @@ class App:
         self.base_echo = self.up.echo_bytes + self.down.echo_bytes
         self.base_up_ovf = self.hal.up.overflows
         self.base_down_ovf = self.hal.down.overflows
+        self.base_cap[0] = self.capture.cs[12]
+        self.base_cap[1] = self.capture.cs[13]
 
     # --- main loop -----------------------------------------------------------------
     def poll(self):

@@ -49,6 +49,8 @@ NAMES = (
     "cut_truncated",  # cut-through: PC went silent mid-frame; the transmission was ended
     "relay_corrupt",  # cut-through: replies relayed to the PC that turned out bad
     "unawaited",  # forwards that ended before their frame type was known: no reply awaited
+    "capture_records",  # records of both buses written into the capture ring (parameter 13)
+    "capture_lost",  # records the capture ring had no room for
 )
 
 C_UP_IN = const(0)
@@ -81,12 +83,14 @@ C_CUT_CORRUPT = const(26)
 C_CUT_TRUNCATED = const(27)
 C_RELAY_CORRUPT = const(28)
 C_UNAWAITED = const(29)
-COUNT = const(30)
+C_CAPTURE_RECORDS = const(30)
+C_CAPTURE_LOST = const(31)
+COUNT = const(32)
 # Kept in the same array after the wire counters, never sent: the turnaround average
 # is _TA_SUM / (C_TA_COUNT - _TA_BASE) (the sum restarts before it leaves a small int).
-_TA_SUM = const(30)
-_TA_BASE = const(31)
-_SLOTS = const(32)
+_TA_SUM = const(32)
+_TA_BASE = const(33)
+_SLOTS = const(34)
 
 
 class Counters:

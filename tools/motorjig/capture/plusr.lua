@@ -624,6 +624,8 @@ G.COUNTER_NAMES = {
   "cut_truncated",
   "relay_corrupt",
   "unawaited",
+  "capture_records",
+  "capture_lost",
   "up_good",
   "up_noise",
   "up_stuff_errors",
