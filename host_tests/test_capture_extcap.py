@@ -35,11 +35,12 @@ def test_interfaces_dlts_and_config(capsys):
 @pytest.mark.parametrize("args, text", [
     (["--extcap-interface", "other", "--extcap-dlts"], "unknown interface 'other'"),
     (["--extcap-interface", "motorjig-sniff", "--capture", "--port", "loop://"], "no --fifo"),
-    (["--extcap-interface", "motorjig-sniff", "--capture", "--fifo", "/tmp/x"], "no port given"),
-    (["--capture", "--fifo", "/tmp/x", "--port", "/dev/no-such-adapter"], "cannot open /dev/no-such-adapter"),
+    (["--extcap-interface", "motorjig-sniff", "--capture", "--fifo", "FIFO"], "no port given"),
+    (["--capture", "--fifo", "FIFO", "--port", "/dev/no-such-adapter"], "cannot open /dev/no-such-adapter"),
     ([], "nothing to do"),
 ])
-def test_failures_say_why(args, text, capsys):
+def test_failures_say_why(args, text, capsys, tmp_path):
+    args = [str(tmp_path / "fifo") if a == "FIFO" else a for a in args]
     assert extcap.main(args) == 1
     err = capsys.readouterr().err
     assert err.startswith("motorjig-sniff: ") and text in err and len(err.strip().splitlines()) == 1

@@ -501,3 +501,17 @@ def test_the_jigs_counters_report_records_written_and_lost_and_reset_with_the_ot
     c = b.counters
     # the ring is still full: ResetCounters' own reply (recorded after the reset) and both records of req dropped
     assert c["capture_records"] == 0 and c["capture_lost"] == 3
+
+
+def test_a_pc_silent_for_longer_than_half_a_tick_period_is_still_a_quiet_bus():
+    from jig import bridge as B
+
+    b = bench()
+    br = b.app.bridge
+    now = b.hal.ticks_us()
+    br.bs[B.B_T_PC] = (now - 1000) & 0x3FFFFFFF
+    assert not br.stream_window(now)  # the PC just talked
+    br.bs[B.B_T_PC] = (now - 3000) & 0x3FFFFFFF
+    assert br.stream_window(now)
+    br.bs[B.B_T_PC] = (now - 0x20000000 - 5000) & 0x3FFFFFFF  # 9 minutes ago: ticks_diff comes out negative
+    assert br.stream_window(now)

@@ -16,7 +16,7 @@ import time
 
 import pytest
 
-from test_capture_jig_support import BenchCapture, JigServer, frame, read_all, scenario
+from test_capture_jig_support import BenchCapture, JigServer, frame, hello, read_all, scenario
 from test_capture_support import JIGCTL, jigctl, needs_tshark, parse_pcapng, run_tshark
 
 from jig import capture as C
@@ -301,12 +301,13 @@ def test_extcap_lists_and_configures_the_jig_interface(capsys):
 
 @pytest.mark.parametrize("argv, text", [
     (["--extcap-interface", "motorjig-jig", "--capture", "--port", "loop://"], "no --fifo"),
-    (["--extcap-interface", "motorjig-jig", "--capture", "--fifo", "/tmp/x"], "no port given"),
-    (["--extcap-interface", "motorjig-jig", "--capture", "--fifo", "/tmp/x", "--port", "/dev/no-such-port"],
+    (["--extcap-interface", "motorjig-jig", "--capture", "--fifo", "FIFO"], "no port given"),
+    (["--extcap-interface", "motorjig-jig", "--capture", "--fifo", "FIFO", "--port", "/dev/no-such-port"],
      "cannot open /dev/no-such-port"),
     (["--extcap-interface", "motorjig-sniff", "--extcap-config"], "unknown interface 'motorjig-sniff'"),
 ])
-def test_extcap_failures_say_why(argv, text, capsys):
+def test_extcap_failures_say_why(argv, text, capsys, tmp_path):
+    argv = [str(tmp_path / "fifo") if a == "FIFO" else a for a in argv]
     assert extcap.main(argv, interface="motorjig-jig") == 1
     err = capsys.readouterr().err
     assert err.startswith("motorjig-jig: ") and text in err and len(err.strip().splitlines()) == 1, err
@@ -321,7 +322,8 @@ def test_extcap_refuses_a_port_without_hello(tmp_path, capsys):
         srv.close()
     err = capsys.readouterr().err
     assert code == 1 and "is not a MotorJig capture port" in err and len(err.strip().splitlines()) == 1
-    assert not os.path.exists(str(tmp_path / "f"))  # never opened: Wireshark shows the message
+    # opened first (dumpcap waits in open() for the writer) and closed with nothing in it
+    assert os.path.getsize(str(tmp_path / "f")) == 0
 
 
 @pytest.fixture
@@ -388,3 +390,126 @@ def test_tshark_captures_through_the_jig_extcap(installed, stream, expected):
     assert len(rows) == len(expected)
     assert [r[0] for r in rows] == [("pc", "drivers")[r.bus] for r in expected]
     assert sum(1 for r in rows if r[2]) == 9  # every good reply on both buses has its turnaround
+
+
+@needs_tshark
+def test_tshark_on_a_quiet_jig_ends_with_its_duration(installed):
+    """Only the hello, then silence: the extcap's header reaches tshark at once, so
+    -a duration:3 ends it (before the fix dumpcap waited for the header for ever)."""
+    srv = JigServer(hello())
+    try:
+        t = time.monotonic()
+        res = run_tshark(["-i", "motorjig-jig", "-o", "extcap.motorjig_jig.port:" + srv.url, "-a", "duration:3"],
+                         home=str(installed), lua=False, timeout=30)
+        took = time.monotonic() - t
+        assert _stopped(srv)
+    finally:
+        srv.close()
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "" and took < 20, (res.stdout, res.stderr)
+    assert "0 packets captured" in res.stderr, res.stderr
+
+
+@needs_tshark
+def test_tshark_on_a_refused_port_fails_at_once(installed):
+    """The extcap opens the fifo first and closes it on a failure: tshark ends with the
+    extcap's sentence instead of waiting for a writer that never comes."""
+    t = time.monotonic()
+    res = run_tshark(["-i", "motorjig-jig", "-o", "extcap.motorjig_jig.port:socket://127.0.0.1:1",
+                      "-a", "duration:3"], home=str(installed), lua=False, timeout=40)
+    took = time.monotonic() - t
+    assert res.returncode != 0 and took < 15, (took, res.stderr)
+    assert "cannot open socket://127.0.0.1:1" in res.stderr, res.stderr
+
+
+def test_extcap_with_a_bad_fifo_path_is_one_sentence(capsys):
+    code = extcap.main(["--extcap-interface", "motorjig-jig", "--capture", "--fifo", "/nonexist/f",
+                        "--port", "loop://"])
+    err = capsys.readouterr().err
+    assert code == 1 and err.startswith("motorjig-jig: cannot open /nonexist/f: ") and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_end_it_as_ctrl_c_does(stream, expected, tmp_path, sig):
+    """`timeout 5 jigctl capture ...`, a closed terminal: X to the jig, the whole file
+    (its buffered end too), the summary, exit 0 as for Ctrl-C."""
+    srv = JigServer(stream)
+    out = str(tmp_path / "t.pcapng")
+    proc = subprocess.Popen([JIGCTL, "capture", "--jig", srv.url, "-w", out, "-q"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    try:
+        assert srv.sent_all.wait(20)
+        time.sleep(1.0)  # the command has read it all
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=20)
+        assert _stopped(srv)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        srv.close()
+    assert proc.returncode == 0 and b"Traceback" not in stderr, stderr
+    f = parse_pcapng(open(out, "rb").read())
+    assert [(p["interface"], p["data"]) for p in f["packets"]] == [(r.bus, r.data) for r in expected]
+    assert b"%d records" % len(expected) in stderr, stderr  # the summary
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full")
+def test_a_full_output_is_an_output_error_not_a_port_error(stream, expected):
+    srv = JigServer(stream)
+    try:
+        res = jigctl("capture", "--jig", srv.url, "-w", "/dev/full", "-q", "--count", str(len(expected)),
+                     "--duration", "30")
+        assert _stopped(srv)
+    finally:
+        srv.close()
+    _no_traceback(res)
+    err = res.stderr.decode().strip().splitlines()
+    assert res.returncode == 3, err
+    assert err[-1] == "jigctl: writing /dev/full failed: No space left on device.", err
+    assert "port error" not in res.stderr.decode()
+    assert len(err) == 2 and " records (" in err[0], err  # the summary (up to the failed write), then the error
+
+
+def test_a_stream_error_still_prints_the_summary(stream, tmp_path):
+    broken = stream[:600] + b"\x13\x37" * 20 + stream[600:]
+    srv = JigServer(broken)
+    try:
+        res = jigctl("capture", "--jig", srv.url, "-q", "--duration", "30")
+        assert _stopped(srv)
+    finally:
+        srv.close()
+    err = res.stderr.decode().strip().splitlines()
+    assert res.returncode == 3 and len(err) == 2, err
+    assert " records (" in err[0] and err[1].startswith("jigctl: the stream from "), err
+
+
+@pytest.mark.parametrize("args, text", [
+    (["--max-size", "inf", "-w", "x.pcapng"], "'inf' is not a size"),
+    (["--max-size", "1e400", "-w", "x.pcapng"], "'1e400' is not a size"),
+    (["--max-size", "nan", "-w", "x.pcapng"], "'nan' is not a size"),
+    (["--duration", "nan"], "--duration must be a finite number of seconds"),
+    (["--duration", "inf"], "--duration must be a finite number of seconds"),
+    (["--interbyte-timeout", "nan"], "--interbyte-timeout must be a finite number of ms"),
+])
+def test_non_finite_numbers_are_refused(args, text, tmp_path):
+    args = [str(tmp_path / a) if a == "x.pcapng" else a for a in args]
+    base = ["--sniff", "loop://"] if "--interbyte-timeout" in args else ["--jig", "loop://"]
+    _one_sentence(jigctl("capture", *(base + args)), 2, text)
+
+
+def test_ctrl_c_before_the_hello_says_so():
+    srv = JigServer(b"", answer=False)  # never answers: the command waits for the hello
+    proc = subprocess.Popen([JIGCTL, "capture", "--jig", srv.url], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 20
+        while b"S" not in bytes(srv.commands) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        srv.close()
+    assert proc.returncode == 0 and b"Traceback" not in stderr, stderr
+    assert stderr.decode().strip() == "jigctl: stopped before the jig answered.", stderr

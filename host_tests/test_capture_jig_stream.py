@@ -293,3 +293,59 @@ def test_the_ring_fills_and_the_firmware_reports_what_it_lost():
     assert len(reports) == 1 and reports[0].count == js.lost >= lost_in_ring
     assert recs[-5].verdict == R.LOST  # before the four Records of the last round trip
     assert reports[0].t_first_us <= reports[0].t_us
+
+
+# --- long silences: the host's arrival time picks the wrap count ---------------------------
+S = 1000000  # µs per second
+
+
+def test_a_gap_past_half_a_period_keeps_the_timeline_going_forward():
+    """The reader stalled, the ring filled: the next record (a lost one) comes 600 s
+    after the hello, more than half the tick period: the host's arrival time says
+    which period it is in (not 473.7 s before the hello)."""
+    js = J.JigStream()
+    js.feed(hello(1000), EPOCH_US)
+    recs = js.feed(lost(7, 1000 + 2 * S, 1000 + 600 * S) + frame(C.CH_PC_IN, REQ, 1000 + 600 * S + 100,
+                                                                    1000 + 600 * S + 600),
+                   EPOCH_US + 600 * S + 5000)
+    assert [r.t_us - EPOCH_US for r in recs] == [600 * S, 600 * S + 600]
+    assert recs[0].t_first_us - EPOCH_US == 2 * S and recs[0].count == 7
+    # and on from there, without the host's help
+    recs = js.feed(frame(C.CH_PC_IN, REQ, 1000 + 601 * S, 1000 + 601 * S + 500), EPOCH_US + 600 * S + 5000)
+    assert recs[0].t_us - EPOCH_US == 601 * S + 500
+
+
+def test_a_gap_of_more_than_a_whole_period():
+    """30 minutes without a record (more than one wrap): still forward, to the host's time."""
+    js = J.JigStream()
+    js.feed(hello(0), EPOCH_US)
+    t = 1800 * S
+    recs = js.feed(frame(C.CH_PC_IN, REQ, t, t + 500), EPOCH_US + t + 20000)
+    assert recs[0].t_us - EPOCH_US == t + 500
+
+
+def test_records_that_waited_long_in_the_ring_are_not_moved_a_period_on():
+    """Records 10 minutes old (the ring held them while the reader stalled) stay where
+    the jig's clock puts them, though the host gets them 10 minutes later."""
+    js = J.JigStream()
+    js.feed(hello(0), EPOCH_US)
+    recs = js.feed(frame(C.CH_PC_IN, REQ, 10 * S, 10 * S + 500) + clock(11 * S), EPOCH_US + 610 * S)
+    assert recs[0].t_us - EPOCH_US == 10 * S + 500
+
+
+def test_a_lost_records_first_tick_more_than_half_a_period_old():
+    """The first record lost 590 s before the lost record's end: placed from its end."""
+    js = J.JigStream()
+    js.feed(hello(0), EPOCH_US)
+    js.feed(clock(599 * S), EPOCH_US + 599 * S + 1000)
+    recs = js.feed(lost(3, 10 * S, 600 * S), EPOCH_US + 600 * S + 1000)
+    assert recs[0].t_us - EPOCH_US == 600 * S and recs[0].t_first_us - EPOCH_US == 10 * S
+
+
+def test_a_later_hello_of_another_record_format_is_refused():
+    js = J.JigStream()
+    js.feed(hello(0) + frame(C.CH_PC_IN, REQ, 10, 500), EPOCH_US)
+    with pytest.raises(J.StreamError) as exc:
+        js.feed(hello(1000, version=2) + frame(C.CH_PC_IN, REQ, 1100, 1500), EPOCH_US + 1000)
+    assert "record format 2; this jigctl reads format 1" in str(exc.value)
+    assert exc.value.records == [] and js.hellos == 1

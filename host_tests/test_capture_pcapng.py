@@ -105,3 +105,13 @@ def test_tshark_reads_rotated_files_and_interfaces(tmp_path):
         for name_, desc, _t, kind in rows:
             assert (name_, desc, kind) in (("pc", "PC bus, 115200 baud", "0"), ("drivers", "driver bus, 115200 baud", "1"))
     assert total == 40
+
+
+def test_flush_each_flushes_the_header(tmp_path):
+    """A pipe (-w -, an extcap's fifo) gets the section and interface headers at once,
+    before any packet: a quiet bus must not leave the reader waiting for them."""
+    path = str(tmp_path / "h.pcapng")
+    with open(path, "wb") as f:  # buffered: nothing reaches the file unless flushed
+        w = pcapng.Writer(f, [R.make_bus("pc", 115200, "x"), R.make_bus("drivers", 115200, "x")], flush_each=True)
+        got = parse_pcapng(open(path, "rb").read())
+        assert len(got["interfaces"]) == 2 and got["packets"] == [] and os.path.getsize(path) == w.size

@@ -294,7 +294,8 @@ class Bridge:
         bs = self.bs
         if bs[B_STATE] == AWAIT_PC and not bs[B_FWD] and not bs[B_REL]:
             return True
-        return ticks_diff(now, bs[B_T_PC]) > _QUIET_US
+        d = ticks_diff(now, bs[B_T_PC])
+        return d > _QUIET_US or d < 0  # (negative: the last PC frame is over half a tick period old)
 
     def busy(self):
         bs = self.bs

@@ -15,8 +15,11 @@ standard output (standard error when that carries the pcapng; ``-q`` switches it
 off); ``--json`` prints it as JSON lines.
 """
 
+import contextlib
 import json
+import math
 import os
+import signal
 import sys
 
 from motorjig.capture import install, pcapng
@@ -25,6 +28,7 @@ from motorjig.capture.jigport import HELLO_WAIT_S, JigCapture
 from motorjig.capture.sniff import DEFAULT_INTERBYTE_MS, Sniffer, open_port
 from motorjig.capture.textview import TextView
 from motorjig.commands import EXIT_OK, UsageError
+from motorjig.errors import JigError, PortError
 
 _UNITS = {"": 1, "k": 1000, "m": 1000 ** 2, "g": 1000 ** 3}
 
@@ -36,7 +40,9 @@ def size(text):
     try:
         value = float(t[:-1] if unit else t) * _UNITS[unit]
     except ValueError:
-        raise UsageError("%r is not a size (give bytes, or a number with k, M or G)" % text) from None
+        value = math.nan
+    if not math.isfinite(value):
+        raise UsageError("%r is not a size (give bytes, or a number with k, M or G)" % text)
     if value < 1024:
         raise UsageError("--max-size must be at least 1024 bytes, not %r" % text)
     return int(value)
@@ -56,7 +62,9 @@ def add_capture_arguments(sp):
     src.add_argument("--interbyte-timeout", type=float, default=None, metavar="MS",
                      help="with --sniff: silence inside a frame that drops it, in ms (default %g: longer than a USB "
                           "adapter's usual hold-back; the jig itself uses 5)" % DEFAULT_INTERBYTE_MS)
-    src.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: Ctrl-C)")
+    src.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: Ctrl-C, SIGTERM or SIGHUP, which end it "
+                          "alike: X to the jig, the file closed, the summary; with --jig before the hello: "
+                          "'stopped before the jig answered', exit 0)")
     src.add_argument("--count", type=int, metavar="N",
                      help="stop after N records (frames, fragments, noise; with --jig also lost-records reports)")
     out = sp.add_argument_group("output")
@@ -123,8 +131,12 @@ def _check(args):
             raise UsageError("--files needs --max-size")
         if args.files < 1:
             raise UsageError("--files must be at least 1, not %d" % args.files)
+    if not math.isfinite(args.interbyte_timeout):
+        raise UsageError("--interbyte-timeout must be a finite number of ms, not %r" % args.interbyte_timeout)
     if args.interbyte_timeout <= 0:
         raise UsageError("--interbyte-timeout must be more than 0 ms")
+    if args.duration is not None and not math.isfinite(args.duration):
+        raise UsageError("--duration must be a finite number of seconds, not %r" % args.duration)
     if args.duration is not None and args.duration < 0:
         raise UsageError("--duration cannot be negative")
     if args.count is not None and args.count < 1:
@@ -168,7 +180,15 @@ class _Sinks:
         self.counts = {}
         self.view = TextView(buses, forced)
         self.shown = None if args.quiet else (sys.stderr if args.write == "-" else sys.stdout)
-        self.sinks = ([writer.write] if writer is not None else []) + [self.show]
+        self.sinks = ([self.write] if writer is not None else []) + [self.show]
+
+    def write(self, rec):
+        try:
+            self.writer.write(rec)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise OutputError(_output_name(self.args, self.writer), exc) from None
 
     def show(self, rec):
         name = R.verdict_name(rec.verdict)
@@ -184,12 +204,66 @@ class _Sinks:
                 ", pcapng to %s" % ("standard output" if self.args.write == "-" else self.args.write))))
 
 
-def _close_writer(args, writer):
-    if writer is not None:
+class OutputError(PortError):
+    """Writing the pcapng failed (a full disk, an I/O error): not the port's fault."""
+
+    def __init__(self, name, exc):
+        super().__init__("writing %s failed: %s" % (name, exc.strerror or exc))
+
+
+def _output_name(args, writer):
+    if args.write == "-":
+        return "standard output"
+    if isinstance(writer, pcapng.RotatingWriter):
+        return writer.current
+    return args.write
+
+
+def _close_writer(args, writer, quiet=False):
+    """Flush (-w -) or close the output; a failure is an OutputError unless ``quiet``
+    (the capture already failed, or the reader went away)."""
+    if writer is None:
+        return
+    try:
+        writer.flush() if args.write == "-" else writer.close()
+    except BrokenPipeError:
+        pass
+    except OSError as exc:
+        if isinstance(writer, pcapng.Writer) and args.write != "-":
+            try:  # the buffer could not be written: drop it, or a second close tries again
+                writer.stream.close()
+            except OSError:
+                pass
+        if not quiet:
+            raise OutputError(_output_name(args, writer), exc) from None
+
+
+@contextlib.contextmanager
+def _signals_as_ctrl_c():
+    """SIGTERM (``timeout``, a service manager) and SIGHUP (a closed terminal) end the
+    capture as Ctrl-C does: X to the jig, the file closed, the summary. Once: a second
+    signal during the clean-up is ignored."""
+    state = {"fired": False}
+
+    def handler(signum, frame):
+        if not state["fired"]:
+            state["fired"] = True
+            raise KeyboardInterrupt
+
+    old = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is None:
+            continue
         try:
-            writer.flush() if args.write == "-" else writer.close()
-        except OSError:
+            old[sig] = signal.signal(sig, handler)
+        except (ValueError, OSError):  # not the main thread
             pass
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 def cmd_capture(args):
@@ -203,25 +277,37 @@ def cmd_capture(args):
     port = open_port(args.sniff, args.baud)
     sniffer = Sniffer(port, args.sniff, args.baud, interbyte_timeout_ms=args.interbyte_timeout,
                       ver8=True if forced == 8 else None)
-    writer = None
-    try:
-        writer = _open_writer(args, [bus])
-        out = _Sinks(args, [bus], writer, forced)
-        out.banner("%s (%s) at %d baud" % (args.sniff, bus.name, args.baud))
+    writer = out = failed = None
+    with _signals_as_ctrl_c():
         try:
-            sniffer.run(out.sinks, duration=args.duration, count=args.count)
-        except KeyboardInterrupt:
-            pass
-        try:
-            sniffer.finish(out.sinks)
-        except KeyboardInterrupt:
-            pass
-    except BrokenPipeError:  # the reader of -w - (or of the live view) went away
-        return EXIT_OK
-    finally:
+            writer = _open_writer(args, [bus])
+            out = _Sinks(args, [bus], writer, forced)
+            out.banner("%s (%s) at %d baud" % (args.sniff, bus.name, args.baud))
+            try:
+                sniffer.run(out.sinks, duration=args.duration, count=args.count)
+            except KeyboardInterrupt:
+                pass
+            except JigError as exc:  # the port failed, or the output: the summary first
+                failed = exc
+            try:
+                sniffer.finish(out.sinks)
+            except KeyboardInterrupt:
+                pass
+            except JigError as exc:
+                failed = failed or exc
+        except BrokenPipeError:  # the reader of -w - (or of the live view) went away
+            port.close()
+            _close_writer(args, writer, quiet=True)
+            return EXIT_OK
         port.close()
-        _close_writer(args, writer)
-    _summary(args, sniffer.records, sniffer.bytes, out.counts, writer)
+        try:
+            _close_writer(args, writer, quiet=failed is not None)
+        except OutputError as exc:
+            failed = exc
+    if out is not None:
+        _summary(args, sniffer.records, sniffer.bytes, out.counts, writer)
+    if failed is not None:
+        raise failed
     return EXIT_OK
 
 
@@ -231,27 +317,43 @@ def _capture_jig(args):
     forced = 8 if args.ver8 else 6 if args.ver6 else None
     _check_output(args)
     cap = JigCapture(args.jig)
-    writer = None
-    try:
+    writer = out = failed = None
+    with _signals_as_ctrl_c():
         try:
-            hello = cap.start(HELLO_WAIT_S)
-        except KeyboardInterrupt:
+            try:
+                hello = cap.start(HELLO_WAIT_S)
+            except KeyboardInterrupt:
+                cap.close()
+                sys.stderr.write("jigctl: stopped before the jig answered.\n")
+                return EXIT_OK
+            buses = cap.stream.buses()
+            writer = _open_writer(args, buses, hardware=cap.stream.description())
+            out = _Sinks(args, buses, writer, forced)
+            out.banner("the jig's recording from %s: PC bus %d baud, driver bus %d baud (%s, jig id %d)" % (
+                args.jig, hello["up_baud"], hello["down_baud"], hello["variant"], hello["slave_id"]))
+            try:
+                cap.run(out.sinks, duration=args.duration, count=args.count)
+            except KeyboardInterrupt:
+                pass
+            except JigError as exc:  # the stream, the port or the output failed: the summary first
+                failed = exc
+        except BrokenPipeError:  # the reader of -w - (or of the live view) went away
+            cap.close()
+            _close_writer(args, writer, quiet=True)
             return EXIT_OK
-        buses = cap.stream.buses()
-        writer = _open_writer(args, buses, hardware=cap.stream.description())
-        out = _Sinks(args, buses, writer, forced)
-        out.banner("the jig's recording from %s: PC bus %d baud, driver bus %d baud (%s, jig id %d)" % (
-            args.jig, hello["up_baud"], hello["down_baud"], hello["variant"], hello["slave_id"]))
-        try:
-            cap.run(out.sinks, duration=args.duration, count=args.count)
-        except KeyboardInterrupt:
-            pass
-    except BrokenPipeError:  # the reader of -w - (or of the live view) went away
-        return EXIT_OK
-    finally:
+        except BaseException:
+            cap.close()
+            _close_writer(args, writer, quiet=True)
+            raise
         cap.close()
-        _close_writer(args, writer)
-    _summary(args, cap.records, cap.bytes, out.counts, writer, cap.stream)
+        try:
+            _close_writer(args, writer, quiet=failed is not None)
+        except OutputError as exc:
+            failed = exc
+    if out is not None:
+        _summary(args, cap.records, cap.bytes, out.counts, writer, cap.stream)
+    if failed is not None:
+        raise failed
     return EXIT_OK
 
 

@@ -111,59 +111,86 @@ def _reader_alive(stream):
     return lambda: not poller.poll(0)
 
 
+def _open_fifo(args, name):
+    """The fifo, opened before anything else: Wireshark (dumpcap) created it and waits in
+    open() for this writer, so a failure must still open and close it or it waits for
+    minutes. None (and the sentence said) if it cannot be opened."""
+    try:
+        return open(args.fifo, "wb")
+    except OSError as exc:
+        _fail("cannot open %s: %s" % (args.fifo, exc.strerror or exc), name)
+        return None
+
+
+def _stop_on_sigterm(stop):
+    # Wireshark ends a capture with SIGTERM: leave the loop and close the stream.
+    signal.signal(signal.SIGTERM, lambda *_: stop())
+
+
 def capture(args):
+    name = INTERFACE
     if not args.fifo:
         return _fail("no --fifo given")
-    if not args.port:
-        return _fail("no port given: set the interface's Port or URL option")
-    if args.baud not in BAUD_RATES:
-        return _fail("baud rate %d is not one the drives support" % args.baud)
+    fifo = _open_fifo(args, name)
+    if fifo is None:
+        return 1
+    port = None
     try:
+        if not args.port:
+            return _fail("no port given: set the interface's Port or URL option")
+        if args.baud not in BAUD_RATES:
+            return _fail("baud rate %d is not one the drives support" % args.baud)
         port = open_port(args.port, args.baud)
-    except JigError as exc:
-        return _fail(str(exc))
-    sniffer = Sniffer(port, args.port, args.baud, interbyte_timeout_ms=args.interbyte_timeout)
-    # Wireshark ends a capture with SIGTERM: leave the loop and close the stream.
-    signal.signal(signal.SIGTERM, lambda *_: sniffer.stop())
-    bus = R.make_bus(args.bus, args.baud, args.port)
-    try:
-        with open(args.fifo, "wb") as fifo:
-            writer = pcapng.Writer(fifo, [bus], flush_each=True)
-            try:
-                sniffer.run([writer.write], alive=_reader_alive(fifo))
-            finally:
-                sniffer.finish([writer.write])
+        sniffer = Sniffer(port, args.port, args.baud, interbyte_timeout_ms=args.interbyte_timeout)
+        _stop_on_sigterm(sniffer.stop)
+        bus = R.make_bus(args.bus, args.baud, args.port)
+        writer = pcapng.Writer(fifo, [bus], flush_each=True)
+        try:
+            sniffer.run([writer.write], alive=_reader_alive(fifo))
+        finally:
+            sniffer.finish([writer.write])
     except (BrokenPipeError, KeyboardInterrupt):
         pass  # Wireshark closed the fifo, or the user stopped the capture
     except JigError as exc:
-        return _fail(str(exc))
+        return _fail(str(exc), name)
     finally:
-        port.close()
+        if port is not None:
+            port.close()
+        _close_quietly(fifo)
     return 0
+
+
+def _close_quietly(fifo):
+    try:
+        fifo.close()
+    except OSError:  # BrokenPipeError flushing what is left: the reader is gone
+        pass
 
 
 def capture_jig(args):
     name = JIG_INTERFACE
     if not args.fifo:
         return _fail("no --fifo given", name)
-    if not args.port:
-        return _fail("no port given: set the interface's Capture port or URL option", name)
+    fifo = _open_fifo(args, name)
+    if fifo is None:
+        return 1
+    cap = None
     try:
+        if not args.port:
+            return _fail("no port given: set the interface's Capture port or URL option", name)
         cap = JigCapture(args.port)
-    except JigError as exc:
-        return _fail(str(exc), name)
-    signal.signal(signal.SIGTERM, lambda *_: cap.stop())
-    try:
+        _stop_on_sigterm(cap.stop)
         cap.start()
-        with open(args.fifo, "wb") as fifo:
-            writer = pcapng.Writer(fifo, cap.stream.buses(), flush_each=True, hardware=cap.stream.description())
-            cap.run([writer.write], alive=_reader_alive(fifo))
+        writer = pcapng.Writer(fifo, cap.stream.buses(), flush_each=True, hardware=cap.stream.description())
+        cap.run([writer.write], alive=_reader_alive(fifo))
     except (BrokenPipeError, KeyboardInterrupt):
         pass  # Wireshark closed the fifo, or the user stopped the capture
     except JigError as exc:
         return _fail(str(exc), name)
     finally:
-        cap.close()
+        if cap is not None:
+            cap.close()
+        _close_quietly(fifo)
     return 0
 
 

@@ -2,17 +2,22 @@
 
 ``JigCapture(url)`` opens the capture port (the board's second USB CDC port,
 ``/dev/ttyACM1``, or any pyserial URL such as the virtual bench's
-``socket://127.0.0.1:N``); ``start()`` sends ``X`` then ``S`` (the jig empties its
-ring and sends a hello record first; the ``X`` first makes a jig that is already
-recording -- parameter ``capture`` = 1, or a reader that went away without ``X`` --
-start afresh, as an ``S`` alone does not restart a recording) and waits for that
-hello, skipping what an earlier recording left in the pipe, so a port that is not
-the jig's capture port is told within ``HELLO_WAIT_S``; ``run(sinks)`` hands every
-record (``jigstream.JigStream``) to the sinks until a duration or count is
-reached, ``stop()`` is called or ``alive()`` turns false; ``close()`` sends ``X``
-(recording off) and closes the port. Failures are ``PortError``s (one sentence);
-a stream out of step is ``jigstream.StreamError``, a kind of it, raised after
-the records read before the fault went to the sinks.
+``socket://127.0.0.1:N``); ``start()`` sends ``X`` (the jig stops a recording that is
+on -- parameter ``capture`` = 1, or a reader that went away without ``X`` -- as an
+``S`` alone does not restart one), reads and discards what comes until
+``QUIET_S`` of silence (at most ``DRAIN_MAX_S``: what an earlier recording left in
+the pipe, the board's CDC keeping its transmit buffer when its reader goes away,
+old hellos included), then sends ``S`` (the jig empties its ring and sends a hello
+record first) and waits for that hello, so a port that is not the jig's capture
+port is told within ``HELLO_WAIT_S``; a connection the port closes at once is
+another reader attached (one reader at a time). ``run(sinks)`` hands every record
+(``jigstream.JigStream``) to the sinks until a duration or count is reached,
+``stop()`` is called or ``alive()`` turns false, or nothing at all has come for
+``SILENCE_S`` (the jig sends a clock record at least every second while it
+records: it has stopped, ``STOPPED_MSG``); ``close()`` sends ``X`` (recording
+off) and closes the port. Failures are ``PortError``s (one sentence); a stream out
+of step, or a recording the jig ended, is ``jigstream.StreamError``, a kind of it,
+raised after the records read before the fault went to the sinks.
 """
 
 import time
@@ -26,14 +31,19 @@ from motorjig.errors import PortError
 CMD_START = b"S"
 CMD_STOP = b"X"
 CMD_RESTART = CMD_STOP + CMD_START  # the jig reads one command per slow pass: X, then S
+QUIET_S = 0.05  # after X: this long without bytes, the old stream has all come
+DRAIN_MAX_S = 1.0  # ... but no longer than this (a port that never stops talking)
+SILENCE_S = 3.0  # while recording: this long without a byte, the jig has stopped
+STOPPED_MSG = "the jig stopped recording (parameter 13 capture = 0, or a reset)"
 HELLO_WAIT_S = 2.0  # the jig answers S within a slow pass (10 ms); USB and the OS add a little
 
 
 class JigCapture:
     """One recording from the jig's capture port (see the module docstring)."""
 
-    def __init__(self, url, clock=None, port=None):
+    def __init__(self, url, clock=None, port=None, monotonic=time.monotonic):
         self.url = url
+        self._monotonic = monotonic
         self.port = port if port is not None else open_port(url, 115200)  # (a CDC port has no baud)
         self.stream = JigStream(url, clock, strict_start=False)
         self.records = 0
@@ -48,14 +58,17 @@ class JigCapture:
     def stop(self):
         self._stop = True
 
-    def _write(self, data):
+    def _write(self, data, starting=False):
         try:
             self.port.write(data)
             self.port.flush()
         except (serial.SerialException, OSError) as exc:
+            if starting and self._closed_at_once(exc):
+                raise PortError("%s closed the connection at once: another reader is attached "
+                                "(one reader at a time)" % self.url) from None
             raise PortError("writing to %s failed: %s" % (self.url, exc)) from None
 
-    def _read(self):
+    def _read(self, starting=False):
         try:
             data = self.port.read(1)
             if data:
@@ -64,23 +77,51 @@ class JigCapture:
                     data += self.port.read(n)
             return data
         except (serial.SerialException, OSError) as exc:
+            if starting and self._closed_at_once(exc):
+                raise PortError("%s closed the connection at once: another reader is attached "
+                                "(one reader at a time)" % self.url) from None
             raise PortError("reading from %s failed: %s" % (self.url, exc)) from None
 
+    @staticmethod
+    def _closed_at_once(exc):
+        """True if a read failed as a connection the other end closed (EOF, reset)."""
+        if isinstance(exc, (ConnectionResetError, ConnectionAbortedError, BrokenPipeError)):
+            return True
+        text = str(exc).lower()
+        return "disconnected" in text or "reset by peer" in text or "broken pipe" in text
+
+    def _drain(self, quiet=QUIET_S, limit=DRAIN_MAX_S):
+        """Read and discard until quiet seconds without bytes (at most limit seconds)."""
+        now = self._monotonic()
+        end = now + limit
+        last = now
+        while now < end and now - last < quiet:
+            if self._read(starting=True):
+                last = self._monotonic()
+            now = self._monotonic()
+
     def start(self, wait=HELLO_WAIT_S):
-        """Recording on afresh (X, S) and its hello read; returns the hello (a dict)."""
+        """Recording on afresh (X, what comes discarded, S) and its hello read; returns
+        the hello (a dict)."""
         try:
             self.port.reset_input_buffer()  # what an earlier recording left
         except (serial.SerialException, OSError, AttributeError):
             pass
-        self._write(CMD_RESTART)
+        self._write(CMD_STOP, starting=True)
         self._started = True
-        end = time.monotonic() + wait
+        self._drain()  # the rest of an earlier recording, in the port's buffers
+        self._write(CMD_START, starting=True)
+        end = self._monotonic() + wait
         while self.stream.hello is None:
-            if time.monotonic() >= end:
+            if self._monotonic() >= end:
                 got = self.stream.bytes
-                raise PortError("%s is not a MotorJig capture port: no hello record in %g s (%s)" % (
-                    self.url, wait, "%d bytes of something else came" % got if got else "nothing came"))
-            data = self._read()
+                if got:
+                    why = "(%d bytes of something else came)" % got
+                else:
+                    why = "(nothing came), or another program is reading it"
+                raise PortError("%s is not a MotorJig capture port: no hello record in %g s %s" % (
+                    self.url, wait, why))
+            data = self._read(starting=True)
             if data:
                 self._pending += self.stream.feed(data, self.stream.clock.now_us())
         return self.stream.hello
@@ -94,17 +135,23 @@ class JigCapture:
     def run(self, sinks, duration=None, count=None, alive=None):
         """Records to the sinks (callables taking a Record) until duration seconds,
         count records, stop(), ``alive()`` false (checked at every read) or a failure."""
-        end = None if duration is None else time.monotonic() + duration
+        now = self._monotonic()
+        end = None if duration is None else now + duration
+        last = now  # when a byte last came
         pending, self._pending = self._pending, []
         self._out(pending[:None if count is None else max(0, count - self.records)], sinks)
         while not self._stop and (alive is None or alive()):
-            if end is not None and time.monotonic() >= end:
+            now = self._monotonic()
+            if end is not None and now >= end:
                 break
             if count is not None and self.records >= count:
                 break
             data = self._read()
             if not data:
+                if self._monotonic() - last > SILENCE_S:
+                    raise StreamError(STOPPED_MSG, (), self.stream.bytes)
                 continue
+            last = self._monotonic()
             try:
                 recs = self.stream.feed(data, self.stream.clock.now_us())
             except StreamError as exc:

@@ -26,10 +26,16 @@ A passed-on frame is one record in the stream and two ``Record``s here, one per
 bus (received, then sent), with the same bytes and verdict.
 
 Times: the hello record's tick is anchored to the host's clock when the chunk
-holding it arrived; every later tick is unwrapped against the last one (a clock
-record comes after a second without records, so no gap reaches half the tick
-period). Relative times are the jig's clock (µs); the absolute time is off by
-the latency of the hello's delivery (about a USB frame) and the two clocks' drift.
+holding it arrived; every later tick is unwrapped against the last one, and the
+host's arrival time of its chunk picks the wrap count: the latest of tick + k *
+2**30 that is not after the arrival by more than ``ARRIVAL_SLACK_US`` (k >= 0:
+never backwards). A clock record comes after a second without records, but not
+while the jig's ring is full (a stalled reader), so a gap may pass half the
+period; a record is placed right while it reaches the host less than a period
+(17.9 minutes) after its tick. A record's first tick is its end less
+(t_end - t_first) mod 2**30. Relative times are the jig's clock (µs); the absolute
+time is off by the latency of the hello's delivery (about a USB frame) and the two
+clocks' drift.
 
 A stream must start with a hello (``strict_start``; ``jigctl capture --jig`` skips
 what an earlier recording left in the port's buffers instead). A stream that
@@ -56,6 +62,9 @@ T_HELLO, T_LOST, T_CLOCK, T_NOISE = 0x10, 0x11, 0x12, 0x20
 HELLO_MIN = 20  # hello data before the name
 TICKS_PERIOD = 1 << 30
 _HALF = TICKS_PERIOD >> 1
+#: how far after the chunk's arrival a record's unwrapped time may be (the hello's
+#: latency and the clocks' drift) before it is taken for one a period earlier
+ARRIVAL_SLACK_US = 5000000
 #: the verdicts a frame record may carry (the jig's parser never says noise/unfinished/lost)
 FRAME_VERDICTS = (R.GOOD, R.BAD_CRC, R.BAD_STUFFING, R.SHORT, R.OVERLONG, R.TIMEOUT, R.RESYNC)
 PROTOCOLS = ("Ver6", "Ver8")
@@ -174,6 +183,7 @@ class JigStream:
         self._ref_tick = None  # the latest tick seen ...
         self._ref_us = None  # ... and its time in µs since the epoch
         self._char = (0.0, 0.0)  # character time per bus, µs
+        self._host_us = None  # when the chunk being read arrived
 
     @property
     def in_step(self):
@@ -198,14 +208,24 @@ class JigStream:
 
     # --- time -------------------------------------------------------------------------
     def _abs(self, tick):
-        """µs since the epoch of a jig tick, unwrapped against the latest tick seen."""
-        return self._ref_us + _sdiff(tick, self._ref_tick)
+        """µs since the epoch of a jig tick: unwrapped against the latest tick seen, then
+        as many periods on as the chunk's arrival says (see the module docstring)."""
+        t = self._ref_us + _sdiff(tick, self._ref_tick)
+        if self._host_us is not None:
+            k = (self._host_us + ARRIVAL_SLACK_US - t) // TICKS_PERIOD
+            if k > 0:
+                t += k * TICKS_PERIOD
+        return t
+
+    def _span(self, end, t_first, t_end):
+        """The first tick's time, from the end's (a record's first tick is never after its end)."""
+        return end - ((t_end - t_first) % TICKS_PERIOD)
 
     def _advance(self, tick):
-        d = _sdiff(tick, self._ref_tick)
-        if d > 0:
+        t = self._abs(tick)
+        if t > self._ref_us:
             self._ref_tick = tick
-            self._ref_us += d
+            self._ref_us = t
 
     # --- reading ----------------------------------------------------------------------
     def feed(self, chunk, host_us=None):
@@ -215,6 +235,7 @@ class JigStream:
         looks for the next hello)."""
         if host_us is None:
             host_us = self.clock.now_us()
+        self._host_us = host_us
         self.bytes += len(chunk)
         buf = self._buf
         buf += chunk
@@ -273,6 +294,12 @@ class JigStream:
                                           % self._name(), self._pos + i)
                         continue
                 data = bytes(buf[i + hlen:i + hlen + n])
+                if head[1] == T_HELLO and data[0] != VERSION:
+                    # (checked as the first one is; hunting skips it and goes on to the next hello)
+                    self._hunting = True
+                    error = error or ("%s speaks record format %d; this jigctl reads format %d (update motorjig)"
+                                      % (self._name(), data[0], VERSION), self._pos + i)
+                    continue
             out += self._records(head, data, host_us)
             i += hlen + n
         del buf[:i]
@@ -313,7 +340,7 @@ class JigStream:
         """The Record of a frame on a channel (bit 1 the bus, bit 0 sent by the jig)."""
         bus = channel >> 1
         end = self._abs(t1)
-        first = self._abs(t0)
+        first = self._span(end, t0, t1)
         if channel & 1:
             # sent: handed to the transmitter at t_first (a first tick not marked: t_end)
             start = first if (t0 != t1 or not wire) else end - int(round(len(wire) * self._char[bus]))
@@ -342,7 +369,7 @@ class JigStream:
             self._advance(head[7])
             return recs
         end = self._abs(t1)
-        first = self._abs(t0)
+        first = self._span(end, t0, t1)
         self._advance(t1)
         if typ == T_CLOCK:
             self.clocks += 1

@@ -126,6 +126,8 @@ class Writer:
         head = section_header(application or application_name(), hardware)
         head += b"".join(interface_description(b) for b in self.buses)
         self._put(head)
+        if flush_each:  # a reader of a pipe needs the header before the first packet
+            self.stream.flush()
 
     def _put(self, data):
         self.stream.write(data)

@@ -525,6 +525,9 @@ class Bench:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         self.pty_path = os.ttyname(self._slave)
+        # The simulation thread writes the PC's replies here: never block it (nobody may
+        # be reading the pty while TCP clients use the bench).
+        os.set_blocking(self._master, False)
         self._spawn(self._pty_loop)
 
     def _pty_loop(self):
@@ -688,6 +691,16 @@ class Bench:
         if self._master is not None:
             try:
                 os.write(self._master, data)
+            except BlockingIOError:
+                # The pty's buffer is full: nobody reads it. What it holds is stale (an
+                # adapter nobody reads loses it too): drop it, keep the newest.
+                try:
+                    import termios
+
+                    termios.tcflush(self._slave, termios.TCIFLUSH)
+                    os.write(self._master, data)
+                except OSError:
+                    pass
             except OSError:
                 pass
         with self._lock:

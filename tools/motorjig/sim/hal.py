@@ -166,8 +166,10 @@ class SimCapturePort:
     while no host has the port open. Never blocks.
 
     Host side (the bench): ``host_open()`` / ``host_close()`` (a closed port drops
-    what its transmit buffer held; what the host sent before closing has reached
-    the device and is still read, so ``X`` then close stops the recording),
+    what its transmit buffer held, or with ``keep_on_close`` keeps it for the next
+    host to open the port, as the board's CDC does; what the host sent before
+    closing has reached the device and is still read, so ``X`` then close stops the
+    recording),
     ``host_send(data)`` (commands: b"S", b"X"), ``host_read()`` (what the host has
     received since the last call). Once per USB frame (``frame_us``) the host takes
     up to ``frame_bytes`` from the transmit buffer; ``sink`` (fn(bytes) -> bytes
@@ -176,8 +178,10 @@ class SimCapturePort:
     the bench's clock; not thread-safe.
     """
 
-    def __init__(self, clock, tx_size=CDC_TX_SIZE, frame_us=USB_FRAME_US, frame_bytes=USB_FRAME_BYTES):
+    def __init__(self, clock, tx_size=CDC_TX_SIZE, frame_us=USB_FRAME_US, frame_bytes=USB_FRAME_BYTES,
+                 keep_on_close=False):
         self.clock = clock
+        self.keep_on_close = keep_on_close
         self.tx_size = tx_size
         self.frame_us = frame_us
         self.frame_bytes = frame_bytes
@@ -222,7 +226,8 @@ class SimCapturePort:
 
     def host_close(self):
         self.is_open = False
-        self.tx = bytearray()
+        if not self.keep_on_close:
+            self.tx = bytearray()
 
     def host_send(self, data):
         """Bytes from the host to the jig (read in its slow pass); dropped while closed."""
