@@ -30,7 +30,6 @@ from motorjig.errors import PortError
 
 CMD_START = b"S"
 CMD_STOP = b"X"
-CMD_RESTART = CMD_STOP + CMD_START  # the jig reads one command per slow pass: X, then S
 QUIET_S = 0.05  # after X: this long without bytes, the old stream has all come
 DRAIN_MAX_S = 1.0  # ... but no longer than this (a port that never stops talking)
 SILENCE_S = 3.0  # while recording: this long without a byte, the jig has stopped
