@@ -25,7 +25,7 @@ import time
 import serial
 
 from motorjig.capture.jigstream import JigStream, StreamError
-from motorjig.capture.sniff import open_port
+from motorjig.capture.sniff import open_port, read_waiting
 from motorjig.errors import PortError
 
 CMD_START = b"S"
@@ -69,12 +69,7 @@ class JigCapture:
 
     def _read(self, starting=False):
         try:
-            data = self.port.read(1)
-            if data:
-                n = self.port.in_waiting
-                if n:
-                    data += self.port.read(n)
-            return data
+            return read_waiting(self.port)
         except (serial.SerialException, OSError) as exc:
             if starting and self._closed_at_once(exc):
                 raise PortError("%s closed the connection at once: another reader is attached "

@@ -34,6 +34,16 @@ def open_port(url, baud):
     return port
 
 
+
+def read_waiting(port):
+    """One byte (waiting up to the port's timeout), then whatever else is waiting."""
+    data = port.read(1)
+    if data:
+        n = port.in_waiting
+        if n:
+            data += port.read(n)
+    return data
+
 class HostClock:
     """µs since the Unix epoch: wall clock at start, then the monotonic clock."""
 
@@ -63,12 +73,7 @@ class Sniffer:
 
     def _read(self):
         try:
-            data = self.port.read(1)
-            if data:
-                n = self.port.in_waiting
-                if n:
-                    data += self.port.read(n)
-            return data
+            return read_waiting(self.port)
         except (serial.SerialException, OSError) as exc:
             raise PortError("reading from %s failed: %s" % (self.url, exc)) from None
 
