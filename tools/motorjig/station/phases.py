@@ -9,7 +9,10 @@ the operator's confirmation, the wiring).
 The trace of a move is sampled with GetAllStatus as fast as the bus allows (one
 round trip: at 115 200 baud about 5 ms through the jig, so >= 100 Hz), timed with the
 station's monotonic clock from just before the move command; durations are known to
-one sampling period.
+one sampling period. A sample is dated at the middle of its round trip, which is when
+the drive read its position to within half a round trip; dated at the reply's arrival,
+every position would be late by the reply's whole way back (at 20 000 pps a 6 ms round
+trip is 60 pulses an overshoot measurement would wrongly add).
 """
 
 import json
@@ -81,8 +84,10 @@ class Trace:
         self.peak_error = 0
 
     def sample(self, m, s):
+        sent = time.monotonic()
         st = m.get_all_status(s)
-        row = [round(time.monotonic() - self.t0, 4), st.command_pos, st.actual_pos, st.actual_vel]
+        t = (sent + time.monotonic()) / 2.0 - self.t0
+        row = [round(t, 4), st.command_pos, st.actual_pos, st.actual_vel]
         self.rows.append(row)
         if self.ctx is not None:
             self.ctx.sample(self.step, row)
