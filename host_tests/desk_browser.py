@@ -174,6 +174,16 @@ class Browser:
             raise AssertionError("no element with data-testid=%s %s" % (testid, inner))
         return e
 
+    def visible(self, testid):
+        """The element is on the page and shown (a closed dialog's content is not)."""
+        from selenium.common.exceptions import StaleElementReferenceException
+
+        e = self.find(testid)
+        try:
+            return e is not None and e.is_displayed()
+        except StaleElementReferenceException:  # replaced while we looked: look again
+            return False
+
     def text(self, testid):
         e = self.find(testid)
         return e.text if e is not None else ""

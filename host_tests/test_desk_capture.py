@@ -10,6 +10,7 @@ bench's capture port; a Desk without one greys the controls out and says why.
 """
 
 import os
+import threading
 import time
 
 import pytest
@@ -19,6 +20,8 @@ import desk_browser as B
 from test_capture_support import TSHARK, needs_tshark, parse_pcapng, run_tshark
 
 from jig import frame as F
+from motorjig.capture import record as R
+from motorjig.errors import JigError
 from motorjig.desk import server
 from motorjig.desk.capture import NO_PORT, DeskCapture
 from motorjig.desk.session import UserError
@@ -146,6 +149,108 @@ def test_start_traffic_stop_and_the_file_has_both_buses(bench, tmp_path):
     assert cap.per_bus == [2, 2] and len(buses_of(cap.pcapng())["pc"]) == 2
 
 
+class FakeJig:
+    """A capture port as DeskCapture's opener returns it: records, then the end given.
+
+    Each call is logged in ``log`` (shared by every port it opens) as (what, port number),
+    so a test sees the order in which two recordings touched the port."""
+
+    def __init__(self, log, n, records=(), ends=None, close_s=0.0):
+        self.log, self.n, self.recs, self.ends, self.close_s = log, n, records, ends, close_s
+        self.go = threading.Event()  # run() returns or raises once set
+        self.stream = self
+
+    def start(self):
+        self.log.append(("start", self.n))
+        return {"version": 1}
+
+    def run(self, sinks):
+        for rec in self.recs:
+            for sink in sinks:
+                sink(rec)
+        self.go.wait(5.0)
+        if self.ends is not None:
+            raise self.ends
+
+    def stop(self):
+        self.log.append(("stop", self.n))
+        self.go.set()
+
+    def close(self):
+        time.sleep(self.close_s)
+        self.log.append(("close", self.n))
+
+    def description(self):
+        return "fake jig %d" % self.n
+
+    def buses(self):
+        return [R.pc_bus(115200), R.driver_bus(115200)]
+
+
+def frame_record(bus=0):
+    return R.Record(bus, 10 ** 15, R.DIR_INBOUND, F.encode(2, F.GET_COMMAND_POS), R.GOOD)
+
+
+def fake_capture(ports):
+    """A DeskCapture whose n-th start opens ports[n]."""
+    it = iter(ports)
+    return DeskCapture("fake://jig", opener=lambda url: next(it))
+
+
+def test_a_recording_that_ends_by_itself_has_closed_its_port_before_the_next_starts():
+    # The jig's port failed: the read thread closes it (X) by itself. A Start arriving
+    # while that close is under way must wait, or the old X would stop the new recording.
+    log = []
+    first = FakeJig(log, 1, [frame_record()], ends=JigError("the jig stopped recording"), close_s=0.3)
+    second = FakeJig(log, 2)
+    cap = fake_capture([first, second])
+    cap.start()
+    first.go.set()
+    end = time.monotonic() + 3.0
+    while cap.state != "stopped" and time.monotonic() < end:
+        time.sleep(0.005)
+    assert cap.state == "stopped" and cap.error == "recording ended: the jig stopped recording"
+    assert ("close", 1) not in log  # still closing
+    cap.start()
+    assert log == [("start", 1), ("close", 1), ("start", 2)]
+    assert cap.recording and cap.error == "" and cap.total == 0
+    assert cap.stop().startswith("recording stopped: 0 records")
+    assert log[-2:] == [("stop", 2), ("close", 2)]
+
+
+def test_a_failure_after_stop_is_not_reported_as_the_recording_s_end():
+    log = []
+    port = FakeJig(log, 1, [frame_record()], ends=JigError("port gone"))
+    cap = fake_capture([port])
+    cap.start()
+    cap.stop()  # the thread then fails: the user stopped it, nothing ended by itself
+    assert cap.error == "" and cap.summary().startswith("1 records in ")
+    assert log == [("start", 1), ("stop", 1), ("close", 1)]
+
+
+def test_unsaved_until_the_finished_recording_is_downloaded():
+    log = []
+    ports = [FakeJig(log, 1, [frame_record(0), frame_record(1)]), FakeJig(log, 2), FakeJig(log, 3, [frame_record()])]
+    cap = fake_capture(ports)
+    assert not cap.unsaved
+    cap.start()
+    end = time.monotonic() + 2.0
+    while cap.total < 2 and time.monotonic() < end:
+        time.sleep(0.005)
+    cap.pcapng()  # a download while recording: what comes next is not in it
+    assert not cap.unsaved
+    cap.stop()
+    assert cap.unsaved
+    assert len(parse_pcapng(cap.pcapng())["packets"]) == 2
+    assert not cap.unsaved
+    cap.start()
+    cap.stop()
+    assert not cap.unsaved  # nothing recorded: nothing to lose
+    cap.start()
+    cap.stop()
+    assert cap.unsaved and cap.total == 1
+
+
 def test_the_desk_options():
     p = server.build_parser()
     assert p.parse_args(["--capture-port", "/dev/ttyACM1"]).capture_port == "/dev/ttyACM1"
@@ -205,7 +310,16 @@ def test_record_stop_and_download_from_the_page(browser):
         b.click("btn-capture-stop")
         b.wait_for(lambda: b.text("capture-state").startswith("8 records in "), 10, "stopped")
         assert not disabled(b, "btn-capture-start") and not disabled(b, "btn-capture-download")
-        b.click("btn-capture-download")
+        # Start again before downloading: the page asks before it replaces the recording
+        b.click("btn-capture-start")
+        b.wait_for(lambda: b.visible("capture-replace-text"), 5, "the replace question")
+        assert b.text("capture-replace-text").startswith("The last recording (8 records in ")
+        b.click("btn-capture-replace-cancel")
+        b.wait_for(lambda: not b.visible("capture-replace-text"), 5, "the question closed")
+        assert b.text("capture-state").startswith("8 records in ")  # nothing started, nothing lost
+        b.click("btn-capture-start")
+        b.wait_for(lambda: b.visible("btn-capture-replace-download"), 5, "the replace question")
+        b.click("btn-capture-replace-download")  # its Download saves the file, as the row's button
         path = b.wait_for(lambda: [os.path.join(b.downloads, n) for n in os.listdir(b.downloads)
                                    if n.endswith(".pcapng")], 10, "the pcapng file")[0]
         assert os.path.basename(path).startswith("motorjig-capture-")
@@ -219,6 +333,20 @@ def test_record_stop_and_download_from_the_page(browser):
             ("pc", "2", "0x51", "0"), ("drivers", "2", "0x51", "0"), ("drivers", "2", "0x51", "1"),
             ("pc", "2", "0x51", "1"), ("pc", "3", "0x40", "0"), ("drivers", "3", "0x40", "0"),
             ("drivers", "3", "0x40", "1"), ("pc", "3", "0x40", "1")]
+        # Downloaded: Start begins a new recording at once
+        b.click("btn-capture-start")
+        b.wait_for(lambda: b.text("capture-state").startswith("recording: "), 10, "a new recording")
+        assert not b.visible("capture-replace-text")
+        b.click("btn-raw-send")
+        b.wait_for(lambda: ": 2 frames on the PC bus, 2 on the driver bus" in b.text("capture-state"), 10,
+                   "one transaction")
+        b.click("btn-capture-stop")
+        b.wait_for(lambda: b.text("capture-state").startswith("4 records in "), 10, "stopped")
+        b.click("btn-capture-start")  # not downloaded: asked, and this time replaced
+        b.wait_for(lambda: b.visible("btn-capture-replace-yes"), 5, "the replace question")
+        b.click("btn-capture-replace-yes")
+        b.wait_for(lambda: b.text("capture-state").startswith("recording: 0 records in "), 10, "replaced")
+        b.click("btn-capture-stop")
     finally:
         B.stop(page_proc)
         B.stop(bench)

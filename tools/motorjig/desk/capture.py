@@ -11,7 +11,8 @@ ring and sends its hello first), a thread reads the record stream
 closes the port, ``pcapng()`` is the pcapng file of what was recorded (the writer
 of ``jigctl capture``: one interface per bus) at any time, while recording too.
 
-The Desk keeps the newest ``keep`` records; older ones are dropped and counted.
+Start replaces the previous recording; ``unsaved`` says when that would lose one
+nobody downloaded (the page asks first). The Desk keeps the newest ``keep`` records; older ones are dropped and counted.
 Without a capture port every action is refused with the sentence ``unavailable``
 says, and the page shows it beside the greyed-out controls. Every failure is one
 sentence (``UserError``); a port that fails while recording ends the recording
@@ -63,6 +64,7 @@ class DeskCapture:
         self.buses = None
         self.started = None  # time.time() at start and at stop
         self.ended = None
+        self.downloaded = False  # the finished recording was downloaded
 
     @property
     def recording(self):
@@ -77,6 +79,11 @@ class DeskCapture:
             if self.state in ("recording", "starting"):
                 raise UserError("already recording: press Stop first")
             self.state = "starting"
+            ended = self._thread
+        if ended is not None:
+            # A recording that ended by itself may still be closing its port (X): let it
+            # finish, or its X would stop the jig recording for this new start.
+            ended.join(2.0)
         try:
             cap = self._open()
             try:
@@ -85,10 +92,10 @@ class DeskCapture:
                 cap.close()
                 raise
         except JigError as exc:
-            self.state = "stopped" if self.total else "idle"
+            self._start_failed()
             raise UserError(str(exc).rstrip(".")) from None
         except Exception:
-            self.state = "stopped" if self.total else "idle"
+            self._start_failed()
             raise
         with self._lock:
             self._cap = cap
@@ -100,10 +107,15 @@ class DeskCapture:
             self.description = cap.stream.description()
             self.buses = cap.stream.buses()
             self.started, self.ended = time.time(), None
+            self.downloaded = False
             self.state = "recording"
         self._thread = threading.Thread(target=self._read, args=(cap,), name="desk-capture", daemon=True)
         self._thread.start()
         return "recording both buses from %s (%s)" % (self.url, self.description)
+
+    def _start_failed(self):
+        with self._lock:
+            self.state = "stopped" if self.total else "idle"
 
     def _open(self):
         if self._opener is not None:
@@ -113,14 +125,17 @@ class DeskCapture:
         return JigCapture(self.url)
 
     def _read(self, cap):
+        error = ""
         try:
             cap.run([self._add])
         except JigError as exc:
-            self.error = "recording ended: %s" % str(exc).rstrip(".")
+            error = "recording ended: %s" % str(exc).rstrip(".")
         except Exception as exc:  # a bug: one sentence on the page, never a traceback
-            self.error = "recording ended: internal error (%s: %s)" % (type(exc).__name__, exc)
+            error = "recording ended: internal error (%s: %s)" % (type(exc).__name__, exc)
         finally:
             with self._lock:
+                if error and self._cap is cap:  # not an error of a recording already stopped
+                    self.error = error
                 if self._cap is cap and self.state == "recording":
                     self.state = "stopped"
                     self.ended = time.time()
@@ -193,16 +208,26 @@ class DeskCapture:
             return "recording: " + text
         return text + (" (%s)" % self.error if self.error else "")
 
+    @property
+    def unsaved(self):
+        """A finished recording with records that has not been downloaded since it ended
+        (a new Start would replace it)."""
+        return self.state == "stopped" and self.total > 0 and not self.downloaded
+
     def pcapng(self):
         """The pcapng file (bytes) of the records kept: one interface per bus."""
         if self.unavailable:
             raise UserError("recording is not available: %s" % self.unavailable)
         if self.buses is None:
             raise UserError("nothing recorded yet: press Start, let the bus work, then Stop")
+        with self._lock:
+            finished = self.state == "stopped"
         out = io.BytesIO()
         w = pcapng.Writer(out, self.buses, hardware=self.description or None)
         for rec in self.records():
             w.write(rec)
+        if finished:  # a download while recording leaves out what comes next
+            self.downloaded = True
         return out.getvalue()
 
     def file_name(self):

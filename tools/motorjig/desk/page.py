@@ -633,6 +633,14 @@ class DeskPage:
         ui.label("Every frame the jig receives or sends on the PC bus and on the driver bus, with its own "
                  "microsecond clock and its parser's verdict; open the file in Wireshark with the Plus-R "
                  "dissector (jigctl capture --install-dissector).").classes("text-caption text-grey-7")
+        with ui.dialog() as self.cap_dialog, ui.card():
+            self.cap_dialog_text = tid(ui.label(""), "capture-replace-text")
+            with ui.row():
+                tid(ui.button("Download pcapng", icon="download", on_click=self._capture_download_first),
+                    "btn-capture-replace-download")
+                tid(ui.button("Start new recording", on_click=self._capture_replace), "btn-capture-replace-yes") \
+                    .props("color=red")
+                tid(ui.button("Cancel", on_click=self.cap_dialog.close), "btn-capture-replace-cancel").props("flat")
         self._capture_buttons()
 
     def _capture_buttons(self):
@@ -650,8 +658,22 @@ class DeskPage:
                 button.tooltip(cap.unavailable)
 
     async def _capture_start(self):
+        cap = self.capture
+        if cap.unsaved:  # never replace a recording nobody downloaded without asking
+            self.cap_dialog_text.text = ("The last recording (%s) has not been downloaded. A new recording "
+                                         "replaces it." % cap.summary())
+            self.cap_dialog.open()
+            return
+        await self._capture_replace()
+
+    async def _capture_replace(self):
+        self.cap_dialog.close()
         await self.act(self.capture.start)
         self._capture_buttons()
+
+    async def _capture_download_first(self):
+        self.cap_dialog.close()
+        await self._capture_download()
 
     async def _capture_stop(self):
         await self.act(self.capture.stop)
