@@ -2,6 +2,7 @@
 block types and lengths, interfaces, timestamps, bytes, comments, flags, rotation."""
 
 import os
+import re
 import struct
 
 import pytest
@@ -67,8 +68,9 @@ def test_rotation_keeps_the_newest_files(tmp_path):
     w.close()
     assert w.index > 3
     names = sorted(os.listdir(str(tmp_path)))
-    assert names == [os.path.basename(pcapng.ring_name(path, w.index - 1)),
-                     os.path.basename(pcapng.ring_name(path, w.index))]
+    assert names == [os.path.basename(n) for n in w.written]
+    assert [re.fullmatch(r"bus_(\d{5})_\d{14}\.pcapng", n).group(1) for n in names] == [
+        "%05d" % (w.index - 1), "%05d" % w.index]
     times = []
     for name in names:
         data = open(str(tmp_path / name), "rb").read()
@@ -77,6 +79,27 @@ def test_rotation_keeps_the_newest_files(tmp_path):
         assert len(f["interfaces"]) == 1
         times += [p["t_us"] - EPOCH_US for p in f["packets"]]
     assert times == list(range(100 - len(times), 100))
+
+
+def test_a_second_run_goes_on_numbering_and_keeps_the_first_run_s_files(tmp_path):
+    path = str(tmp_path / "bus.pcapng")
+    frame = bytes.fromhex("AA CC 01 01 C1 E0 AA EE")
+    runs = []
+    for run in range(2):
+        w = pcapng.RotatingWriter(path, [R.pc_bus(115200)], max_size=1024, files=3)
+        for i in range(60):
+            w.write(R.Record(0, EPOCH_US + i, R.DIR_UNKNOWN, frame, R.GOOD))
+        w.close()
+        runs.append(list(w.written))
+    first, second = runs
+    assert len(first) == len(second) == 3
+    number = lambda n: int(os.path.basename(n).split("_")[1])  # noqa: E731
+    assert min(map(number, second)) > max(map(number, first))  # after the first run's highest
+    assert [number(n) for n in second] == list(range(number(second[0]), number(second[0]) + 3))
+    assert sorted(os.listdir(str(tmp_path))) == sorted(os.path.basename(n) for n in first + second)
+    (tmp_path / "bus_00900.pcapng").write_bytes(b"")  # an old-style name counts too
+    assert pcapng.highest_ring_index(path) == 900
+    assert pcapng.highest_ring_index(str(tmp_path / "other.pcapng")) == 0
 
 
 def test_rotation_never_splits_a_packet(tmp_path):

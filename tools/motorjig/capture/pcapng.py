@@ -20,11 +20,17 @@ Layout (pcapng, little-endian, every block 32-bit aligned)::
 
 ``Writer`` writes one stream (a file, or standard output for ``wireshark -k -i -``,
 flushed after every packet); ``RotatingWriter`` starts a new file when one
-reaches ``max_size`` bytes and keeps the newest ``files`` of them.
+reaches ``max_size`` bytes and keeps the newest ``files`` of them. Its files are
+named as dumpcap names a ring buffer, ``bus_00001_20261201233000.pcapng`` (number,
+local time the file was opened), so Wireshark's File > File Set lists them; the
+numbers go on after the highest one already in the folder for that name, so a
+second run never overwrites, and never deletes, an earlier run's files.
 """
 
 import os
+import re
 import struct
+import time
 
 from motorjig.capture import record as R
 
@@ -151,10 +157,24 @@ class Writer:
         self.stream.close()
 
 
-def ring_name(path, index):
-    """bus.pcapng, 3 -> bus_00003.pcapng"""
+def ring_name(path, index, when=None):
+    """bus.pcapng, 3 -> bus_00003_20261201233000.pcapng (when: time.time(), default now)"""
     stem, ext = os.path.splitext(path)
-    return "%s_%05d%s" % (stem, index, ext or ".pcapng")
+    stamp = time.strftime("%Y%m%d%H%M%S", time.localtime(time.time() if when is None else when))
+    return "%s_%05d_%s%s" % (stem, index, stamp, ext or ".pcapng")
+
+
+def highest_ring_index(path):
+    """The highest number among the ring files of path already on disk (0: none)."""
+    stem, ext = os.path.splitext(path)
+    folder = os.path.dirname(stem) or "."
+    pattern = re.compile(re.escape(os.path.basename(stem)) + r"_(\d{5,})(?:_\d{14})?" + re.escape(ext or ".pcapng")
+                         + "$")
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return 0
+    return max([int(m.group(1)) for m in map(pattern.match, names) if m] or [0])
 
 
 class RotatingWriter:
@@ -168,7 +188,7 @@ class RotatingWriter:
         self.files = files
         self.application = application
         self.hardware = hardware
-        self.index = 0
+        self.index = highest_ring_index(path)  # the first file is the next number
         self.written = []  # paths, oldest first
         self.packets = 0
         self._w = None
