@@ -17,7 +17,7 @@ import time
 import pytest
 
 from test_capture_jig_support import BenchCapture, JigServer, frame, hello, read_all, scenario
-from test_capture_support import JIGCTL, jigctl, needs_tshark, parse_pcapng, run_tshark
+from test_capture_support import JIGCTL, installed, jigctl, needs_tshark, parse_pcapng, run_tshark  # noqa: F401
 
 from jig import capture as C
 
@@ -273,6 +273,8 @@ def test_help_names_the_jig_option():
     text = " ".join(res.stdout.decode().split())
     assert "--jig PORT" in text and "the jig's own recording of both buses" in text
     assert "motorjig-jig" in text  # --install-extcap says it installs both interfaces
+    # the shared connection options are told apart: which apply to a capture, which do not
+    assert "--baud is the adapter's baud rate with --sniff" in text and "a capture only listens" in text
     import argparse
 
     from motorjig.cli import build_parser
@@ -324,16 +326,6 @@ def test_extcap_refuses_a_port_without_hello(tmp_path, capsys):
     assert code == 1 and "is not a MotorJig capture port" in err and len(err.strip().splitlines()) == 1
     # opened first (dumpcap waits in open() for the writer) and closed with nothing in it
     assert os.path.getsize(str(tmp_path / "f")) == 0
-
-
-@pytest.fixture
-def installed(tmp_path):
-    env = dict(os.environ, HOME=str(tmp_path))
-    env.pop("XDG_CONFIG_HOME", None)
-    res = jigctl("capture", "--install-dissector", "--install-extcap", env=env)
-    assert res.returncode == 0, res.stderr
-    assert "capture interface: motorjig-jig" in res.stdout.decode()
-    return tmp_path
 
 
 def _packets(data):

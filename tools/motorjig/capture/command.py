@@ -48,7 +48,16 @@ def size(text):
     return int(value)
 
 
+SHARED_OPTIONS = (
+    "Of the connection options: --baud is the adapter's baud rate with --sniff (with --jig the jig's hello "
+    "gives both buses' bauds); --ver6 / --ver8 read every frame in that variant (default: each frame's "
+    "variant is told from the frame itself); --json prints the live view as JSON lines. --port, --slave, "
+    "--jig-id, --timeout, --retries, --echo and --verbose are for the commands that talk on the bus: a capture "
+    "only listens.")
+
+
 def add_capture_arguments(sp):
+    sp.epilog = SHARED_OPTIONS
     src = sp.add_argument_group("what to capture (one of --sniff, --jig)")
     src.add_argument("--sniff", metavar="PORT",
                      help="listen on a Plus-R bus through this listen-only adapter (/dev/ttyUSB1, COM7) or "
@@ -72,7 +81,8 @@ def add_capture_arguments(sp):
                      help="write pcapng to FILE, or '-' for standard output (for wireshark -k -i -)")
     out.add_argument("--max-size", type=str, metavar="SIZE",
                      help="with -w FILE: start a new file when one reaches SIZE (bytes, or 500k, 10M, 1G); "
-                          "-w bus.pcapng then writes bus_00001.pcapng, bus_00002.pcapng, ...")
+                          "-w bus.pcapng then writes bus_00001_<time>.pcapng, bus_00002_<time>.pcapng, ... as dumpcap "
+                          "does (numbers go on after the highest already there)")
     out.add_argument("--files", type=int, metavar="N", help="with --max-size: keep only the newest N files")
     out.add_argument("--quiet", "-q", action="store_true", help="no live view, only the summary at the end")
     inst = sp.add_argument_group("Wireshark set-up")
