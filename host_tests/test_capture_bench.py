@@ -23,7 +23,7 @@ from jig.capture import CS_LOST_TOTAL
 from motorjig.sim import Bench, SimBench
 from motorjig.sim import __main__ as sim_main
 from motorjig.sim.hal import CDC_TX_SIZE
-from test_capture_support import dissect, needs_tshark
+from test_capture_support import dissect, installed, needs_tshark  # noqa: F401 (installed: a fixture)
 
 MASK = 0x3FFFFFFF
 HELLO, LOST, CLOCK = 0x10, 0x11, 0x12
@@ -496,18 +496,6 @@ def test_tshark_pairs_every_request_and_marks_the_faults(session):
         assert any(m.startswith("CRC mismatch") for m in p["expert_messages"])
     assert int(get(bad[0], "frame.cap_len")) == len(s.bad_request)
     assert int(get(bad[0], "plusr.crc"), 16) == struct.unpack("<H", body(s.bad_request)[-2:])[0]
-
-
-@pytest.fixture
-def installed(tmp_path):
-    """The dissector and the extcaps installed into a temporary HOME (as test_capture_extcap.py)."""
-    from test_capture_support import jigctl
-
-    env = dict(os.environ, HOME=str(tmp_path))
-    env.pop("XDG_CONFIG_HOME", None)
-    res = jigctl("capture", "--install-dissector", "--install-extcap", env=env)
-    assert res.returncode == 0, res.stderr
-    return tmp_path
 
 
 @needs_tshark

@@ -9,10 +9,12 @@ runs user plugins for root, and extcaps in the personal folders are found).
 
 import os
 import subprocess
+import time
 
 import pytest
 
-from test_capture_support import Server, body_of, capture, jigctl, needs_tshark, parse_pcapng, play, run_tshark
+from test_capture_support import (Server, body_of, capture, installed, needs_tshark,  # noqa: F401
+                                  parse_pcapng, play, run_tshark)
 
 from motorjig.capture import extcap
 
@@ -44,15 +46,6 @@ def test_failures_say_why(args, text, capsys, tmp_path):
     assert extcap.main(args) == 1
     err = capsys.readouterr().err
     assert err.startswith("motorjig-sniff: ") and text in err and len(err.strip().splitlines()) == 1
-
-
-@pytest.fixture
-def installed(tmp_path):
-    env = dict(os.environ, HOME=str(tmp_path))
-    env.pop("XDG_CONFIG_HOME", None)
-    res = jigctl("capture", "--install-dissector", "--install-extcap", env=env)
-    assert res.returncode == 0, res.stderr
-    return tmp_path
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no fifos on this OS")
@@ -114,3 +107,32 @@ def test_tshark_captures_through_the_extcap(installed):
     assert [r[3] for r in rows] == ["1", "1", "1", "1", "0", "1", "1", "1", "1", "1"]  # the flipped CRC bit
     assert [r[2] for r in rows if r[2]] == ["0x00", "0x00", "0x00"]
     assert [r[4] for r in rows if r[4]] == ["2", "6", "9"]
+
+
+@needs_tshark
+def test_tshark_on_a_refused_adapter_port_fails_at_once(installed):
+    """As for the jig's interface: the extcap opens the fifo first and closes it on a
+    failure, so tshark ends with the extcap's sentence instead of waiting for ever."""
+    t = time.monotonic()
+    res = run_tshark(["-i", "motorjig-sniff", "-o", "extcap.motorjig_sniff.port:socket://127.0.0.1:1",
+                      "-o", "extcap.motorjig_sniff.baud:115200", "-a", "duration:3"],
+                     home=str(installed), lua=False, timeout=40)
+    took = time.monotonic() - t
+    assert res.returncode != 0 and took < 15, (took, res.stderr)
+    assert "cannot open socket://127.0.0.1:1" in res.stderr, res.stderr
+
+
+@needs_tshark
+def test_tshark_on_a_quiet_adapter_ends_with_its_duration(installed):
+    """A bus nobody talks on: the header reaches tshark at once and -a duration ends it."""
+    srv = Server(lambda send: None)
+    try:
+        t = time.monotonic()
+        res = run_tshark(["-i", "motorjig-sniff", "-o", "extcap.motorjig_sniff.port:" + srv.url,
+                          "-o", "extcap.motorjig_sniff.baud:115200", "-a", "duration:3"],
+                         home=str(installed), lua=False, timeout=30)
+        took = time.monotonic() - t
+    finally:
+        srv.close()
+    assert res.returncode == 0 and took < 20, (took, res.stderr)
+    assert res.stdout.strip() == "" and "0 packets captured" in res.stderr, res.stderr

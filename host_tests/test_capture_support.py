@@ -259,3 +259,16 @@ class Server:
 
 def jigctl(*args, env=None, timeout=60, stdin=None):
     return subprocess.run([JIGCTL] + list(args), capture_output=True, timeout=timeout, env=env, stdin=stdin)
+
+
+@pytest.fixture
+def installed(tmp_path):
+    """The dissector and both extcaps installed into a temporary HOME (what a user's
+    `jigctl capture --install-dissector --install-extcap` does); returns that HOME."""
+    env = dict(os.environ, HOME=str(tmp_path))
+    env.pop("XDG_CONFIG_HOME", None)
+    res = jigctl("capture", "--install-dissector", "--install-extcap", env=env)
+    assert res.returncode == 0, res.stderr
+    out = res.stdout.decode()
+    assert "capture interface: motorjig-sniff" in out and "capture interface: motorjig-jig" in out, out
+    return tmp_path
