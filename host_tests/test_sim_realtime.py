@@ -176,3 +176,45 @@ def test_a_pty_nobody_reads_does_not_stop_the_bench_for_tcp_clients():
             p.write(F.encode(2, F.GET_COMMAND_POS))
             body = _reply(p)
             assert body is not None and body[:3] == b"\x02\x51\x00"
+
+
+def test_a_simulation_stuck_at_stop_keeps_its_ptys_until_it_ends():
+    """stop() waits 2 s for the threads; a simulation still inside a pass may write to the
+    PC pty afterwards, so its descriptors stay open until it ends (closed then, not
+    earlier: a closed number would be reused by the next file this process opens)."""
+    import threading
+
+    b = Bench(driver_ids=(2,)).start()
+    inside, release = threading.Event(), threading.Event()
+    pump = b.sim.clock.pump
+
+    def stuck_pump():
+        inside.set()
+        release.wait(20)
+        pump()
+
+    b.sim.clock.pump = stuck_pump
+    assert inside.wait(5)
+    fds = (b._master, b._slave, b._cap_pty)
+    t = time.monotonic()
+    b.stop()
+    assert time.monotonic() - t >= 1.9  # it waited for the stuck thread, then returned
+    for fd in fds:
+        os.fstat(fd)  # still open
+    release.set()
+    end = time.monotonic() + 5
+    while b._master is not None and time.monotonic() < end:
+        time.sleep(0.01)
+    assert (b._master, b._slave, b._cap_pty) == (None, None, None)  # closed by the thread as it ended
+    with pytest.raises(OSError):
+        os.fstat(fds[0])
+
+
+def test_stop_closes_the_ptys_of_a_bench_that_ended_normally():
+    b = Bench(driver_ids=(2,)).start()
+    fds = (b._master, b._slave, b._cap_pty)
+    b.stop()
+    assert (b._master, b._slave, b._cap_pty) == (None, None, None)
+    for fd in fds:
+        with pytest.raises(OSError):
+            os.fstat(fd)

@@ -443,6 +443,8 @@ class Bench:
         self._cap_reader = None  # the attached capture reader: a socket, PTY_READER or None
         self._cap_pty = None  # the capture pty's master fd
         self._cap_poll = None
+        self._fd_users = 0  # threads running that use the ptys' descriptors
+        self._fds_left = False  # stop() returned while one of them still ran
 
     # --- lifecycle -----------------------------------------------------------------
     def start(self):
@@ -470,7 +472,7 @@ class Bench:
             self._open_capture_pty()
         self._spawn(self._accept_loop)
         self._spawn(self._cap_accept_loop)
-        self._spawn(self._sim_loop)
+        self._fd_user_spawn(self._sim_loop)
         return self
 
     def _spawn(self, fn, *args):
@@ -482,6 +484,13 @@ class Bench:
         self._stop.set()
         for t in self._threads:
             t.join(2.0)
+        with self._lock:
+            # A thread still running (the simulation stuck in a pass) may still use the
+            # ptys: their descriptors are closed when the last such thread ends, not here,
+            # or it would write into whatever file reuses their numbers.
+            self._fds_left = self._fd_users > 0
+            if not self._fds_left:
+                self._close_fds()
         if self._server is not None:
             self._server.close()
         if self._cap_server is not None:
@@ -491,12 +500,6 @@ class Bench:
         self._cap_reader = None
         while not self._cap_new.empty():
             self._cap_new.get_nowait().close()
-        if self._cap_pty is not None:
-            try:
-                os.close(self._cap_pty)
-            except OSError:
-                pass
-            self._cap_pty = None
         with self._lock:
             for c in self._clients:
                 try:
@@ -504,7 +507,25 @@ class Bench:
                 except OSError:
                     pass
             self._clients = []
-        for fd in (self._master, self._slave):
+
+    def _fd_user_spawn(self, fn):
+        with self._lock:
+            self._fd_users += 1
+        self._spawn(fn)
+
+    def _fd_user_ends(self):
+        """In a thread that uses the ptys, as it ends: the last one closes what stop() left."""
+        with self._lock:
+            self._fd_users -= 1
+            if self._fds_left and self._fd_users == 0:
+                self._fds_left = False
+                self._close_fds()
+
+    def _close_fds(self):
+        """The ptys' raw descriptors (with the lock held; once)."""
+        for name in ("_cap_pty", "_master", "_slave"):
+            fd = getattr(self, name)
+            setattr(self, name, None)
             if fd is not None:
                 try:
                     os.close(fd)
@@ -528,19 +549,22 @@ class Bench:
         # The simulation thread writes the PC's replies here: never block it (nobody may
         # be reading the pty while TCP clients use the bench).
         os.set_blocking(self._master, False)
-        self._spawn(self._pty_loop)
+        self._fd_user_spawn(self._pty_loop)
 
     def _pty_loop(self):
         fd = self._master
-        while not self._stop.is_set():
-            r, _, _ = select.select([fd], [], [], 0.2)
-            if r:
-                try:
-                    data = os.read(fd, 4096)
-                except OSError:
-                    continue
-                if data:
-                    self._inbox.put(data)
+        try:
+            while not self._stop.is_set():
+                r, _, _ = select.select([fd], [], [], 0.2)
+                if r:
+                    try:
+                        data = os.read(fd, 4096)
+                    except OSError:
+                        continue
+                    if data:
+                        self._inbox.put(data)
+        finally:
+            self._fd_user_ends()
 
     # --- the capture port -------------------------------------------------------------
     def _open_capture_pty(self):
@@ -719,3 +743,5 @@ class Bench:
         except Exception as exc:  # reported by the CLI, never a silent death
             self.error = exc
             self._stop.set()
+        finally:
+            self._fd_user_ends()
