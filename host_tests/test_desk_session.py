@@ -597,6 +597,16 @@ def station_on(tmp_path, url, plans, **kw):
     return session, Station(session, plans_dir=str(folder), out_dir=str(tmp_path / "out"), **kw)
 
 
+def earlier_today_ms(ago_ms):
+    """A time ago_ms before now in ms, but never before today's local midnight (a test
+    that counts today's runs, run just after midnight, would date them yesterday)."""
+    import datetime
+
+    now = time.time()
+    midnight = datetime.datetime.combine(datetime.date.fromtimestamp(now), datetime.time()).timestamp()
+    return int(max(now * 1000 - ago_ms, midnight * 1000 + 1))
+
+
 def stored_record(dut, station, start_ms, verdict="PASS", plan="smoke"):
     return {"dut_id": dut, "station_id": station, "start_time_millis": start_ms, "end_time_millis": start_ms + 500,
             "outcome": verdict, "metadata": {"test_name": plan, "test_version": "1.0", "operator": "anna"},
@@ -687,7 +697,7 @@ def test_the_recent_runs_are_this_stations_on_a_shared_database(tmp_path):
     from motorjig.desk.testrun import Station
     from motorjig.station.store import open_store
 
-    now = int(time.time() * 1000) - 600000
+    now = earlier_today_ms(600000)
     mine = [stored_record("M%d" % k, "desk-1", now + k, "FAIL" if k == 0 else "PASS") for k in range(3)]
     others = [stored_record("O%d" % k, "line-%d" % (k % 4), now + 1000 + k) for k in range(250)]
     with open_store(str(tmp_path / "line.sqlite")) as store:
