@@ -201,7 +201,7 @@ def test_a_recording_that_ends_by_itself_has_closed_its_port_before_the_next_sta
     # The jig's port failed: the read thread closes it (X) by itself. A Start arriving
     # while that close is under way must wait, or the old X would stop the new recording.
     log = []
-    first = FakeJig(log, 1, [frame_record()], ends=JigError("the jig stopped recording"), close_s=0.3)
+    first = FakeJig(log, 1, [frame_record()], ends=JigError("the jig stopped recording"), close_s=1.0)
     second = FakeJig(log, 2)
     cap = fake_capture([first, second])
     cap.start()
@@ -216,6 +216,51 @@ def test_a_recording_that_ends_by_itself_has_closed_its_port_before_the_next_sta
     assert cap.recording and cap.error == "" and cap.total == 0
     assert cap.stop().startswith("recording stopped: 0 records")
     assert log[-2:] == [("stop", 2), ("close", 2)]
+
+
+def test_a_start_while_a_stop_is_still_closing_the_port_waits_for_it():
+    # Another tab (or a recording without records: no question asked) presses Start while
+    # Stop is still sending X and closing: the old X must not reach the new recording.
+    log = []
+    first, second = FakeJig(log, 1, close_s=1.0), FakeJig(log, 2)
+    cap = fake_capture([first, second])
+    cap.start()
+    stopping = threading.Thread(target=cap.stop)
+    stopping.start()
+    end = time.monotonic() + 3.0
+    while cap.state != "stopped" and time.monotonic() < end:
+        time.sleep(0.005)
+    assert cap.state == "stopped" and ("close", 1) not in log  # the page's Start is live again
+    cap.start()
+    stopping.join(5)
+    assert log == [("start", 1), ("stop", 1), ("close", 1), ("start", 2)]
+    cap.stop()
+
+
+def test_a_download_that_outlasts_a_new_start_does_not_mark_the_new_recording_downloaded():
+    log = []
+    ports = [FakeJig(log, 1, [frame_record()]), FakeJig(log, 2, [frame_record()])]
+    cap = fake_capture(ports)
+    cap.start()
+    end = time.monotonic() + 2.0
+    while cap.total < 1 and time.monotonic() < end:
+        time.sleep(0.005)
+    cap.stop()
+    records = cap.records
+
+    def records_while_another_tab_starts():
+        out = records()
+        cap.start()  # the file is still being built when the new recording begins
+        return out
+
+    cap.records = records_while_another_tab_starts
+    assert len(parse_pcapng(cap.pcapng())["packets"]) == 1
+    cap.records = records
+    end = time.monotonic() + 2.0
+    while cap.total < 1 and time.monotonic() < end:
+        time.sleep(0.005)
+    cap.stop()
+    assert cap.unsaved  # the new recording was never downloaded: Start will ask
 
 
 def test_a_failure_after_stop_is_not_reported_as_the_recording_s_end():

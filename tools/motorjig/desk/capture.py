@@ -31,6 +31,7 @@ from motorjig.errors import JigError
 from motorjig.desk.session import UserError
 
 KEEP = 100000  # records kept in memory, the newest (about 20 MB)
+PORT_FREE_WAIT_S = 5.0  # the longest a Start waits for the last recording's port to close
 NO_PORT = ("no capture port: start the Desk with --capture-port PORT (the jig's second USB port, e.g. "
            "/dev/ttyACM1), or with --bench")
 
@@ -65,6 +66,9 @@ class DeskCapture:
         self.started = None  # time.time() at start and at stop
         self.ended = None
         self.downloaded = False  # the finished recording was downloaded
+        self._generation = 0  # recordings started
+        self._port_free = threading.Event()  # no recording holds the port (or is closing it)
+        self._port_free.set()
 
     @property
     def recording(self):
@@ -79,11 +83,11 @@ class DeskCapture:
             if self.state in ("recording", "starting"):
                 raise UserError("already recording: press Stop first")
             self.state = "starting"
-            ended = self._thread
-        if ended is not None:
-            # A recording that ended by itself may still be closing its port (X): let it
-            # finish, or its X would stop the jig recording for this new start.
-            ended.join(2.0)
+        # The last recording may still be closing its port (a Stop, or one that ended by
+        # itself): its X would stop the jig recording for this new start.
+        if not self._port_free.wait(PORT_FREE_WAIT_S):
+            self._start_failed()
+            raise UserError("the last recording's port did not close within %g s: try again" % PORT_FREE_WAIT_S)
         try:
             cap = self._open()
             try:
@@ -108,9 +112,12 @@ class DeskCapture:
             self.buses = cap.stream.buses()
             self.started, self.ended = time.time(), None
             self.downloaded = False
+            self._generation += 1
+            self._port_free.clear()
             self.state = "recording"
-        self._thread = threading.Thread(target=self._read, args=(cap,), name="desk-capture", daemon=True)
-        self._thread.start()
+            self._thread = threading.Thread(target=self._read, args=(cap,), name="desk-capture", daemon=True)
+            thread = self._thread
+        thread.start()
         return "recording both buses from %s (%s)" % (self.url, self.description)
 
     def _start_failed(self):
@@ -144,7 +151,10 @@ class DeskCapture:
                 else:
                     closing = False
             if closing:  # ended by itself (a failure): X and close here
-                cap.close()
+                try:
+                    cap.close()
+                finally:
+                    self._port_free.set()
 
     def _add(self, rec):
         with self._lock:
@@ -169,11 +179,14 @@ class DeskCapture:
                 raise UserError("not recording: press Start first")
             self.state = "stopped"
             self.ended = time.time()
-        cap.stop()
-        thread = self._thread
-        if thread is not None:
-            thread.join(2.0)
-        cap.close()
+        try:
+            cap.stop()
+            thread = self._thread
+            if thread is not None:
+                thread.join(2.0)
+            cap.close()
+        finally:
+            self._port_free.set()
         return "recording stopped: %s" % self.summary()
 
     def close(self):
@@ -222,12 +235,16 @@ class DeskCapture:
             raise UserError("nothing recorded yet: press Start, let the bus work, then Stop")
         with self._lock:
             finished = self.state == "stopped"
+            generation = self._generation
         out = io.BytesIO()
         w = pcapng.Writer(out, self.buses, hardware=self.description or None)
         for rec in self.records():
             w.write(rec)
-        if finished:  # a download while recording leaves out what comes next
-            self.downloaded = True
+        with self._lock:
+            # A download while recording leaves out what comes next; one that took so long
+            # that a new recording began is not that recording's download.
+            if finished and generation == self._generation:
+                self.downloaded = True
         return out.getvalue()
 
     def file_name(self):
