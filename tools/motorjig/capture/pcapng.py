@@ -168,7 +168,7 @@ def highest_ring_index(path):
     """The highest number among the ring files of path already on disk (0: none)."""
     stem, ext = os.path.splitext(path)
     folder = os.path.dirname(stem) or "."
-    pattern = re.compile(re.escape(os.path.basename(stem)) + r"_(\d{5,})(?:_\d{14})?" + re.escape(ext or ".pcapng")
+    pattern = re.compile(re.escape(os.path.basename(stem)) + r"_([0-9]{5,})(?:_[0-9]{14})?" + re.escape(ext or ".pcapng")
                          + "$")
     try:
         names = os.listdir(folder)

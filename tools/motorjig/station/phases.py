@@ -351,8 +351,9 @@ def run_limit_sensor(test, bus, step, ctx):
     try:
         while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
             trace.sample(m, s)
+        sent = time.monotonic()
         m.set_io_output(jig, set_mask=1 << relay)
-        t_relay = time.monotonic() - trace.t0
+        t_relay = (sent + time.monotonic()) / 2.0 - trace.t0  # dated as the samples are
         stopped = trace.until_stopped(m, s, a["timeout_s"])
         flags = trace.last.axis
         test.measurements["stopped"] = stopped
