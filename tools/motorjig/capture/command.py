@@ -287,38 +287,9 @@ def cmd_capture(args):
     port = open_port(args.sniff, args.baud)
     sniffer = Sniffer(port, args.sniff, args.baud, interbyte_timeout_ms=args.interbyte_timeout,
                       ver8=True if forced == 8 else None)
-    writer = out = failed = None
     with _signals_as_ctrl_c():
-        try:
-            writer = _open_writer(args, [bus])
-            out = _Sinks(args, [bus], writer, forced)
-            out.banner("%s (%s) at %d baud" % (args.sniff, bus.name, args.baud))
-            try:
-                sniffer.run(out.sinks, duration=args.duration, count=args.count)
-            except KeyboardInterrupt:
-                pass
-            except JigError as exc:  # the port failed, or the output: the summary first
-                failed = exc
-            try:
-                sniffer.finish(out.sinks)
-            except KeyboardInterrupt:
-                pass
-            except JigError as exc:
-                failed = failed or exc
-        except BrokenPipeError:  # the reader of -w - (or of the live view) went away
-            port.close()
-            _close_writer(args, writer, quiet=True)
-            return EXIT_OK
-        port.close()
-        try:
-            _close_writer(args, writer, quiet=failed is not None)
-        except OutputError as exc:
-            failed = exc
-    if out is not None:
-        _summary(args, sniffer.records, sniffer.bytes, out.counts, writer)
-    if failed is not None:
-        raise failed
-    return EXIT_OK
+        return _record(args, sniffer, port.close, [bus], "%s (%s) at %d baud" % (args.sniff, bus.name, args.baud),
+                       forced=forced, finish=sniffer.finish)
 
 
 def _capture_jig(args):
@@ -327,41 +298,59 @@ def _capture_jig(args):
     forced = 8 if args.ver8 else 6 if args.ver6 else None
     _check_output(args)
     cap = JigCapture(args.jig)
-    writer = out = failed = None
     with _signals_as_ctrl_c():
         try:
-            try:
-                hello = cap.start(HELLO_WAIT_S)
-            except KeyboardInterrupt:
-                cap.close()
-                sys.stderr.write("jigctl: stopped before the jig answered.\n")
-                return EXIT_OK
-            buses = cap.stream.buses()
-            writer = _open_writer(args, buses, hardware=cap.stream.description())
-            out = _Sinks(args, buses, writer, forced)
-            out.banner("the jig's recording from %s: PC bus %d baud, driver bus %d baud (%s, jig id %d)" % (
-                args.jig, hello["up_baud"], hello["down_baud"], hello["variant"], hello["slave_id"]))
-            try:
-                cap.run(out.sinks, duration=args.duration, count=args.count)
-            except KeyboardInterrupt:
-                pass
-            except JigError as exc:  # the stream, the port or the output failed: the summary first
-                failed = exc
-        except BrokenPipeError:  # the reader of -w - (or of the live view) went away
+            hello = cap.start(HELLO_WAIT_S)
+        except KeyboardInterrupt:
             cap.close()
-            _close_writer(args, writer, quiet=True)
+            sys.stderr.write("jigctl: stopped before the jig answered.\n")
             return EXIT_OK
         except BaseException:
             cap.close()
-            _close_writer(args, writer, quiet=True)
             raise
-        cap.close()
+        banner = "the jig's recording from %s: PC bus %d baud, driver bus %d baud (%s, jig id %d)" % (
+            args.jig, hello["up_baud"], hello["down_baud"], hello["variant"], hello["slave_id"])
+        return _record(args, cap, cap.close, cap.stream.buses(), banner, hardware=cap.stream.description(),
+                       forced=forced, jig=cap.stream)
+
+
+def _record(args, source, close, buses, banner, hardware=None, forced=None, finish=None, jig=None):
+    """Records of ``source`` (a Sniffer or a JigCapture) into the outputs until the end
+    (--duration, --count, Ctrl-C, a failure); then ``close()`` the port, close the output,
+    print the summary, and raise the first failure after it. ``finish(sinks)``: what the
+    source left unfinished, after the end. A reader that went away ends it quietly."""
+    writer = failed = None
+    try:
+        writer = _open_writer(args, buses, hardware=hardware)
+        out = _Sinks(args, buses, writer, forced)
+        out.banner(banner)
         try:
-            _close_writer(args, writer, quiet=failed is not None)
-        except OutputError as exc:
+            source.run(out.sinks, duration=args.duration, count=args.count)
+        except KeyboardInterrupt:
+            pass
+        except JigError as exc:  # the port, the stream or the output failed: the summary first
             failed = exc
-    if out is not None:
-        _summary(args, cap.records, cap.bytes, out.counts, writer, cap.stream)
+        if finish is not None:
+            try:
+                finish(out.sinks)
+            except KeyboardInterrupt:
+                pass
+            except JigError as exc:
+                failed = failed or exc
+    except BrokenPipeError:  # the reader of -w - (or of the live view) went away
+        close()
+        _close_writer(args, writer, quiet=True)
+        return EXIT_OK
+    except BaseException:
+        close()
+        _close_writer(args, writer, quiet=True)
+        raise
+    close()
+    try:
+        _close_writer(args, writer, quiet=failed is not None)
+    except OutputError as exc:
+        failed = exc
+    _summary(args, source.records, source.bytes, out.counts, writer, jig)
     if failed is not None:
         raise failed
     return EXIT_OK

@@ -127,36 +127,48 @@ def _stop_on_sigterm(stop):
     signal.signal(signal.SIGTERM, lambda *_: stop())
 
 
-def capture(args):
-    name = INTERFACE
+def _into_fifo(args, name, record):
+    """What both interfaces do around their capture: the fifo opened first (Wireshark
+    waits in its open()), ``record(fifo, keep)`` run (``keep(x)``: x is closed at the
+    end), a failure as the interface's one sentence, everything closed. Returns the exit
+    code: ``record``'s own (a refused option), else 0."""
     if not args.fifo:
-        return _fail("no --fifo given")
+        return _fail("no --fifo given", name)
     fifo = _open_fifo(args, name)
     if fifo is None:
         return 1
-    port = None
+    opened = []
     try:
-        if not args.port:
-            return _fail("no port given: set the interface's Port or URL option")
-        if args.baud not in BAUD_RATES:
-            return _fail("baud rate %d is not one the drives support" % args.baud)
-        port = open_port(args.port, args.baud)
-        sniffer = Sniffer(port, args.port, args.baud, interbyte_timeout_ms=args.interbyte_timeout)
-        _stop_on_sigterm(sniffer.stop)
-        bus = R.make_bus(args.bus, args.baud, args.port)
-        writer = pcapng.Writer(fifo, [bus], flush_each=True)
-        try:
-            sniffer.run([writer.write], alive=_reader_alive(fifo))
-        finally:
-            sniffer.finish([writer.write])
+        return record(fifo, opened.append) or 0
     except (BrokenPipeError, KeyboardInterrupt):
-        pass  # Wireshark closed the fifo, or the user stopped the capture
+        return 0  # Wireshark closed the fifo, or the user stopped the capture
     except JigError as exc:
         return _fail(str(exc), name)
     finally:
-        if port is not None:
-            port.close()
+        for thing in opened:
+            thing.close()
         _close_quietly(fifo)
+
+
+def capture(args):
+    return _into_fifo(args, INTERFACE, lambda fifo, keep: _sniff_into(args, fifo, keep))
+
+
+def _sniff_into(args, fifo, keep):
+    if not args.port:
+        return _fail("no port given: set the interface's Port or URL option")
+    if args.baud not in BAUD_RATES:
+        return _fail("baud rate %d is not one the drives support" % args.baud)
+    port = open_port(args.port, args.baud)
+    keep(port)
+    sniffer = Sniffer(port, args.port, args.baud, interbyte_timeout_ms=args.interbyte_timeout)
+    _stop_on_sigterm(sniffer.stop)
+    bus = R.make_bus(args.bus, args.baud, args.port)
+    writer = pcapng.Writer(fifo, [bus], flush_each=True)
+    try:
+        sniffer.run([writer.write], alive=_reader_alive(fifo))
+    finally:
+        sniffer.finish([writer.write])
     return 0
 
 
@@ -168,29 +180,18 @@ def _close_quietly(fifo):
 
 
 def capture_jig(args):
-    name = JIG_INTERFACE
-    if not args.fifo:
-        return _fail("no --fifo given", name)
-    fifo = _open_fifo(args, name)
-    if fifo is None:
-        return 1
-    cap = None
-    try:
-        if not args.port:
-            return _fail("no port given: set the interface's Capture port or URL option", name)
-        cap = JigCapture(args.port)
-        _stop_on_sigterm(cap.stop)
-        cap.start()
-        writer = pcapng.Writer(fifo, cap.stream.buses(), flush_each=True, hardware=cap.stream.description())
-        cap.run([writer.write], alive=_reader_alive(fifo))
-    except (BrokenPipeError, KeyboardInterrupt):
-        pass  # Wireshark closed the fifo, or the user stopped the capture
-    except JigError as exc:
-        return _fail(str(exc), name)
-    finally:
-        if cap is not None:
-            cap.close()
-        _close_quietly(fifo)
+    return _into_fifo(args, JIG_INTERFACE, lambda fifo, keep: _jig_into(args, fifo, keep))
+
+
+def _jig_into(args, fifo, keep):
+    if not args.port:
+        return _fail("no port given: set the interface's Capture port or URL option", JIG_INTERFACE)
+    cap = JigCapture(args.port)
+    keep(cap)
+    _stop_on_sigterm(cap.stop)
+    cap.start()
+    writer = pcapng.Writer(fifo, cap.stream.buses(), flush_each=True, hardware=cap.stream.description())
+    cap.run([writer.write], alive=_reader_alive(fifo))
     return 0
 
 
