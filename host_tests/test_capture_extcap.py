@@ -14,7 +14,7 @@ import time
 import pytest
 
 from test_capture_support import (Server, body_of, capture, installed, needs_tshark,  # noqa: F401
-                                  parse_pcapng, play, run_tshark)
+                                  parse_pcapng, play, read_fifo, run_tshark)
 
 from motorjig.capture import extcap
 
@@ -59,14 +59,7 @@ def test_capture_into_a_fifo(installed, tmp_path):
     proc = subprocess.Popen([launcher, "--capture", "--extcap-interface", "motorjig-sniff", "--fifo", fifo,
                              "--port", srv.url, "--baud", "115200", "--bus", "pc"], stderr=subprocess.PIPE)
     try:
-        data = b""
-        with open(fifo, "rb") as f:
-            srv.done.wait(20)
-            while len(parse_or_none(data)) < 3:
-                chunk = os.read(f.fileno(), 4096)
-                assert chunk, "the extcap closed the fifo early: %s" % proc.stderr.read()
-                data += chunk
-        proc.wait(10)  # the fifo is closed: the extcap ends by itself
+        data = read_fifo(fifo, proc, 3)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -74,13 +67,6 @@ def test_capture_into_a_fifo(installed, tmp_path):
     assert proc.returncode == 0, proc.stderr.read()
     f = parse_pcapng(data)
     assert [body_of(p["data"])[:-2] for p in f["packets"]] == [b for b, _c in cap.frames]
-
-
-def parse_or_none(data):
-    try:
-        return parse_pcapng(data)["packets"]
-    except (AssertionError, Exception):
-        return []
 
 
 @needs_tshark

@@ -17,7 +17,8 @@ import time
 import pytest
 
 from test_capture_jig_support import BenchCapture, JigServer, frame, hello, read_all, scenario
-from test_capture_support import JIGCTL, installed, jigctl, needs_tshark, parse_pcapng, run_tshark  # noqa: F401
+from test_capture_support import (JIGCTL, installed, jigctl, needs_tshark, parse_pcapng, read_fifo,  # noqa: F401
+                                  run_tshark)
 
 from jig import capture as C
 
@@ -167,15 +168,15 @@ def test_duration_ends_it_and_sends_x(stream):
     assert took < 10 and not srv.sent_all.is_set()
 
 
-def test_ctrl_c_ends_it_and_sends_x(stream, tmp_path):
-    srv = JigServer(stream, chunk=40, gap=0.2)
-    out = str(tmp_path / "c.pcapng")
+def _signalled(srv, ready, out, sig):
+    """jigctl capture --jig srv -w out, sent sig a second after ``ready`` is set: it must
+    end by itself with exit 0, X sent, no traceback. Returns (the pcapng parsed, stderr)."""
     proc = subprocess.Popen([JIGCTL, "capture", "--jig", srv.url, "-w", out, "-q"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
     try:
-        assert srv.started.wait(20)
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGINT)
+        assert ready.wait(20)
+        time.sleep(1.0)  # the command has read what was sent by then
+        proc.send_signal(sig)
         stdout, stderr = proc.communicate(timeout=20)
         assert _stopped(srv)
     finally:
@@ -183,7 +184,13 @@ def test_ctrl_c_ends_it_and_sends_x(stream, tmp_path):
             proc.kill()
         srv.close()
     assert proc.returncode == 0 and b"Traceback" not in stderr, stderr
-    f = parse_pcapng(open(out, "rb").read())
+    return parse_pcapng(open(out, "rb").read()), stderr
+
+
+def test_ctrl_c_ends_it_and_sends_x(stream, tmp_path):
+    srv = JigServer(stream, chunk=40, gap=0.2)
+    out = str(tmp_path / "c.pcapng")
+    f, stderr = _signalled(srv, srv.started, out, signal.SIGINT)
     assert len(f["interfaces"]) == 2 and f["packets"]
     assert b"records" in stderr  # the summary
 
@@ -328,13 +335,6 @@ def test_extcap_refuses_a_port_without_hello(tmp_path, capsys):
     assert os.path.getsize(str(tmp_path / "f")) == 0
 
 
-def _packets(data):
-    try:
-        return parse_pcapng(data)["packets"]
-    except Exception:
-        return []
-
-
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no fifos on this OS")
 def test_extcap_captures_into_a_fifo(installed, tmp_path, stream, expected):
     launcher = str(installed / ".local/lib/wireshark/extcap/motorjig-jig")
@@ -346,13 +346,7 @@ def test_extcap_captures_into_a_fifo(installed, tmp_path, stream, expected):
     proc = subprocess.Popen([launcher, "--capture", "--extcap-interface", "motorjig-jig", "--fifo", fifo,
                              "--port", srv.url], stderr=subprocess.PIPE)
     try:
-        data = b""
-        with open(fifo, "rb") as f:
-            while len(_packets(data)) < len(expected):
-                chunk = os.read(f.fileno(), 65536)
-                assert chunk, "the extcap closed the fifo early: %s" % proc.stderr.read()
-                data += chunk
-        proc.wait(10)  # the fifo is closed: the extcap ends by itself
+        data = read_fifo(fifo, proc, len(expected))
         assert _stopped(srv)
     finally:
         if proc.poll() is None:
@@ -428,20 +422,7 @@ def test_sigterm_and_sighup_end_it_as_ctrl_c_does(stream, expected, tmp_path, si
     (its buffered end too), the summary, exit 0 as for Ctrl-C."""
     srv = JigServer(stream)
     out = str(tmp_path / "t.pcapng")
-    proc = subprocess.Popen([JIGCTL, "capture", "--jig", srv.url, "-w", out, "-q"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
-    try:
-        assert srv.sent_all.wait(20)
-        time.sleep(1.0)  # the command has read it all
-        proc.send_signal(sig)
-        stdout, stderr = proc.communicate(timeout=20)
-        assert _stopped(srv)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        srv.close()
-    assert proc.returncode == 0 and b"Traceback" not in stderr, stderr
-    f = parse_pcapng(open(out, "rb").read())
+    f, stderr = _signalled(srv, srv.sent_all, out, sig)
     assert [(p["interface"], p["data"]) for p in f["packets"]] == [(r.bus, r.data) for r in expected]
     assert b"%d records" % len(expected) in stderr, stderr  # the summary
 

@@ -183,16 +183,23 @@ class ClosingServer:
         self._thread.join(5)
 
 
+def start_fails(url, wait):
+    """The sentence of the PortError a start on url raises (the port closed after it)."""
+    cap = JigCapture(url)
+    try:
+        with pytest.raises(PortError) as exc:
+            cap.start(wait=wait)
+    finally:
+        cap.close()
+    return str(exc.value)
+
+
 @pytest.mark.parametrize("reset", [False, True], ids=["eof", "reset"])
 def test_a_port_that_closes_at_once_has_another_reader(reset):
     srv = ClosingServer(reset)
     try:
-        cap = JigCapture(srv.url)
-        with pytest.raises(PortError) as exc:
-            cap.start(wait=1.0)
-        cap.close()
-        assert str(exc.value) == ("%s closed the connection at once: another reader is attached "
-                                  "(one reader at a time)" % srv.url)
+        assert start_fails(srv.url, 1.0) == ("%s closed the connection at once: another reader is attached "
+                                             "(one reader at a time)" % srv.url)
     finally:
         srv.close()
 
@@ -203,12 +210,8 @@ def test_a_port_that_says_nothing_may_have_another_reader():
     srv.listen(1)
     url = "socket://127.0.0.1:%d" % srv.getsockname()[1]
     try:
-        cap = JigCapture(url)
-        with pytest.raises(PortError) as exc:
-            cap.start(wait=0.3)
-        cap.close()
-        assert str(exc.value) == ("%s is not a MotorJig capture port: no hello record in 0.3 s (nothing came), "
-                                  "or another program is reading it" % url)
+        assert start_fails(url, 0.3) == ("%s is not a MotorJig capture port: no hello record in 0.3 s "
+                                         "(nothing came), or another program is reading it" % url)
     finally:
         srv.close()
 
@@ -222,17 +225,11 @@ def test_a_second_reader_on_the_real_time_bench_is_told():
         first = JigCapture(bench.capture_url)
         try:
             first.start()
-            second = JigCapture(bench.capture_url)
-            with pytest.raises(PortError) as exc:
-                second.start(wait=1.0)
-            second.close()
-            assert str(exc.value) == ("%s closed the connection at once: another reader is attached "
-                                      "(one reader at a time)" % bench.capture_url)
+            assert start_fails(bench.capture_url, 1.0) == (
+                "%s closed the connection at once: another reader is attached (one reader at a time)"
+                % bench.capture_url)
             if bench.capture_pty_path:
-                third = JigCapture(bench.capture_pty_path)
-                with pytest.raises(PortError) as exc:
-                    third.start(wait=0.5)
-                third.close()
-                assert str(exc.value).endswith("(nothing came), or another program is reading it")
+                assert start_fails(bench.capture_pty_path, 0.5).endswith(
+                    "(nothing came), or another program is reading it")
         finally:
             first.close()

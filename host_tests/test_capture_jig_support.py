@@ -13,6 +13,8 @@ import struct
 import threading
 import time
 
+from test_capture_support import body_of
+
 from jig import frame as F
 
 from motorjig.capture import record as R
@@ -63,13 +65,7 @@ def passed(into, body, t0, t1, o0, o1, verdict=R.GOOD):
 
 def body(slave, ftype, data=b""):
     """A frame's body (id, type, data, CRC) as the jig's parser holds it."""
-    wire = F.encode(slave, ftype, bytes(data))
-    out = bytearray()
-    i = 2
-    while i < len(wire) - 2:
-        out.append(wire[i])
-        i += 2 if wire[i] == 0xAA else 1
-    return bytes(out)
+    return body_of(F.encode(slave, ftype, bytes(data)))
 
 
 def read_all(stream, host_us=EPOCH_US, step=0, **kw):

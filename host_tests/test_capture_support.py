@@ -272,3 +272,21 @@ def installed(tmp_path):
     out = res.stdout.decode()
     assert "capture interface: motorjig-sniff" in out and "capture interface: motorjig-jig" in out, out
     return tmp_path
+
+
+def read_fifo(fifo, proc, packets):
+    """What Wireshark does with an extcap's fifo: read pcapng from it until it holds
+    ``packets`` packets, close it, and wait for the extcap (``proc``) to end by itself."""
+    data = b""
+    with open(fifo, "rb") as f:
+        while True:
+            try:
+                if len(parse_pcapng(data)["packets"]) >= packets:
+                    break
+            except Exception:  # a block still coming
+                pass
+            chunk = os.read(f.fileno(), 65536)
+            assert chunk, "the extcap closed the fifo early: %s" % proc.stderr.read()
+            data += chunk
+    proc.wait(10)  # the fifo is closed: the extcap ends by itself
+    return data

@@ -18,10 +18,12 @@ EXAMPLE = os.path.join(ROOT, "tools", "examples", "pyserial_scan_move.py")
 ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.join(ROOT, "firmware"), os.path.join(ROOT, "tools")]))
 
 
-def read_frame(ser, deadline_reads=20):
+def read_frame(ser, limit_s=2.0):
+    """The next frame's body from ser, as soon as it is complete (None after limit_s)."""
     p = FrameParser()
-    for _ in range(deadline_reads):
-        chunk = ser.read(64)
+    end = time.monotonic() + limit_s
+    while time.monotonic() < end:
+        chunk = ser.read(ser.in_waiting or 1)
         i = 0
         while i < len(chunk):
             i = p.feed(chunk, i)
@@ -142,20 +144,6 @@ def test_a_host_stall_during_a_drive_turnaround_is_no_jig_timeout(bench, monkeyp
         assert m.read_counters(1)["timeouts"] == 0
 
 
-def _reply(ser, limit_s=2.0):
-    """The next frame's body from ser, as soon as it is complete (None after limit_s)."""
-    p = FrameParser()
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        chunk = ser.read(ser.in_waiting or 1)
-        i = 0
-        while i < len(chunk):
-            i = p.feed(chunk, i)
-            if p.ready:
-                return bytes(p.body[: p.body_len])
-    return None
-
-
 def test_a_pty_nobody_reads_does_not_stop_the_bench_for_tcp_clients():
     """Every reply also goes to the pty; with nobody reading it, its buffer fills after
     ~20 KB. The bench must go on answering its TCP clients (it blocked there once)."""
@@ -165,7 +153,7 @@ def test_a_pty_nobody_reads_does_not_stop_the_bench_for_tcp_clients():
             n_ok = 0
             for _ in range(1200):  # ~36 KB of replies, more than the pty holds
                 s.write(req)
-                body = _reply(s)
+                body = read_frame(s)
                 if body is None or body[:3] != b"\x01\x01\x00":
                     break  # (the bench stopped answering: no point waiting 2 s 1 000 times)
                 n_ok += 1
@@ -174,7 +162,7 @@ def test_a_pty_nobody_reads_does_not_stop_the_bench_for_tcp_clients():
         with serial.serial_for_url(b.pty_path, baudrate=921600, timeout=0.05) as p:
             p.reset_input_buffer()
             p.write(F.encode(2, F.GET_COMMAND_POS))
-            body = _reply(p)
+            body = read_frame(p)
             assert body is not None and body[:3] == b"\x02\x51\x00"
 
 
