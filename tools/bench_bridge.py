@@ -205,20 +205,17 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
     print("   %d + %d instructions at %.0f MHz, 1 instruction per cycle: an assumption)"
           % (round(cpu_model[0] * M7_HZ / 1e6), round(cpu_model[1] * M7_HZ / 1e6), M7_HZ / 1e6))
     print("   + the slow pass %d instructions)" % round(cpu_model[2] * M7_HZ / 1e6) if len(cpu_model) > 2 else "")
-    names = {P.CUT_THROUGH: "cut-through (param 12 = 0)", P.STORE_AND_FORWARD: "store-and-forward (param 12 = 1)",
-             "capture": "cut-through, recording both buses (param 13 = 1), the capture port read by a host"}
     direct = {baud: polling_rate(baud, direct=True, n=n) for baud in P.BAUD_RATES}
-    for mode in (P.CUT_THROUGH, P.STORE_AND_FORWARD, "capture"):
-        capture = mode == "capture"
-        model = capture_model if capture else cpu_model
+    for title, mode, capture, model in (
+            ("cut-through (param 12 = 0)", P.CUT_THROUGH, False, cpu_model),
+            ("store-and-forward (param 12 = 1)", P.STORE_AND_FORWARD, False, cpu_model),
+            ("cut-through, recording both buses (param 13 = 1), the capture port read by a host", P.CUT_THROUGH,
+             True, capture_model)):
+        print("    %s:" % title)
         if capture:
-            mode = P.CUT_THROUGH
-            print("    %s:" % names["capture"])
             print("    (CPU model: + %d instructions a byte, slow pass %d, %d a write of records to the port)"
                   % (round((model[1] - cpu_model[1]) * M7_HZ / 1e6), round(model[2] * M7_HZ / 1e6),
                      round(model[3] * M7_HZ / 1e6)))
-        else:
-            print("    %s:" % names[mode])
         print("    %7s %10s %10s %7s %13s %13s %8s" % ("baud", "direct /s", "jig /s", "ratio",
                                                    "req hop us", "reply hop us", "byte us"))
         for baud in P.BAUD_RATES:

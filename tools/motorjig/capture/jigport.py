@@ -62,19 +62,20 @@ class JigCapture:
             self.port.write(data)
             self.port.flush()
         except (serial.SerialException, OSError) as exc:
-            if starting and self._closed_at_once(exc):
-                raise PortError("%s closed the connection at once: another reader is attached "
-                                "(one reader at a time)" % self.url) from None
-            raise PortError("writing to %s failed: %s" % (self.url, exc)) from None
+            raise self._failed(exc, "writing to", starting) from None
 
     def _read(self, starting=False):
         try:
             return read_waiting(self.port)
         except (serial.SerialException, OSError) as exc:
-            if starting and self._closed_at_once(exc):
-                raise PortError("%s closed the connection at once: another reader is attached "
-                                "(one reader at a time)" % self.url) from None
-            raise PortError("reading from %s failed: %s" % (self.url, exc)) from None
+            raise self._failed(exc, "reading from", starting) from None
+
+    def _failed(self, exc, doing, starting):
+        """The PortError of a failed read or write ("another reader" while starting)."""
+        if starting and self._closed_at_once(exc):
+            return PortError("%s closed the connection at once: another reader is attached "
+                             "(one reader at a time)" % self.url)
+        return PortError("%s %s failed: %s" % (doing, self.url, exc))
 
     @staticmethod
     def _closed_at_once(exc):
@@ -120,7 +121,10 @@ class JigCapture:
                 self._pending += self.stream.feed(data, self.stream.clock.now_us())
         return self.stream.hello
 
-    def _out(self, recs, sinks):
+    def _out(self, recs, sinks, count=None):
+        """recs to the sinks, only as many as keep the total within count (None: all)."""
+        if count is not None:
+            recs = recs[:max(0, count - self.records)]
         for rec in recs:
             self.records += 1
             for sink in sinks:
@@ -133,7 +137,7 @@ class JigCapture:
         end = None if duration is None else now + duration
         last = now  # when a byte last came
         pending, self._pending = self._pending, []
-        self._out(pending[:None if count is None else max(0, count - self.records)], sinks)
+        self._out(pending, sinks, count)
         while not self._stop and (alive is None or alive()):
             now = self._monotonic()
             if end is not None and now >= end:
@@ -151,9 +155,7 @@ class JigCapture:
             except StreamError as exc:
                 self._out(exc.records, sinks)
                 raise
-            if count is not None:
-                recs = recs[:max(0, count - self.records)]
-            self._out(recs, sinks)
+            self._out(recs, sinks, count)
 
     def close(self):
         """Recording off (X), port closed; never raises."""

@@ -46,10 +46,11 @@ reader then skips to the next hello and goes on from there.
 
 import struct
 
-from jig.frame import MAX_BODY
+from jig.frame import MAX_BODY, stuff_into
 from jig.params import BAUD_RATES
 
 from motorjig.capture import record as R
+from motorjig.capture.framer import char_time_us
 from motorjig.capture.sniff import HostClock
 from motorjig.errors import PortError
 
@@ -86,33 +87,19 @@ class StreamError(PortError):
         self.offset = offset
 
 
-def stuff(body):
-    """Every 0xAA of a body doubled, as on the wire."""
-    out = bytearray()
-    for b in body:
-        out.append(b)
-        if b == 0xAA:
-            out.append(0xAA)
-    return bytes(out)
-
-
 def wire_bytes(body, verdict):
     """The bytes a frame record stood for on the wire, rebuilt from the body the jig's
     parser held: header and tail for a whole frame (good, bad CRC, short); no tail for
     one cut off (overlong: the byte that overflowed is not kept; timeout; resync: the
     new header starts the next record); the 0xAA of a stuffing error, without the
     byte after it (not kept either)."""
-    wire = b"\xaa\xcc" + stuff(body)
+    wire = bytearray(4 + 2 * len(body))
+    end = stuff_into(wire, body, len(body))  # header, stuffed body, tail
     if verdict in (R.GOOD, R.BAD_CRC, R.SHORT):
-        return wire + b"\xaa\xee"
+        return bytes(wire[:end])
     if verdict == R.BAD_STUFFING:
-        return wire + b"\xaa"
-    return wire
-
-
-def char_us(baud):
-    """One character (start bit, 8 data bits, stop bit) at baud, in µs."""
-    return 10e6 / baud if baud else 0.0
+        return bytes(wire[:end - 1])
+    return bytes(wire[:end - 2])
 
 
 def _sdiff(a, b):
@@ -395,4 +382,4 @@ class JigStream:
         self.hello = h
         self.hellos += 1
         self._started = True
-        self._char = (char_us(h["up_baud"]), char_us(h["down_baud"]))
+        self._char = tuple(char_time_us(b) if b else 0.0 for b in (h["up_baud"], h["down_baud"]))

@@ -719,8 +719,6 @@ class Bench:
                 # The pty's buffer is full: nobody reads it. What it holds is stale (an
                 # adapter nobody reads loses it too): drop it, keep the newest.
                 try:
-                    import termios
-
                     termios.tcflush(self._slave, termios.TCIFLUSH)
                     os.write(self._master, data)
                 except OSError:
