@@ -364,7 +364,8 @@ def pump(ctx, passes: int) -> int:
                         bs[_B_DEADLINE] = d
                         if ((d - due[0]) & _MASK) >= _HALF:
                             due[0] = d
-                        # Bridge._ask_window: records wait, the drive is thinking: the slow pass now
+                        # as Bridge.on_pc_frame after _pend_pc: records wait, the drive is thinking:
+                        # the slow pass now
                         if cs[_CS_HEAD] != cs[_CS_TAIL] and ((now - cs[_CS_NEXT]) & _MASK) < _HALF:
                             due[0] = now
                 elif ev == _EV_FRAME and bs[_B_FWD] == 0 and ub[0] == int(ram[_P_SLAVE_ID]):
