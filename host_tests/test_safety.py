@@ -91,3 +91,34 @@ def test_mixed_bus_each_driver_executes_one_stop():
             assert b.drivers[i].servo_on  # nothing else was executed
         c = b.counters
         assert c["safety_stops"] == 1 and c["int_requests"] == 3 and c["int_replies"] == 3
+
+
+def servo_offs(d):
+    return [t for t, ft in d.received if ft == F.SERVO_ENABLE]
+
+
+def test_emergency_stop_then_servo_off_action():
+    """safety_action 2 (the station's, for a run): each seen driver gets EmergencyStop, then
+    ServoEnable(off), in the framing it executed the stop in; a Ver8 drive on a Ver6 jig too."""
+    for jig_ver8 in (False, True):
+        b = SimBench(driver_ids=(2, 3), servo_on=True, jig_ver8=jig_ver8, ver8_drivers=(3,))
+        for d in b.drivers.values():
+            d.record_requests = True
+        for num, value in ((P.P_SAFETY_TIMEOUT_MS, 100), (P.P_SAFETY_ACTION, 2)):
+            assert b.request(1, F.SET_PARAMETER, bytes([num]) + struct.pack("<i", value))[1] == b"\x00"
+        for i in (2, 3):
+            assert b.request(i, F.MOVE_VELOCITY, struct.pack("<IB", 2000, 1))[1] == b"\x00"
+        b.run_for(2e6)
+        for i in (2, 3):
+            d = b.drivers[i]
+            assert len(stops(d)) == 1 and len(servo_offs(d)) == 1, (jig_ver8, i, d.received)
+            assert stops(d)[0] < servo_offs(d)[0]
+            assert d.received[-1][1] == F.SERVO_ENABLE
+            assert not d.servo_on and not d.flags() & (1 << 27)
+        assert b.counters["safety_stops"] == 1
+
+
+def test_servo_off_action_out_of_range_is_refused():
+    b = SimBench(driver_ids=(2,))
+    st = b.request(1, F.SET_PARAMETER, bytes([P.P_SAFETY_ACTION]) + struct.pack("<i", 3))[1]
+    assert st == b"\x81"

@@ -55,7 +55,7 @@ TABLE = (
     (7, "de_post_us", "us", 0, 1000, 0, IMMEDIATE),
     (8, "protocol", "0=Ver6 1=Ver8", 0, 1, 0, RESTART),
     (9, "safety_timeout_ms", "ms, 0=off", 0, 60000, 0, IMMEDIATE),
-    (10, "safety_action", "0=MoveStop 1=EmergencyStop", 0, 1, 0, IMMEDIATE),
+    (10, "safety_action", "0=MoveStop 1=EmergencyStop 2=EmergencyStop+servo off", 0, 2, 0, IMMEDIATE),
     (11, "scan_timeout_ms", "ms", 1, 100, 20, IMMEDIATE),
     (12, "forward_mode", "0=cut-through 1=store-and-forward", 0, 1, 0, RESTART),
     (13, "capture", "0=off 1=record both buses", 0, 1, 0, IMMEDIATE),

@@ -3,21 +3,28 @@
 Like EtherCAT's process-data watchdog or a CANopen heartbeat consumer: once the PC
 has sent at least one frame, if it then stays silent longer than
 ``safety_timeout_ms`` (0 = off), the jig sends MoveStop or EmergencyStop
-(``safety_action``) once to every driver id that has answered through the bridge,
-and counts the event. It re-arms when the PC speaks again.
+(``safety_action`` 0 / 1) once to every driver id that has answered through the
+bridge, and counts the event. ``safety_action`` 2 sends EmergencyStop and then
+ServoEnable(off) to each: the station's choice for a run, so that a PC that died
+mid-move leaves a drive with its servo off. It re-arms when the PC speaks again.
 
 Mixed Ver6/Ver8 bus: the stop goes out in the jig's protocol first. A driver that
 executed it answers OK in that layout; any other answer (a driver of the other
 variant reads the frame as an unknown type and answers a frame-type error) makes
 the jig send the stop once more in the other variant's framing to that id. Each
 driver thus executes exactly one stop; on a bus of one variant nothing changes.
+The servo-off of action 2 goes out in the framing the stop was executed in.
 """
 
 from jig import counters as K
 from jig import frame
 from jig.bridge import B_PC_FRAMES, B_T_PC, SEEN_IDS
 from jig.compat import ticks_diff
+from jig.compat import const
 from jig.params import P_REPLY_TIMEOUT_MS, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
+
+ACTION_EMERGENCY_STOP = const(1)
+ACTION_EMERGENCY_STOP_SERVO_OFF = const(2)
 
 
 class SafetyStop:
@@ -31,7 +38,8 @@ class SafetyStop:
         self.waiting = False
         self.other = False  # the current id gets the stop in the other variant's framing
         self.ftype = frame.MOVE_STOP
-        self.empty = bytearray(1)
+        self.servo_off = False  # the current id's stop is done: its ServoEnable(off) is next
+        self.empty = bytearray(1)  # no data for a stop; one 0 byte (off) for ServoEnable
 
     def wait_us(self, now):
         """µs until the silence limit is reached or the next stop can go out (-1:
@@ -66,26 +74,44 @@ class SafetyStop:
         if self.next_id >= SEEN_IDS:
             self.todo = 0
             return
-        ftype = frame.EMERGENCY_STOP if self.params.ram[P_SAFETY_ACTION] else frame.MOVE_STOP
+        n = 0
+        if self.servo_off:
+            ftype = frame.SERVO_ENABLE
+            n = 1
+        elif self.params.ram[P_SAFETY_ACTION]:
+            ftype = frame.EMERGENCY_STOP
+        else:
+            ftype = frame.MOVE_STOP
         self.ftype = ftype
         framing = -1
         if self.other:
             framing = 0 if b.ver8 else 1
-        if b.request(self, self.next_id, ftype, self.empty, 0, self.params.ram[P_REPLY_TIMEOUT_MS], framing):
+        if b.request(self, self.next_id, ftype, self.empty, n, self.params.ram[P_REPLY_TIMEOUT_MS], framing):
             self.waiting = True
 
     def _done(self):
         self.waiting = False
         self.other = False
+        self.servo_off = False
         self.todo &= ~(1 << self.next_id)
 
+    def _stopped(self):
+        # The stop was executed (in the framing ``other`` says): servo off next, if asked.
+        if self.params.ram[P_SAFETY_ACTION] == ACTION_EMERGENCY_STOP_SERVO_OFF:
+            self.waiting = False
+            self.servo_off = True
+        else:
+            self._done()
+
     def on_reply(self, p):
+        if self.servo_off:
+            self._done()
         # Executed: status 0 and nothing else, in the layout the stop was sent in.
-        if (not self.other and p.ftype == self.ftype and p.data_end - p.data_start == 1
+        elif (not self.other and p.ftype == self.ftype and p.data_end - p.data_start == 1
                 and p.body[p.data_start] == 0):
-            self._done()
+            self._stopped()
         elif self.other:
-            self._done()
+            self._stopped()
         else:
             self.waiting = False
             self.other = True  # not executed there: the other variant's framing next
@@ -97,4 +123,5 @@ class SafetyStop:
         # The PC is back: it is in charge again.
         self.waiting = False
         self.other = False
+        self.servo_off = False
         self.todo = 0
