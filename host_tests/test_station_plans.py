@@ -117,7 +117,67 @@ def test_value_of_the_wrong_type(capsys, tmp_path):
 
 def test_value_out_of_range(capsys, tmp_path):
     refused(capsys, tmp_path, GOOD.replace("speed = 5000", "speed = 9000000"), 15, "steps[1].speed",
-            ["outside 1..2500000"])
+            ["must be between 1 and 2500000, not 9000000"])
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("following_error_max", "-1", "must be ≥ 0, not -1"),
+    ("duration_tolerance", "-0.5", "must be between 0 and 10, not -0.5"),
+    ("timeout_s", "0.01", "must be between 0.1 and 3600, not 0.01"),
+    ("accel_ms", "0", "must be between 1 and 9999, not 0"),
+])
+def test_every_range_message_reads_as_a_sentence(capsys, tmp_path, key, value, words):
+    err = refused(capsys, tmp_path, GOOD.replace("speed = 5000", "speed = 5000\n%s = %s" % (key, value)), 16,
+                  "steps[1].%s" % key, [words])
+    assert "outside" not in err and "..." not in err
+
+
+def test_every_bounded_key_of_the_schema_has_a_readable_range_message(tmp_path):
+    """Each key with a lower or upper bound, given a value just outside it, says 'must be ..., not V'."""
+    for table, keys in (("plan", schema.PLAN_KEYS), ("drive", schema.DRIVE_KEYS)):
+        for k in keys:
+            assert k.lo is None and k.hi is None or table == "drive"
+    checked = 0
+    for kind in schema.STEP_KINDS:
+        for k in schema.COMMON_STEP_KEYS + kind.keys:
+            if k.type not in ("int", "num") or (k.lo is None and k.hi is None):
+                continue
+            bad = k.lo - 1 if k.lo is not None else k.hi + 1
+            ck = P._Checker("p.toml", None)
+            ck.error = lambda keypath, message: P.PlanError("p.toml", None, P.dotted(keypath), message)
+            with pytest.raises(P.PlanError) as e:
+                ck.value(bad, k, ("steps", 0, k.name))
+            assert e.value.message == "must be %s, not %r" % (P.bounds_text(k.lo, k.hi), bad)
+            checked += 1
+    assert checked > 20
+
+
+@pytest.mark.parametrize("key", ["name_pattern", "motor_pattern"])
+def test_an_invalid_regular_expression_is_refused_before_anything_moves(capsys, tmp_path, key):
+    text = GOOD + '\n[[steps]]\nkind = "identify"\n%s = "Ezi-(STEP"\n' % key
+    refused(capsys, tmp_path, text, 19, "steps[2].%s" % key,
+            ["'Ezi-(STEP' is not a valid regular expression", "missing ), unterminated subpattern"])
+
+
+def test_two_steps_of_the_same_name_are_refused_naming_both(capsys, tmp_path):
+    text = GOOD.replace('distance = 1000', 'distance = 1000\nname = "m"') + \
+        '\n[[steps]]\nkind = "move"\nname = "m"\ndistance = -1000\nspeed = 5000\n'
+    refused(capsys, tmp_path, text, 20, "steps[2].name",
+            ["two steps are named 'm'", "steps[1] (line 15) and steps[2]"])
+
+
+def test_a_name_given_to_a_step_must_not_be_taken_by_another(capsys, tmp_path):
+    # the second servo is numbered (servo_2); a step given that very name is refused
+    text = GOOD + '\n[[steps]]\nkind = "servo"\non = false\n\n[[steps]]\nkind = "servo"\nname = "servo_2"\n'
+    refused(capsys, tmp_path, text, 23, "steps[3].name", ["two steps are named 'servo_2'", "steps[2] (line 17)"])
+    # a step named like a repeated step's run
+    text = GOOD.replace("on = true", 'on = true\nname = "s"\nrepeat = 2') + '\n[[steps]]\nkind = "servo"\nname = "s_2"\n'
+    refused(capsys, tmp_path, text, 21, "steps[2].name", ["two steps are named 's_2'", "steps[0] (line 11)"])
+
+
+def test_unnamed_steps_of_one_kind_are_numbered(tmp_path):
+    text = GOOD + '\n[[steps]]\nkind = "servo"\non = false\n'
+    assert [s.name for s in P.load_plan(write(tmp_path, text)).steps] == ["servo", "move", "servo_2"]
 
 
 def test_a_move_of_distance_zero(capsys, tmp_path):

@@ -9,8 +9,9 @@ pre-flight before anything moves (``motorjig.station.runner``).
 
 Repeats and sweeps are expanded here: ``repeat = 3`` gives three steps, a sweep key
 given as a list gives one step per value, each with a unique name
-(``move_speed_20000``, ``move_2``), so every record, JUnit test case and plot is one
-step run.
+(``move_speed_20000``; an unnamed step of a kind that came before: ``move_2``), so every
+record, JUnit test case and plot is one step run. Two steps given the same ``name`` are
+refused, naming both.
 """
 
 import difflib
@@ -130,9 +131,22 @@ class _Checker:
         if k.choices and v not in k.choices:
             raise self.error(keypath, "expected one of %s, got %r" % (", ".join(repr(c) for c in k.choices), v))
         if isnum and (k.lo is not None and v < k.lo or k.hi is not None and v > k.hi):
-            raise self.error(keypath, "%r is outside %s..%s" % (v, "" if k.lo is None else k.lo,
-                                                                "" if k.hi is None else k.hi))
+            raise self.error(keypath, "must be %s, not %r" % (bounds_text(k.lo, k.hi), v))
+        if k.type == "regex":
+            if not isinstance(v, str):
+                raise bad("a regular expression (a string)")
+            try:
+                re.compile(v)
+            except re.error as exc:
+                raise self.error(keypath, "%r is not a valid regular expression: %s" % (v, exc)) from None
         return v
+
+
+def bounds_text(lo, hi):
+    """The allowed range in words: 'between 1 and 2500000', '≥ 0', '≤ 10'."""
+    if lo is not None and hi is not None:
+        return "between %s and %s" % (lo, hi)
+    return "≥ %s" % lo if lo is not None else "≤ %s" % hi
 
 
 def _wiring(ck, data, drive_slave):
@@ -192,7 +206,10 @@ def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
                 _wired(ck, wiring, step_path + (key, i), ref, which)
 
 
-def _expand(kind, name, args, index, out, seen):
+def _expand(ck, kind, name, explicit, args, index, out, owners):
+    """The step runs of one plan step, appended to ``out``. ``owners``: every step-run name so far
+    -> (plan step index, explicit). A name given in the plan (``explicit``) must be free; a default
+    name (the kind) that is taken is numbered (servo, servo_2)."""
     sweeps = [k for k, v in args.items() if isinstance(v, list) and S.kind_keys(kind)[k].sweep]
     combos = itertools.product(*[args[k] for k in sweeps]) if sweeps else [()]
     for combo in combos:
@@ -203,12 +220,22 @@ def _expand(kind, name, args, index, out, seen):
             label += "_%s_%s" % (k, v)
         for r in range(args["repeat"]):
             n = label + ("_%d" % (r + 1) if args["repeat"] > 1 else "")
+            if n in owners and explicit and owners[n][0] != index:
+                raise _same_name(ck, n, owners[n][0], index)
             base, i = n, 2
-            while n in seen:
+            while n in owners:
                 n = "%s_%d" % (base, i)
                 i += 1
-            seen.add(n)
+            owners[n] = (index, explicit)
             out.append(Step(kind, n, a, index))
+
+
+def _same_name(ck, name, first, second):
+    """The error for two plan steps that would both be called ``name``."""
+    line = ck.lines.line(("steps", first, "name")) or ck.lines.line(("steps", first))
+    return ck.error(("steps", second, "name"), "two steps are named %r: steps[%d]%s and steps[%d]; give each "
+                                               "step its own name" % (name, first, " (line %d)" % line if line else "",
+                                                                      second))
 
 
 def load_plan(path):
@@ -235,7 +262,7 @@ def load_plan(path):
     steps_data = data.get("steps")
     if not isinstance(steps_data, list) or not steps_data:
         raise ck.error(("steps",), "no steps (add [[steps]] tables)")
-    steps, seen, paramsets = [], set(), {}
+    steps, owners, named, paramsets = [], {}, {}, {}
     plan_dir = os.path.dirname(os.path.abspath(path))
     for i, sd in enumerate(steps_data):
         sp = ("steps", i)
@@ -251,7 +278,12 @@ def load_plan(path):
         args = ck.table(sd, sp, S.COMMON_STEP_KEYS + S.KINDS[kind].keys, "a %s step" % kind)
         _check_step(ck, sp, kind, args, plan_dir, drive, wiring, paramsets)
         first = len(steps)
-        _expand(kind, (args["name"] or kind).replace(" ", "_"), args, i, steps, seen)
+        name = (args["name"] or kind).replace(" ", "_")
+        if args["name"] is not None:
+            if name in named:
+                raise _same_name(ck, name, named[name], i)
+            named[name] = i
+        _expand(ck, kind, name, args["name"] is not None, args, i, steps, owners)
         if kind == "parameters":
             for st in steps[first:]:
                 st.paramset = paramsets[os.path.join(plan_dir, args["file"])]

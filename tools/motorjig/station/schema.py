@@ -9,6 +9,7 @@ A key is ``Key(name, type, default, doc, ...)``; ``default`` is ``REQUIRED`` for
 key that must be given. Types:
 
 * ``str``, ``int``, ``num`` (int or float), ``bool``
+* ``regex``: a string that is a valid Python regular expression (checked when the plan loads)
 * ``range``: ``[min, max]``, two numbers, min <= max (a limit)
 * ``ref``: a relay or jig-input reference, its number or its ``name`` in the wiring
 * ``choice``: one of ``choices``
@@ -60,7 +61,8 @@ DRIVE_KEYS = (
 
 COMMON_STEP_KEYS = (
     key("kind", "choice", REQUIRED, "the step kind (below)"),
-    key("name", "str", None, "the step's name in the records (default: its kind; made unique)"),
+    key("name", "str", None, "the step's name in the records (default: its kind, numbered when a kind comes "
+        "again); two steps given the same name are refused"),
     key("repeat", "int", 1, "run the step this many times", lo=1, hi=1000),
 )
 
@@ -79,8 +81,8 @@ _MOVE_LIMITS = (
 STEP_KINDS = (
     Kind("identify", "GetSlaveInfo and GetMotorInfo: the slave type and the name/version text.", (
         key("slave_type", "int", None, "expected slave type (default: the plan's drive.slave_type)", lo=0, hi=255),
-        key("name_pattern", "str", ".*", "regular expression the GetSlaveInfo text must match (re.search)"),
-        key("motor_pattern", "str", None, "regular expression for the GetMotorInfo text (not checked if absent)"),
+        key("name_pattern", "regex", ".*", "regular expression the GetSlaveInfo text must match (re.search)"),
+        key("motor_pattern", "regex", None, "regular expression for the GetMotorInfo text (not checked if absent)"),
     ), ("slave_type", "name_ok", "motor_ok")),
     Kind("parameters", "RAM and ROM parameters against a parameter-set file (the format of `jigctl param "
          "dump`): verify them, or write them, save to ROM and verify.", (
