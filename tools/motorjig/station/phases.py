@@ -72,6 +72,16 @@ def _equals(name, value, unit=None, doc=""):
     return _m(name, unit, doc).equals(value)
 
 
+def _skip(test, name):
+    """Leave a declared measurement out: outcome SKIPPED, no value, the phase not failed by it."""
+    test.measurements.set_measurement_outcome_to_skipped(name)
+    # OpenHTF keeps a cached copy of the measurement for the record, made when the phase
+    # started, and does not update its outcome here: the record would say UNSET
+    cached = getattr(test.measurements._measurements.get(name), "_cached", None)
+    if cached:
+        cached["outcome"] = "SKIPPED"
+
+
 # --- sampling a move ------------------------------------------------------------------
 class Trace:
     """Samples (t, command, actual, velocity) of one axis, with the flags of the last one."""
@@ -242,8 +252,10 @@ def run_move(test, bus, step, ctx):
     last = trace.last
     test.measurements["duration"] = round(t_end, 4)
     if a["duration_s"] is None:
-        # a move to where the axis already is has no duration to judge: its ratio is 1
-        test.measurements["duration_ratio"] = round(t_end / expected, 4) if expected > 0 else 1.0
+        if expected > 0:
+            test.measurements["duration_ratio"] = round(t_end / expected, 4)
+        else:  # an abs move to where the axis already is: no profile to compare with, nothing to judge
+            _skip(test, "duration_ratio")
     test.measurements["expected_duration"] = round(expected, 4)
     test.measurements["position_error"] = abs(target - last.actual_pos)
     test.measurements["following_error"] = trace.peak_error
@@ -456,7 +468,24 @@ def _failed_lines(results):
     """The failed ones as 'name = value unit (limits)' texts."""
     return ["%s = %s%s (%s)" % (name, "unset" if value is None else value, " " + unit if unit else "",
                                 limits or "a value")
-            for name, value, unit, limits, outcome in results if outcome != "PASS"]
+            for name, value, unit, limits, outcome in results if outcome not in ("PASS", "SKIPPED")]
+
+
+# OpenHTF ends a phase after 3 minutes unless the phase says otherwise. A prompt waits for the
+# operator as long as it takes (Abort or Ctrl-C ends it); a step with its own timeout_s gets that,
+# its wait before (after_ms) and a minute's margin, so its own timeout (which stops the axis) acts
+# first. OpenHTF needs a number (None means its default, and the record is JSON: no infinity).
+DEFAULT_PHASE_TIMEOUT_S = 180.0
+WAIT_FOREVER_S = 10 * 365 * 86400.0
+
+
+def phase_timeout(step):
+    """Seconds OpenHTF lets this step's phase run before it kills it (a TIMEOUT verdict)."""
+    if step.kind == "prompt":
+        return WAIT_FOREVER_S
+    a = step.args
+    own = a.get("timeout_s", 0) + a.get("after_ms", 0) / 1000.0 + 60.0
+    return max(DEFAULT_PHASE_TIMEOUT_S, own)
 
 
 def build_phase(step, plan, ctx):
@@ -494,4 +523,4 @@ def build_phase(step, plan, ctx):
     phase.__doc__ = "%s step %r" % (step.kind, step.name)
     phase = htf.measures(*measures)(phase)
     phase = htf.plug(bus=MotorJigPlug)(phase)
-    return htf.PhaseOptions(name=step.name)(phase)
+    return htf.PhaseOptions(name=step.name, timeout_s=phase_timeout(step))(phase)

@@ -105,7 +105,8 @@ def measurement_text(meas):
 
 
 def failed_measurements(phase):
-    return [m for m in (phase.get("measurements") or {}).values() if m.get("outcome") != "PASS"]
+    """The measurements that did not pass (a SKIPPED one, left out on purpose, is not among them)."""
+    return [m for m in (phase.get("measurements") or {}).values() if m.get("outcome") not in ("PASS", "SKIPPED")]
 
 
 def phase_exception(phase):
@@ -249,7 +250,7 @@ td.num{text-align:right;font-variant-numeric:tabular-nums;font-family:ui-monospa
  font-size:12px;font-weight:700;color:#fff}
 .badge.PASS{background:#137333}.badge.FAIL{background:#c5221f}
 .badge.ERROR,.badge.ABORTED,.badge.TIMEOUT{background:#f9ab00;color:#202124}
-.badge.SKIP,.badge.UNSET{background:#9aa0a6}
+.badge.SKIP,.badge.SKIPPED,.badge.UNSET{background:#9aa0a6}
 .muted{color:#5f6368;font-weight:400}
 .plots{display:grid;grid-template-columns:1fr 1fr;gap:10px}
 .trace{border-top:1px solid #e8eaed;padding-top:8px;margin-top:8px}.trace:first-of-type{border-top:0;margin-top:0}
@@ -320,7 +321,7 @@ def _phase_table(phases):
             align = "num" if _is_number(m.get("measured_value")) else "text"
             rows.append('<tr class="meas%s" data-measurement="%s" data-outcome="%s"><td>%s</td>'
                         '<td class="%s" title="%s">%s</td><td>%s</td><td>%s</td><td></td><td>%s</td></tr>'
-                        % (" fail" if outcome != "PASS" else "", _e(m.get("name")), _e(outcome), _e(m.get("name")),
+                        % (" fail" if outcome not in ("PASS", "SKIPPED") else "", _e(m.get("name")), _e(outcome), _e(m.get("name")),
                            align, _e(value), _e(short), _e(unit_text(m)), _e(limits_text(m)), _badge(outcome)))
     return ('<table class="phases" data-testid="phases"><thead><tr><th>Phase / measurement</th><th>Value</th>'
             '<th>Unit</th><th>Limits</th><th>Time</th><th>Result</th></tr></thead><tbody>%s</tbody></table>'
