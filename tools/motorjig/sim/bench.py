@@ -47,7 +47,7 @@ from jig.app import App
 from jig.parser import FrameParser
 
 from ..wiring import Wiring, load_wiring
-from .clock import PacedClock, VirtualClock
+from .clock import TICKS_MASK, PacedClock, VirtualClock
 from .driver import SimDriver
 from .hal import SimFS, SimHAL
 from .link import Bus
@@ -92,8 +92,9 @@ class PcPort:
         p = self.parser
         i = 0
         n = len(data)
+        now = int(t) & TICKS_MASK  # ticks, as the jig's parser gets them: its state is 32-bit
         while i < n:
-            j = p.feed(data, i, n, int(t))
+            j = p.feed(data, i, n, now)
             if p.ready:
                 # wire bytes of the frame = re-stuffed body (stuffing is canonical)
                 out = bytearray(F.MAX_WIRE)

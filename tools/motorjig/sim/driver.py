@@ -52,6 +52,8 @@ import struct
 from jig import frame as F
 from jig.parser import FrameParser
 
+from .clock import TICKS_MASK
+
 # Parameters 0-28: (min, max) and defaults (25-28 are STEP-specific guesses)
 # (min, max) per parameter
 PARAM_RANGE = (
@@ -740,8 +742,9 @@ class SimDriver:
         p = self.parser
         i = 0
         n = len(data)
+        now = int(t) & TICKS_MASK  # the parser takes ticks: its state is 32-bit (bench time passes 2**31 µs)
         while i < n:
-            i = p.feed(data, i, n, int(t))
+            i = p.feed(data, i, n, now)
             if p.ready and (p.slave == self.id or p.slave == F.BROADCAST_ID):
                 self._request(p)
 
