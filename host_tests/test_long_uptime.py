@@ -10,7 +10,16 @@ since the bench started) to ``jig.parser.FrameParser`` as ``now``, whose state i
 * the bench in virtual time, capture on, past 2**31 µs and four 2**30 wraps (2**32
   too), with requests through the jig (local and forwarded) answered all along,
   the capture records stamped with the ticks of the bench's clock;
+* the firmware in a real MicroPython VM (the WebAssembly build) on a HAL clock
+  that goes through five 2**30 wraps: every transaction answered, the capture
+  stamps its ticks, and no heap allocation near a wrap (a tick plus a delay
+  computed as ``(t + d) & mask`` is a heap-allocated long int on a 32-bit port
+  for the d µs before each wrap, once per forwarded request);
 """
+
+import os
+import shutil
+import subprocess
 
 import pytest
 
@@ -19,6 +28,7 @@ from motorjig.sim import SimBench
 from motorjig.sim.bench import VIRTUAL_START_US
 from test_capture_bench import body, records
 
+HERE = os.path.dirname(os.path.abspath(__file__))
 WRAP = 1 << 30  # MicroPython's ticks period on a 32-bit port
 MASK = WRAP - 1
 
@@ -63,3 +73,119 @@ def test_bench_runs_past_2_31_us_and_four_tick_wraps(fastpath):
     assert c["forwards"] == c["replies"] == 2 * asked // 3 and c["timeouts"] == 0 and c["local_requests"] == asked // 3
     assert c["capture_lost"] == 0 and c["up_crc_errors"] == c["down_crc_errors"] == 0
     assert b.clock.now > 4 * WRAP and asked > 3 * 160
+
+
+# --- the firmware in MicroPython --------------------------------------------------------
+
+RUN_VM = os.path.join(HERE, "wasm", "run_vm.mjs")
+PKG = os.path.join(HERE, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
+
+VM_CODE = r"""
+import gc, sys, time
+import bridge_probe as bp
+from jig.capture import CS_T_LAST, CS_TOTAL
+MASK = 0x3FFFFFFF
+ticks_add = time.ticks_add  # C arithmetic: the probe itself makes no long ints near the wrap
+ticks_diff = time.ticks_diff
+
+class Rig(bp.Rig):
+    def _in(self, port, wire):
+        hal = self.hal
+        hal.t = ticks_add(hal.t, 50)
+        port.rx.write(wire, len(wire), hal.t)
+
+class Hal(bp.Hal):
+    def sleep_us(self, us):
+        self.t = ticks_add(self.t, us)
+
+bp.Hal = Hal
+r = Rig(capture=True)
+hal = r.hal
+app = r.app
+cs = app.capture.cs
+up = hal.up
+
+def slow(us):
+    hal.t = ticks_add(hal.t, us)
+    app.poll()
+
+def same(buf, n, want):
+    # buf[0:n] == want without a slice (a slice is a new object on the heap)
+    if n != len(want):
+        return False
+    for i in range(n):
+        if buf[i] != want[i]:
+            return False
+    return True
+
+def pair():
+    # a forwarded request and its reply, a local request; both answered, stamped now
+    w = up.writes
+    r.forward_once()
+    ok = up.writes == w + 1 and same(up.out, up.out_n, r.reply)
+    ok = ok and cs[CS_T_LAST] == hal.t
+    r.local_once()
+    ok = ok and up.writes == w + 2 and cs[CS_T_LAST] == hal.t
+    return ok
+
+def around_wrap():
+    # transactions from 80 ms before the wrap to 80 ms after, a slow pass now and then
+    # (the capture stream goes out, the deadlines are looked at); in a function: a new
+    # global name would grow the module's dictionary on the heap
+    gc.collect()
+    gc.disable()
+    a0 = gc.mem_alloc()
+    ok = True
+    n = 0
+    t_start = hal.t
+    while ticks_diff(hal.t, t_start) < 160000:
+        ok = pair() and ok
+        n += 1
+        if n % 8 == 0:
+            slow(2000)
+    grew = gc.mem_alloc() - a0
+    gc.enable()
+    return n, grew, ok
+
+hal.t = 12345
+for _ in range(30):
+    pair()
+slow(20000)
+total0 = cs[CS_TOTAL]
+for k in range(5):
+    # idle up to 80 ms before the wrap, in steps the main loop follows (< 2**29)
+    while hal.t < MASK - 80000:
+        step = MASK - 80000 - hal.t
+        slow(step if step < (1 << 27) else (1 << 27))
+    n, grew, ok = around_wrap()
+    print("wrap", k, hal.t, n, grew, ok)
+    slow(20000)
+c = app.counters.as_dict()
+print("counters", c["forwards"], c["replies"], c["timeouts"], c["local_requests"], c["capture_lost"],
+      cs[CS_TOTAL] - total0, hal.capture.taken, app.capture.pending())
+print(sys.implementation.name)
+"""
+
+
+def test_firmware_through_five_tick_wraps_in_micropython():
+    if shutil.which("node") is None or not os.path.isdir(PKG):
+        if os.environ.get("CI") == "true":
+            pytest.fail("the MicroPython VM is required in CI (tools/setup.sh)")
+        pytest.skip("node or the MicroPython WebAssembly package is missing (tools/setup.sh)")
+    r = subprocess.run(["node", RUN_VM, "--file", "bridge_probe.py=" + os.path.join(HERE, "bridge_probe.py"),
+                        "import sys\nsys.path.append('/data')\n" + VM_CODE],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    lines = r.stdout.splitlines()
+    assert lines[-1] == "micropython"
+    wraps = [line.split() for line in lines if line.startswith("wrap ")]
+    assert len(wraps) == 5
+    pairs = 0
+    for _, k, t, n, grew, ok in wraps:
+        assert ok == "True", "wrap %s: a transaction was not answered or stamped with the tick" % k
+        assert int(grew) == 0, "wrap %s: %s heap bytes over %s transactions around the tick wrap" % (k, grew, n)
+        assert 0 <= int(t) < 100000  # past the wrap
+        pairs += int(n)
+    fwd, rep, tmo, local, lost, recorded, taken, pending = map(int, lines[-2].split()[1:])
+    assert fwd == rep == local == pairs + 30 and tmo == 0 and lost == 0
+    assert recorded >= 3 * pairs and taken > 0 and pending < 2000

@@ -171,6 +171,10 @@ FLAT_FLAGS = array("H", [f for row in TRANSITIONS for f, _n in row])
 _WHY_TIMEOUT = const(0)
 _TICKS_MASK = const(0x3FFFFFFF)
 _TICKS_HALF = const(0x20000000)
+# A tick d µs on is ((t - _TICKS_MASK) + d - 1) & _TICKS_MASK, not (t + d) & _TICKS_MASK:
+# on a 32-bit MicroPython port t + d past 2**30 - 1 is no small int but a long one, a
+# heap allocation per forwarded request in the d µs before every tick wrap (every
+# 17.9 min); t - _TICKS_MASK lies in -(2**30 - 1)..0, so every step stays a small int.
 # jig.frame's values, folded here (a module attribute is a dictionary look-up per use)
 _STUFF = const(0xAA)
 _BROADCAST_ID = const(99)
@@ -510,7 +514,7 @@ class Bridge:
         bs[B_P_B0] = b0
         bs[B_P_B1] = b1
         # The wait starts when our request has left the wire.
-        d = (self._ticks() + timeout_ms * 1000) & _TICKS_MASK
+        d = ((self._ticks() - _TICKS_MASK) + timeout_ms * 1000 - 1) & _TICKS_MASK  # tick + timeout (above)
         bs[B_DEADLINE] = d
         due = self.due
         if (d - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # d comes before due[0]
@@ -534,7 +538,7 @@ class Bridge:
         """A frame is being cut through: the slow pass must look at the line within the
         inter-byte timeout (and keeps doing so while the frame lasts) to end the
         transmission cleanly if the sender falls silent."""
-        t = (now + self.ram[P_INTERBYTE_US] + 1) & _TICKS_MASK
+        t = ((now - _TICKS_MASK) + self.ram[P_INTERBYTE_US]) & _TICKS_MASK  # now + timeout + 1 (above)
         due = self.due
         if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
             due[0] = t

@@ -298,7 +298,8 @@ class Capture:
         if (bridge is not None and ((cs[CS_HEAD] - cs[CS_TAIL]) & cs[CS_MASK]) < (cs[CS_MASK] >> 1)
                 and not bridge.stream_window(now)):
             return -1  # the next window, or the next slow pass
-        cs[CS_NEXT] = (now + STREAM_US) & _TICKS_MASK
+        # now + STREAM_US, in small ints only (a long int near the tick wrap: jig.bridge)
+        cs[CS_NEXT] = ((now - _TICKS_MASK) + (STREAM_US - 1)) & _TICKS_MASK
         return 0 if self._stream() else -1
 
     def _command(self, now):
