@@ -592,3 +592,105 @@ def test_jigctl_test_stores_each_run_and_reports_a_failure_to(tmp_path, capsys, 
         assert code == 2 and "--db none" in err and not os.path.exists(tmp_path / "d")
     with S.open_store(d) as st:
         assert len(st.runs()) == 1
+
+
+# --- what a user's report found ---------------------------------------------------------------------
+
+READS = [["list"], ["show", "1"], ["yield", "--plan", "eol"], ["stats", "--plan", "eol"],
+         ["export", "--csv", "OUT"]]
+
+
+def test_a_database_that_is_not_there_is_refused_by_every_command_that_only_reads(tmp_path, capsys):
+    missing = tmp_path / "typo" / "x.sqlite"
+    for argv in READS:
+        argv = [str(tmp_path / "out.csv") if a == "OUT" else a for a in argv]
+        code, out, err = jigctl(capsys, "results", "--db", str(missing), *argv)
+        assert code == 2 and out == "", (argv, out)
+        assert err.startswith("jigctl: there is no results database %s" % missing) and err.count("\n") == 1, err
+        assert not (tmp_path / "typo").exists() and not (tmp_path / "out.csv").exists()
+    # import writes: it creates the database
+    rec = tmp_path / "rec.json"
+    rec.write_text(json.dumps(known_record(0)))
+    code, out, err = jigctl(capsys, "results", "--db", str(missing), "import", str(rec))
+    assert code == 0 and missing.exists(), err
+    code, out, err = jigctl(capsys, "results", "--db", str(missing), "list")
+    assert code == 0 and "eol" in out
+
+
+def test_an_empty_database_is_refused_by_reads_and_left_empty(db, capsys):
+    if "://" not in db:  # a SQLite file that exists but holds nothing of ours
+        create_engine("sqlite:///" + db).connect().close()
+    code, out, err = jigctl(capsys, "results", "--db", db, "list")
+    assert code == 2 and "holds no MotorJig results" in err and err.count("\n") == 1, err
+    engine = create_engine(S.resolve(db))
+    try:
+        with engine.connect() as c:
+            assert c.execute(text("SELECT 1")).scalar() == 1
+            from sqlalchemy import inspect
+            assert inspect(c).get_table_names() == []  # nothing was created
+    finally:
+        engine.dispose()
+
+
+@pytest.mark.parametrize("argv", [["list"], ["export", "--csv", "OUT"], ["yield"], ["stats"]])
+def test_one_rule_a_plan_or_dut_the_database_does_not_know_is_refused(tmp_path, capsys, argv):
+    d = str(tmp_path / "k.sqlite")
+    store_known(d)
+    argv = [str(tmp_path / "out.csv") if a == "OUT" else a for a in argv]
+    code, out, err = jigctl(capsys, "results", "--db", d, *argv, "--plan", "nope")
+    assert code == 2 and out == "" and "no runs of plan 'nope'" in err and "(plans there: eol)" in err, err
+    assert not (tmp_path / "out.csv").exists()
+    if argv[0] in ("list", "export"):
+        code, out, err = jigctl(capsys, "results", "--db", d, *argv, "--dut", "ZZ")
+        assert code == 2 and "no runs of DUT 'ZZ'" in err, err
+        # known names whose filters leave nothing: an empty answer, exit 0
+        code, out, err = jigctl(capsys, "results", "--db", d, *argv, "--plan", "eol", "--dut", "A",
+                                "--verdict", "FAIL")
+        assert code == 0 and err == "" and "no runs in" in out, (out, err)
+
+
+def test_the_csv_export_keeps_runs_without_measurements(tmp_path, capsys):
+    """A run refused at the preflight has no measurement; without a row of its own, yield computed
+    from the CSV would miss it."""
+    import csv
+
+    d = str(tmp_path / "c.sqlite")
+    store_known(d)
+    refused = record("F", "ERROR", T0_MS + 20 * 3600000, [("preflight", [])])
+    with S.open_store(d) as st:
+        st.add_run(refused)
+        y = st.yield_("eol")
+    path = tmp_path / "all.csv"
+    code, out, err = jigctl(capsys, "results", "--db", d, "export", "--csv", str(path), "--plan", "eol")
+    assert code == 0, err
+    with open(path, encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    last = rows[-1]
+    assert last["dut"] == "F" and last["verdict"] == "ERROR" and last["step"] == last["measurement"] == ""
+    assert len(rows) == 9 * 8 + 1
+    runs = {}
+    for r in rows:
+        runs.setdefault(r["dut"], {})[(r["start"], r["run_id"])] = r["verdict"]
+    first = sum(v[min(v)] == "PASS" for v in runs.values())
+    final = sum(v[max(v)] == "PASS" for v in runs.values())
+    assert (len(runs), first, final) == (y["duts"], y["first_pass"], y["final_pass"]) == (6, 2, 3)
+
+
+def test_stats_prints_numbers_readably(tmp_path, capsys):
+    from motorjig.resultscmd import _num
+
+    assert [_num(v) for v in (134217727.0, 134217727, 1.0, 0.0, -3.0)] == ["134217727", "134217727", "1", "0", "-3"]
+    assert [_num(v) for v in (134217727.5, 1250.25, 0.96, 1.0000001, 0.0273861, -12.3456789)] == \
+        ["134217727.5", "1250.25", "0.96", "1", "0.0273861", "-12.3457"]
+    assert _num(0.027386127875258306, 4) == "0.02739" and _num(1.8257418583505536, 3) == "1.83"
+    assert _num(0.0000123456) == "1.23456e-05" and _num(None) == "-"
+    d = str(tmp_path / "n.sqlite")
+    with S.open_store(d) as st:
+        for k, v in enumerate((134217727, 134217727, 134217728)):
+            st.add_run(record("N%d" % k, "PASS", T0_MS + k * 1000,
+                              [("move", [meas("position", v, ["x <= 2147483647"], "pulse")])]))
+    code, out, err = jigctl(capsys, "results", "--db", d, "stats", "--plan", "eol")
+    line = next(ln for ln in out.splitlines() if "position" in ln).split()
+    assert line[:6] == ["move", "position", "3", "134217727", "134217727.3", "134217728"], out
+    assert "e+" not in out
+

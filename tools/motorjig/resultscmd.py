@@ -11,10 +11,16 @@ Every subcommand takes ``--db PATH|URL`` (default ``$JIGCTL_DB``, else the SQLit
 the user's data folder) and ``--json`` (one JSON document instead of the text). Exit
 status 0, or 2 with one sentence on stderr (bad input, no such run, a database that
 cannot be opened or is of another schema version).
+
+One rule for what is not there: a name the database does not know (``--plan``, ``--dut``,
+a run id) and a database that does not exist are errors (exit 2) in every subcommand;
+only ``import`` (and ``jigctl test``) create the database. Filters that are each known but
+match no run together (``--verdict``, ``--since``, ``--until``) are an empty answer (exit 0).
 """
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -96,11 +102,25 @@ def _local(ms):
 
 
 def _num(x, digits=6):
+    """A number for people: integers whole (134217727, not 1.34218e+08), others with ``digits``
+    significant digits but never fewer than the integer part has (0.02739, 1.83, 1250.5,
+    134217727.3); an exponent only below 0.0001."""
     if x is None:
         return "-"
-    if isinstance(x, float):
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return str(x)
+    if isinstance(x, int):
+        return str(x)
+    if not math.isfinite(x):
+        return str(x)
+    if x == int(x) and abs(x) < 1e15:
+        return str(int(x))
+    mag = math.floor(math.log10(abs(x)))
+    if mag < -4:
         return "%.*g" % (digits, x)
-    return str(x)
+    # digits significant digits; a large number that is not whole keeps one decimal (a mean of counts)
+    text = "%.*f" % (max(digits - 1 - mag, 1 if mag >= digits - 1 else 0), x)
+    return text.rstrip("0").rstrip(".") if "." in text else text
 
 
 def _count(n, word):
@@ -128,6 +148,17 @@ def _no_plan(st, plan):
     return "no runs of plan %r in %s (plans there: %s)" % (plan, st.name, known)
 
 
+def _known_names(args, st):
+    """The one rule of every subcommand: a --plan or --dut the database has no run of is refused
+    (a typo must not read as "no runs"); filters that match nothing together are an empty answer."""
+    plan = getattr(args, "plan", None)
+    if plan is not None and plan not in st.plans():
+        raise Refused(_no_plan(st, plan))
+    dut = getattr(args, "dut", None)
+    if dut is not None and not st.runs(dut=dut, limit=1):
+        raise Refused("no runs of DUT %r in %s" % (dut, st.name))
+
+
 # --- the subcommands ---------------------------------------------------------------------------------
 
 def _filter_args(args):
@@ -135,6 +166,7 @@ def _filter_args(args):
 
 
 def _list(args, st):
+    _known_names(args, st)
     runs = st.runs(limit=args.limit, **_filter_args(args))
     text = _table(["id", "start", "plan", "version", "dut", "station", "verdict", "time"],
                   [[r["id"], _local(r["start_ms"]), r["plan"], r["plan_version"], r["dut"], r["station"] or "-",
@@ -177,9 +209,8 @@ def _show(args, st):
 
 
 def _yield(args, st):
+    _known_names(args, st)
     y = st.yield_(args.plan)
-    if not y["runs"]:
-        raise Refused(_no_plan(st, args.plan))
     pct = lambda f: "%.1f %%" % (100.0 * f)  # noqa: E731
     text = "\n".join(["plan %s: %s, %s" % (y["plan"], _count(y["duts"], "DUT"), _count(y["runs"], "run")),
                       "  first-pass yield  %7s  (%d of %s passed the first run)"
@@ -191,9 +222,8 @@ def _yield(args, st):
 
 
 def _stats(args, st):
+    _known_names(args, st)
     rows = st.stats(args.plan)
-    if not rows and not st.yield_(args.plan)["runs"]:
-        raise Refused(_no_plan(st, args.plan))
     text = _table(["step", "measurement", "n", "min", "mean", "max", "sigma", "LSL", "USL", "Cpk", "unit"],
                   [[s["step"], s["measurement"], s["n"], _num(s["min"]), _num(s["mean"]), _num(s["max"]),
                     _num(s["sigma"], 4), _num(s["low"]), _num(s["high"]), _num(s["cpk"], 3), s["unit"] or ""]
@@ -203,6 +233,7 @@ def _stats(args, st):
 
 
 def _export(args, st):
+    _known_names(args, st)
     if args.csv == "-":
         st.export_csv(sys.stdout, **_filter_args(args))
         return EXIT_OK
@@ -210,7 +241,9 @@ def _export(args, st):
         n = st.export_csv(args.csv, **_filter_args(args))
     except OSError as exc:
         raise Refused("cannot write %s: %s" % (args.csv, exc.strerror or exc)) from None
-    _emit(args, {"file": os.path.abspath(args.csv), "rows": n}, "%d measurements to %s" % (n, args.csv))
+    _emit(args, {"file": os.path.abspath(args.csv), "rows": n},
+          "%s to %s" % (_count(n, "row"), args.csv) if n else "no runs in %s match: %s has the header only"
+          % (st.name, args.csv))
     return EXIT_OK
 
 
@@ -248,7 +281,8 @@ def cmd_results(args):
         return fail(EXIT_ERROR, "the results database needs the 'station' extra (%s): "
                                 "pip install 'motorjig[station]'" % exc)
     try:
-        with S.open_store(args.db) as st:
+        # only import writes: the others refuse a database that is not there instead of creating it
+        with S.open_store(args.db, create=args.results_command == "import") as st:
             return HANDLERS[args.results_command](args, st)
     except (S.StoreError, Refused) as exc:
         return fail(EXIT_ERROR, str(exc))

@@ -176,9 +176,11 @@ def describe(url):
     return _safe(url).replace("postgresql+psycopg://", "postgresql://")
 
 
-def open_store(db=None):
-    """Open (creating or upgrading on first use) the results database ``db``; see ``resolve``."""
-    return Store(resolve(db))
+def open_store(db=None, create=True):
+    """Open (creating or upgrading on first use) the results database ``db``; see ``resolve``.
+    ``create=False`` (what only reads): a database that does not exist, or holds no MotorJig
+    results, is refused instead of created (a mistyped --db says so instead of answering "no runs")."""
+    return Store(resolve(db), create=create)
 
 
 # --- times ---------------------------------------------------------------------------------------
@@ -223,7 +225,8 @@ def iso(ms):
     return datetime.datetime.fromtimestamp(ms / 1000.0, datetime.timezone.utc).isoformat(timespec="milliseconds")
 
 
-# --- reading a record ----------------------------------------------------------------------------
+# --- reading a record ------------------------------------------------------------------------
+
 
 def _limit(text):
     try:
@@ -347,12 +350,16 @@ def _flatten(record, files):
 class Store:
     """One results database (open with ``open_store``); safe to share between threads."""
 
-    def __init__(self, url):
+    def __init__(self, url, create=True):
         self.url = url
         self.name = describe(url)
         self.dialect = url.get_backend_name()
         self._series = {}  # series key -> id, only ids of committed rows
+        self._create = create
         if self.dialect == "sqlite":
+            if not create and not os.path.exists(url.database):
+                raise StoreError("there is no results database %s (check --db or $JIGCTL_DB; jigctl test "
+                                 "creates one with its first run)" % self.name)
             folder = os.path.dirname(os.path.abspath(url.database))
             try:
                 os.makedirs(folder, exist_ok=True)
@@ -457,6 +464,9 @@ class Store:
         self._check(version)
         if version == SCHEMA_VERSION:
             return
+        if version is None and not self._create:
+            raise StoreError("%s holds no MotorJig results (check --db or $JIGCTL_DB; jigctl test creates the "
+                             "tables with its first run)" % self.name)
 
         def create_or_upgrade(c, pending):
             v = self._version(c)  # again, under the write lock: another station may have done it
@@ -718,12 +728,14 @@ class Store:
 
     def export_csv(self, dest, dut=None, plan=None, verdict=None, since=None, until=None):
         """Every measurement of the runs that match, one CSV row each, oldest run first, to
-        ``dest`` (a path, or a text file object); the number of rows."""
+        ``dest`` (a path, or a text file object); the number of rows. A run without measurements
+        (refused at the preflight, an error before its first step) is one row with empty step,
+        measurement and value, so that yield computed from the file counts it as the database does."""
         m, s, r = measurements_t, series_t, runs_t
         q = select(r.c.id, r.c.start_ms, r.c.plan, r.c.plan_version, r.c.plan_hash, r.c.dut, r.c.station,
                    r.c.operator, r.c.verdict, s.c.phase, s.c.name, m.c.value_text, m.c.value_num, s.c.unit, s.c.low,
                    s.c.high, s.c.validators, m.c.outcome) \
-            .select_from(r.join(m, m.c.run_id == r.c.id).join(s, s.c.id == m.c.series_id)) \
+            .select_from(r.outerjoin(m, m.c.run_id == r.c.id).outerjoin(s, s.c.id == m.c.series_id)) \
             .where(*self._filters(dut, plan, verdict, since, until)).order_by(r.c.start_ms, r.c.id, m.c.seq)
         header = ["run_id", "start", "plan", "plan_version", "plan_hash", "dut", "station", "operator", "verdict",
                   "step", "measurement", "value", "number", "unit", "low", "high", "limits", "outcome"]
@@ -737,8 +749,9 @@ class Store:
             def query(c):
                 nonlocal count
                 for row in c.execution_options(stream_results=True, yield_per=2000).execute(q):
-                    w.writerow([row[0], iso(row[1]), *row[2:11], "" if row[11] is None else row[11], num(row[12]),
-                                row[13], num(row[14]), num(row[15]), row[16], row[17]])
+                    w.writerow([row[0], iso(row[1]), *row[2:11],
+                                "" if row[11] is None else row[11], num(row[12]), row[13], num(row[14]),
+                                num(row[15]), row[16], row[17]])
                     count += 1
 
             self._read(query)
