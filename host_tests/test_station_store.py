@@ -694,3 +694,26 @@ def test_stats_prints_numbers_readably(tmp_path, capsys):
     assert line[:6] == ["move", "position", "3", "134217727", "134217727.3", "134217728"], out
     assert "e+" not in out
 
+
+def test_a_run_without_an_operator_shows_unknown(tmp_path, capsys):
+    """No --operator and $USER unset (a service): records keep what they got, every view says unknown."""
+    from motorjig.station import junit, report
+
+    rec = record("U1", "PASS", T0_MS, [("move", [meas("alarm", 0, ["x == 0"])])])
+    rec["metadata"]["operator"] = ""
+    d = str(tmp_path / "o.sqlite")
+    with S.open_store(d) as st:
+        run_id = st.add_run(rec)
+        assert st.run(run_id)["operator"] == "unknown" and st.runs()[0]["operator"] == "unknown"
+    code, out, err = jigctl(capsys, "results", "--db", d, "show", str(run_id))
+    assert "operator unknown" in out
+    path = tmp_path / "o.csv"
+    jigctl(capsys, "results", "--db", d, "export", "--csv", str(path))
+    assert path.read_text().splitlines()[1].split(",")[7] == "unknown"
+    assert 'data-testid="info-operator">unknown<' in report.html_report(rec)
+    assert '<property name="operator" value="unknown"' in junit.junit_xml(rec)
+    # a database written before (operator '') reads as unknown too
+    with S.open_store(d) as st, st.engine.begin() as c:
+        c.execute(text("UPDATE runs SET operator = ''"))
+    with S.open_store(d) as st:
+        assert st.run(run_id)["operator"] == "unknown"

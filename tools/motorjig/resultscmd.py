@@ -186,7 +186,7 @@ def _show(args, st):
     d = r["drive"]
     lines = ["run %d  %s %s (%s)  %s" % (r["id"], r["plan"], r["plan_version"], (r["plan_hash"] or "-")[:12],
                                          r["verdict"]),
-             "dut %s, station %s, operator %s, %s, %s" % (r["dut"], r["station"] or "-", r["operator"] or "-",
+             "dut %s, station %s, operator %s, %s, %s" % (r["dut"], r["station"] or "-", r["operator"],
                                                           _local(r["start_ms"]),
                                                           "-" if r["seconds"] is None else "%.2f s" % r["seconds"])]
     if d["slave"] is not None:

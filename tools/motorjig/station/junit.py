@@ -20,8 +20,8 @@ import os
 import re
 import xml.etree.ElementTree as ET
 
-from .report import (failed_measurements, format_value, measurement_text, outcome_details_text, phase_exception,
-                     record_dict, seconds, utc_time)
+from .report import (failed_measurements, format_value, measurement_text, operator_name, outcome_details_text,
+                     phase_exception, record_dict, seconds, utc_time)
 
 RUN_CASE = "test run"
 SCHEMA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "junit.xsd")
@@ -34,7 +34,7 @@ def _properties(record):
     meta = record.get("metadata") or {}
     props = [("dut_id", record.get("dut_id")), ("plan_version", meta.get("test_version")),
              ("plan_hash", meta.get("plan_hash")), ("plan_file", meta.get("plan_file")),
-             ("operator", meta.get("operator")), ("station", record.get("station_id")),
+             ("operator", operator_name(meta.get("operator"))), ("station", record.get("station_id")),
              ("outcome", record.get("outcome")), ("outcome_details", outcome_details_text(record)),
              ("verdict_reason", meta.get("verdict_reason"))]
     drive = meta.get("drive")

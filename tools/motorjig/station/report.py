@@ -120,6 +120,13 @@ def phase_exception(phase):
     return exc_type, str(result.get("exc_val", "")), str(result.get("exc_tb", ""))
 
 
+def operator_name(value):
+    """Who ran the test, as reports, JUnit and the database show it: 'unknown' when the record has
+    nobody (no --operator and $USER unset: a service, a container)."""
+    text = "" if value is None else str(value).strip()
+    return text or "unknown"
+
+
 def outcome_details_text(record):
     return "; ".join("%s: %s" % (d.get("code"), d.get("description")) if d.get("description") else str(d.get("code"))
                      for d in record.get("outcome_details") or ())
@@ -291,7 +298,7 @@ def _info(record):
         ("Plan", "%s <span class=\"muted\">v%s</span>" % (_e(meta.get("test_name")), _e(meta.get("test_version"))), "plan"),
         ("Plan hash", '<span title="%s">%s%s</span>'
          % (_e(plan_hash), _e(plan_hash[:12]), "&hellip;" if len(plan_hash) > 12 else ""), "hash"),
-        ("Operator", _e(meta.get("operator")), "operator"),
+        ("Operator", _e(operator_name(meta.get("operator"))), "operator"),
         ("Station", _e(record.get("station_id")), "station"),
         ("Plan file", _e(meta.get("plan_file")), "plan-file"),
         ("Start", _e(utc_time(start)) + " UTC" if start else "", "start"),

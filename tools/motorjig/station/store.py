@@ -45,6 +45,8 @@ from sqlalchemy import (BigInteger, Column, Double, ForeignKey, Index, Integer, 
 from sqlalchemy import exc as sa_exc
 from sqlalchemy.engine import make_url
 
+from motorjig.station.report import operator_name
+
 SCHEMA_VERSION = 1
 # {version: function(connection)} turning a database of that version into version + 1, run in
 # the opening transaction; a database older than the oldest key here is refused.
@@ -321,7 +323,7 @@ def _flatten(record, files):
            "plan_version": str(md_.get("test_version") or ""),
            "plan_hash": md_.get("plan_hash") or None, "plan_file": md_.get("plan_file") or None,
            "dut": str(record.get("dut_id") or "unknown"), "station": str(record.get("station_id") or ""),
-           "operator": str(md_.get("operator") or ""),
+           "operator": operator_name(md_.get("operator")),
            "drive_slave": _int(drive.get("slave")), "drive_protocol": _int(drive.get("protocol")),
            "drive_slave_type": _int(drive.get("slave_type")), "drive_name": drive.get("name"),
            "start_ms": start, "end_ms": _ms(record.get("end_time_millis")),
@@ -601,7 +603,7 @@ class Store:
     @staticmethod
     def _run_dict(r):
         return {"id": r.id, "plan": r.plan, "plan_version": r.plan_version, "plan_hash": r.plan_hash,
-                "dut": r.dut, "station": r.station, "operator": r.operator, "verdict": r.verdict,
+                "dut": r.dut, "station": r.station, "operator": operator_name(r.operator), "verdict": r.verdict,
                 "start_ms": r.start_ms, "end_ms": r.end_ms, "start": iso(r.start_ms), "end": iso(r.end_ms),
                 "seconds": None if r.end_ms is None else (r.end_ms - r.start_ms) / 1000.0, "details": r.details}
 
@@ -749,7 +751,7 @@ class Store:
             def query(c):
                 nonlocal count
                 for row in c.execution_options(stream_results=True, yield_per=2000).execute(q):
-                    w.writerow([row[0], iso(row[1]), *row[2:11],
+                    w.writerow([row[0], iso(row[1]), *row[2:7], operator_name(row[7]), *row[8:11],
                                 "" if row[11] is None else row[11], num(row[12]), row[13], num(row[14]),
                                 num(row[15]), row[16], row[17]])
                     count += 1
@@ -806,4 +808,4 @@ def _sqlite_begin(conn):
 
 
 __all__ = ["SCHEMA_VERSION", "MIGRATIONS", "Store", "StoreError", "open_store", "default_path", "resolve",
-           "parse_limits", "parse_time", "cpk", "iso"]
+           "parse_limits", "parse_time", "cpk", "iso", "operator_name"]
