@@ -24,11 +24,15 @@ def add_test_arguments(sp):
     sp.add_argument("--check", action="store_true",
                     help="only check the plan (with --port: also that the drive is the plan's variant and type)")
     sp.add_argument("--serial", help="the DUT's serial number (default: from the drive's own info)")
-    sp.add_argument("--operator", default=os.environ.get("USER", ""), help="who runs the test (default: $USER)")
+    sp.add_argument("--operator", help="who runs the test (default: $USER, else the login name, else "
+                                       "'unknown')")
     sp.add_argument("--station", help="station name in the records (default: this computer's name)")
     sp.add_argument("--out", default="results", help="folder for the record, JUnit XML and HTML report "
                                                      "(default ./results)")
     sp.add_argument("--yes", "-y", action="store_true", help="confirm every operator prompt (unattended runs)")
+    sp.add_argument("--safety-window", type=int, default=1000, metavar="MS",
+                    help="arm the jig's safety stop for the run: if this PC falls silent for MS ms (killed, "
+                         "crashed, cable pulled) the jig stops the drive itself (default 1000; 0: not armed)")
     from motorjig.resultscmd import DB_HELP, default_db
 
     sp.add_argument("--db", default=default_db(), metavar="PATH|URL|none",
@@ -40,10 +44,26 @@ def _say(args, text):
         print(text, flush=True)
 
 
-def _err(text):
+def _err(text, args=None):
     from motorjig.commands import fail
 
+    if args is not None and getattr(args, "json", False):
+        print(json.dumps({"verdict": "ERROR", "ok": False, "error": text}))
     return fail(EXIT_ERROR, text)
+
+
+def default_operator():
+    """Who runs the test when --operator is not given: $USER, $LOGNAME, the login name; 'unknown'
+    (never blank: a record must say nobody was named)."""
+    name = os.environ.get("USER") or os.environ.get("LOGNAME")
+    if not name:
+        try:
+            import getpass
+
+            name = getpass.getuser()
+        except Exception:  # no user name anywhere (a container's uid without a passwd entry)
+            name = ""
+    return name.strip() or "unknown"
 
 
 def _check_drive(args, plan):
@@ -53,9 +73,20 @@ def _check_drive(args, plan):
 
     with Master(args.port, baud=args.baud, timeout=args.timeout / 1000.0) as m:
         try:
-            check_drive(m, plan.drive)
+            check_drive(m, plan.drive, plan.steps)
         except PreflightError as exc:
             return str(exc).replace(": nothing was moved", "")
+    return None
+
+
+def _unanswerable_prompt(args, plan):
+    """The first prompt step nobody could answer (no --yes, no terminal), as a sentence, or None."""
+    if args.yes or sys.stdin.isatty():
+        return None
+    for step in plan.steps:
+        if step.kind == "prompt":
+            return ("step %s asks the operator to confirm, but there is no terminal to answer on: run with "
+                    "--yes (unattended) or on a terminal" % step.name)
     return None
 
 
@@ -63,19 +94,24 @@ def cmd_test(args):
     try:
         from motorjig.station import plan as P
     except ImportError as exc:
-        return _err("the station needs the 'station' extra (%s): pip install 'motorjig[station]'" % exc)
+        return _err("the station needs the 'station' extra (%s): pip install 'motorjig[station]'" % exc, args)
     try:
         plan = P.load_plan(args.plan)
     except P.PlanError as exc:
-        return _err(str(exc))
+        return _err(str(exc), args)
+    if args.safety_window < 0 or args.safety_window > 60000:
+        return _err("--safety-window must be 0 (not armed) or 1..60000 ms, not %d" % args.safety_window, args)
+    problem = _unanswerable_prompt(args, plan)
+    if problem:
+        return _err("%s: %s" % (args.plan, problem), args)
     if args.check:
         if args.port:
             try:
                 problem = _check_drive(args, plan)
             except JigError as exc:
-                return _err(str(exc))
+                return _err(str(exc), args)
             if problem:
-                return _err("%s: %s" % (args.plan, problem))
+                return _err("%s: %s" % (args.plan, problem), args)
         if args.json:
             print(json.dumps({"plan": plan.name, "version": plan.version, "hash": plan.hash, "ok": True,
                               "steps": [s.name for s in plan.steps]}))
@@ -85,13 +121,13 @@ def cmd_test(args):
                 "; the drive is the plan's" if args.port else ""))
         return EXIT_PASS
     if not args.port:
-        return _err("no port: give --port (or set JIGCTL_PORT)")
+        return _err("no port: give --port (or set JIGCTL_PORT)", args)
     from motorjig.master import Master
 
     try:
         Master(args.port, baud=args.baud).close()  # a wrong port name is said plainly, before OpenHTF starts
     except PortError as exc:
-        return _err(str(exc))
+        return _err(str(exc), args)
     from motorjig.station import runner
 
     store = None
@@ -100,26 +136,36 @@ def cmd_test(args):
             from motorjig.station.store import StoreError, open_store
         except ImportError as exc:
             return _err("the results database needs the 'station' extra (%s): pip install 'motorjig[station]' "
-                        "(or --db none)" % exc)
+                        "(or --db none)" % exc, args)
         try:
             store = open_store(args.db)  # before anything moves: a wrong --db is said now
         except StoreError as exc:
-            return _err("%s (--db none runs without the results database)" % exc)
+            return _err("%s (--db none runs without the results database)" % exc, args)
     problem = runner.check_out_dir(args.out)  # after --db: a refused run leaves no empty folder behind
     if problem:
         if store is not None:
             store.close()
-        return _err(problem)
+        return _err(problem, args)
     confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
     _say(args, "plan %s %s (%s), drive slave %d, %s" % (plan.name, plan.version, plan.hash[:12],
                                                          plan.drive.slave, args.port))
     try:
-        ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial, operator=args.operator,
-                              station=args.station, out_dir=args.out, out=None if args.json else print,
-                              confirm=confirm, timeout_ms=args.timeout, db=store)
+        ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial,
+                              operator=args.operator or default_operator(), station=args.station,
+                              out_dir=args.out, out=None if args.json else print, confirm=confirm,
+                              timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window)
     finally:
         if store is not None:
             store.close()
+    try:
+        return _report(args, plan, ctx, store)
+    except OSError:  # the terminal went away after the run (SIGHUP): the records say it all
+        return runner.exit_code(runner.summary(ctx)["verdict"])
+
+
+def _report(args, plan, ctx, store):
+    from motorjig.station import runner
+
     result = runner.summary(ctx)
     if store is not None:
         result["db"] = {"db": store.name, "run_id": ctx.run_id, "error": ctx.store_error}

@@ -126,6 +126,7 @@ class Run:
         self.version = 0  # bumped by every change, so a page redraws only what changed
         self.ctx = None
         self.abort_requested = False
+        self.cause = None  # why it was aborted, for the records
         self._abort_delivered = False  # the engine's executor existed when ctx.abort() was called
 
     @property
@@ -187,10 +188,12 @@ class Run:
             self._answered.set()
             return True
 
-    def abort(self):
-        """Abort: the engine stops the running step, then emergency stop and servo off."""
+    def abort(self, cause="aborted from the Desk (Abort)"):
+        """Abort: the engine stops the running step, then emergency stop and servo off. ``cause``
+        goes into the records."""
         if not self.running:
             return
+        self.cause = self.cause or cause
         self.abort_requested = True
         self._answered.set()
         if self.ctx is not None:
@@ -203,7 +206,7 @@ class Run:
             return
         test = self.ctx.test
         self._abort_delivered = test is not None and test.uid is not None
-        self.ctx.abort()
+        self.ctx.abort(self.cause)
 
     def finish(self, record, files, error=""):
         with self.lock:
@@ -371,7 +374,7 @@ class Station:
             raise UserError(entry.error)
         serial = str(serial or "").strip()
         if serial and not SERIAL_RE.match(serial):
-            raise UserError("serial number %r: 1..64 printable characters without spaces" % serial)
+            raise UserError("serial number %r: 1..64 printable ASCII characters without spaces" % serial)
         with self._lock:
             if self.running:
                 raise UserError("a test is running: wait for its verdict, or press Abort")
@@ -423,7 +426,7 @@ class Station:
         run, worker = self.run, self._worker
         if run is not None and run.running:
             self.session.log("info", "test %s: the Desk stops: aborting it" % run.plan.name)
-            run.abort()
+            run.abort("aborted: the Desk was stopped")
         if worker is not None and worker is not threading.current_thread():
             worker.join(timeout)
             return not worker.is_alive()

@@ -14,17 +14,29 @@ Public API: a user's own OpenHTF script can use it beside its own plugs::
 
 Configuration (OpenHTF ``CONF`` keys): ``motorjig_port`` (serial port or pyserial
 URL), ``motorjig_baud``, ``motorjig_slave`` (the drive under test), ``motorjig_jig_id``,
-``motorjig_timeout_ms``, ``motorjig_on_end`` ("stop-servo-off" or "none"). Each
-slave's protocol variant is detected at first contact, as the vendor library does.
+``motorjig_timeout_ms``, ``motorjig_on_end`` ("stop-servo-off" or "none"),
+``motorjig_safety_window_ms`` (the jig's safety net, below; 0: not armed). Each
+slave's protocol variant -- the jig's and the drive's, each its own -- is detected at
+first contact, as the vendor library does.
 
 Safety lives in ``tearDown``, which OpenHTF runs at the end of every test, passed,
 failed, errored or aborted: unless ``on_end`` is "none", a test that did not pass
 (``note_failure`` / ``note_abort``, which the MotorJig phases call) ends with
 MoveStop -- EmergencyStop after an abort -- and servo off. A lost connection makes
 that impossible; tearDown then says so in the log and gives up quietly.
+
+What no handler can catch (SIGKILL, a crashed PC, a pulled USB cable, a hung adapter)
+is caught by the jig: ``arm_safety_net`` switches on the jig's master-silence safety
+stop (parameters 9 ``safety_timeout_ms`` and 10 ``safety_action``, docs/diagnostics.md)
+for the length of the run, and a heartbeat thread keeps the PC's side of it alive
+during prompts and long waits (a cheap GetParameter to the jig whenever the bus has
+been quiet for a quarter of the window). If the PC falls silent for the window, the
+jig stops every drive it has seen (EmergencyStop, and servo off with
+``on_end = "stop-servo-off"``). tearDown puts the jig's parameters back as they were.
 """
 
 import logging
+import threading
 import time
 
 from openhtf import plugs
@@ -43,23 +55,113 @@ for _name, _doc, _default in (
         ("motorjig_jig_id", "slave id of the jig", 1),
         ("motorjig_timeout_ms", "reply timeout, ms", 100),
         ("motorjig_on_end", "stop-servo-off or none: what a test that did not pass does to the axis",
-         "stop-servo-off")):
+         "stop-servo-off"),
+        ("motorjig_safety_window_ms", "the jig's master-silence safety stop during a run, ms (0: not armed)",
+         1000)):
     if _name not in CONF._declarations:  # a re-import (tests) must not declare twice
         CONF.declare(_name, _doc, default_value=_default)
 
 
+# The jig's safety-stop parameters (firmware/jig/params.py) and safety_action's values.
+P_SAFETY_TIMEOUT_MS = 9
+P_SAFETY_ACTION = 10
+SAFETY_EMERGENCY_STOP = 1
+SAFETY_EMERGENCY_STOP_SERVO_OFF = 2
+
+
 class TimedMaster(Master):
-    """A Master that keeps every request's round-trip time (seconds) for bus-health."""
+    """A Master that keeps every request's round-trip time (seconds) for bus-health, and that
+    two threads may share (the phases and the safety net's heartbeat): one request at a time."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
         self.roundtrips = []
+        self.lock = threading.RLock()
+        self.last_request = time.monotonic()  # when the PC last spoke, for the heartbeat
 
     def request(self, *a, **kw):
-        t0 = time.monotonic()
-        fr = super().request(*a, **kw)
-        self.roundtrips.append(time.monotonic() - t0)
-        return fr
+        with self.lock:
+            t0 = self.last_request = time.monotonic()
+            try:
+                fr = super().request(*a, **kw)
+            finally:
+                self.last_request = time.monotonic()
+            self.roundtrips.append(time.monotonic() - t0)
+            return fr
+
+    def detect_variant(self, *a, **kw):
+        with self.lock:
+            self.last_request = time.monotonic()
+            return super().detect_variant(*a, **kw)
+
+    def broadcast(self, *a, **kw):
+        with self.lock:
+            self.last_request = time.monotonic()
+            return super().broadcast(*a, **kw)
+
+
+class SafetyNet:
+    """The jig's master-silence safety stop, armed for one run, with a heartbeat thread.
+
+    ``arm()`` remembers the jig's parameters 9 and 10, sets the window and the action and
+    starts the heartbeat; ``disarm()`` stops it and restores them. Either raises JigError
+    when the jig does not answer (the caller decides what that means for the run)."""
+
+    def __init__(self, master, jig_id, window_ms, servo_off):
+        self.m = master
+        self.jig_id = jig_id
+        self.window_ms = int(window_ms)
+        self.action = SAFETY_EMERGENCY_STOP_SERVO_OFF if servo_off else SAFETY_EMERGENCY_STOP
+        self.saved = None
+        self._stop = threading.Event()
+        self._thread = None
+        self.beats = 0
+        self.problem = None  # the last heartbeat that went unanswered, as a text
+
+    @property
+    def armed(self):
+        return self.saved is not None
+
+    def arm(self):
+        m, j = self.m, self.jig_id
+        saved = (m.get_parameter(j, P_SAFETY_TIMEOUT_MS), m.get_parameter(j, P_SAFETY_ACTION))
+        try:
+            m.set_parameter(j, P_SAFETY_ACTION, self.action)
+        except JigError:
+            # A jig from before "servo off" (action 2): EmergencyStop alone still stops the axis.
+            self.action = SAFETY_EMERGENCY_STOP
+            m.set_parameter(j, P_SAFETY_ACTION, self.action)
+        self.saved = saved  # from here on disarm() has something to put back
+        m.set_parameter(j, P_SAFETY_TIMEOUT_MS, self.window_ms)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._beat, name="motorjig-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _beat(self):
+        period = self.window_ms / 4000.0
+        while not self._stop.wait(period / 2):
+            if time.monotonic() - self.m.last_request < period:
+                continue  # the phases keep the jig's window open themselves
+            try:
+                self.m.get_parameter(self.jig_id, P_SAFETY_TIMEOUT_MS)
+                self.beats += 1
+            except Exception as exc:  # a lost connection: the jig's stop will act, which is the point
+                self.problem = str(exc)
+
+    def stop_heartbeat(self):
+        self._stop.set()
+        t, self._thread = self._thread, None
+        if t is not None and t is not threading.current_thread():
+            t.join(2.0)
+
+    def disarm(self):
+        self.stop_heartbeat()
+        if self.saved is None:
+            return
+        timeout_ms, action = self.saved
+        self.m.set_parameter(self.jig_id, P_SAFETY_TIMEOUT_MS, timeout_ms)
+        self.m.set_parameter(self.jig_id, P_SAFETY_ACTION, action)
+        self.saved = None
 
 
 class MotorJigPlug(plugs.BasePlug):
@@ -75,6 +177,7 @@ class MotorJigPlug(plugs.BasePlug):
         self.on_end = CONF.motorjig_on_end
         self.failed = False
         self.aborted = False
+        self.safety = None  # the SafetyNet while armed (arm_safety_net)
 
     def note_failure(self):
         self.failed = True
@@ -82,12 +185,31 @@ class MotorJigPlug(plugs.BasePlug):
     def note_abort(self):
         self.aborted = True
 
+    def arm_safety_net(self, window_ms=None):
+        """Arm the jig's master-silence safety stop for this run (see the module's doc); returns the
+        SafetyNet, or None when ``window_ms`` (default: CONF) is 0. Raises JigError if the jig
+        does not take it."""
+        window_ms = CONF.motorjig_safety_window_ms if window_ms is None else window_ms
+        if not window_ms:
+            return None
+        net = SafetyNet(self.master, self.jig_id, window_ms, servo_off=self.on_end != "none")
+        self.safety = net
+        net.arm()
+        return net
+
     def tearDown(self):
         try:
             if self.on_end != "none" and (self.failed or self.aborted):
                 self.make_safe(emergency=self.aborted)
         finally:
-            self.master.close()
+            try:
+                if self.safety is not None:
+                    try:
+                        self.safety.disarm()
+                    except Exception as exc:  # the jig's window stays: it stops the axis when we are gone
+                        _LOG.error("disarming the jig's safety stop failed: %s", exc)
+            finally:
+                self.master.close()
 
     def make_safe(self, emergency=False):
         make_safe(self.master, self.slave, emergency)

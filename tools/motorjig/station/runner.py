@@ -27,6 +27,7 @@ from openhtf.output.callbacks import json_factory
 from openhtf.util import configuration, console_output, threads
 
 from motorjig import names as N
+from motorjig.errors import JigError
 from motorjig.station import junit, report
 from motorjig.station.phases import build_phase
 from motorjig.station.plug import MotorJigPlug, make_safe
@@ -49,7 +50,7 @@ class RunContext:
 
     def __init__(self, plan, out=None, confirm=None, on_event=None):
         self.plan = plan
-        self.out = out
+        self.out = _never_fails(out)
         self._confirm = confirm
         self.on_event = on_event
         self.drive_is_servo = plan.drive.slave_type in SERVO_TYPES
@@ -62,6 +63,13 @@ class RunContext:
         self.aborted = False
         self.run_id = self.store_error = None
         self.write_errors = []  # run files that could not be written (the record may still be stored)
+        self._abort_sent = False
+        self.end_cause = None  # why the run was cut short ("terminated by SIGTERM"), for the records
+
+    def say(self, text):
+        """A line of progress that is not a step's."""
+        if self.out:
+            self.out(text)
 
     def started(self, step):
         self._t_step = time.monotonic()
@@ -89,12 +97,17 @@ class RunContext:
         if self.on_event:
             self.on_event({"event": "sample", "step": step.name, "row": row})
 
-    def abort(self):
-        """Abort the run from another thread (the Desk's Abort): the running step is stopped,
-        the axis gets an emergency stop and the servo goes off."""
+    def abort(self, cause=None):
+        """Abort the run from another thread (the Desk's Abort, a signal): the running step is
+        stopped, the axis gets an emergency stop and the servo goes off. ``cause`` names why, in
+        the records (the first cause given stays)."""
+        if cause and not self.end_cause:
+            self.end_cause = cause
         self.aborted = True
         test = self.test
-        if test is not None:
+        # Once only: a second abort makes OpenHTF skip the teardown, which stops the axis.
+        if test is not None and test.uid is not None and not self._abort_sent:
+            self._abort_sent = True
             test.abort_from_sig_int()  # despite its name: aborts the executor, from any thread
 
     def confirm(self, message):
@@ -102,6 +115,21 @@ class RunContext:
             raise PreflightError("the plan asks the operator to confirm %r: run on a terminal or with --yes"
                                  % message)
         return self._confirm(message)
+
+
+def _never_fails(out):
+    """``out`` for progress lines that cannot end a run: the operator's terminal may be gone (EIO
+    after a hang-up, a closed pipe) while the axis still has to be stopped and the records written."""
+    if out is None:
+        return None
+
+    def write(text):
+        try:
+            out(text)
+        except (OSError, ValueError):
+            pass
+
+    return write
 
 
 def console_confirm(message, stdin=sys.stdin, out=sys.stderr):
@@ -114,9 +142,10 @@ def console_confirm(message, stdin=sys.stdin, out=sys.stderr):
     return answer.strip().lower() in ("", "y", "yes")
 
 
-def check_drive(m, drive):
+def check_drive(m, drive, steps=()):
     """The drive behind Master ``m`` against the plan's ``[drive]``, read only: (variant, SlaveInfo),
-    or PreflightError saying what is wrong. Afterwards ``m`` frames everything in that variant."""
+    or PreflightError saying what is wrong. Afterwards ``m`` frames the drive's requests in its
+    variant (the jig's in the jig's own: a Ver6 jig may serve a Ver8 drive and the reverse)."""
     s = drive.slave
     variant = m.detect_variant(s)
     if variant is None:
@@ -124,13 +153,30 @@ def check_drive(m, drive):
     if variant not in drive.protocol:
         raise PreflightError("the plan is for a %s drive, but slave %d answers as Ver%d: nothing was moved"
                              % (" or ".join("Ver%d" % v for v in drive.protocol), s, variant))
-    m.ver8 = variant == 8  # from here on every frame in the drive's variant, no probing
+    # detect_variant noted the drive's variant: from here on its frames go in it, no probing; the
+    # jig (slave 1) and any other slave are framed in their own variant, detected at first contact
     info = m.get_slave_info(s)
     if info.type != drive.slave_type:
         raise PreflightError("the plan is for slave type %d (%s), but slave %d is type %d (%s): nothing was moved"
                              % (drive.slave_type, N.slave_type_name(drive.slave_type), s, info.type,
                                 info.type_name))
+    if steps:
+        check_speeds(steps, m.get_parameter(s, P_AXIS_MAX_SPEED), s)
     return variant, info
+
+
+P_AXIS_MAX_SPEED = 1  # the drive's parameter 1, axis_max_speed (pps): it caps every move's speed
+
+
+def check_speeds(steps, max_speed, slave):
+    """A step that asks for more than the drive's axis_max_speed would run slower than the plan
+    says and fail a good drive (duration_ratio): refused before anything moves."""
+    for step in steps:
+        speed = step.args.get("speed")
+        if speed is not None and speed > max_speed:
+            raise PreflightError("step %s moves at %d pps, above slave %d's axis_max_speed (parameter 1) of %d "
+                                 "pps: lower the step's speed or raise the parameter; nothing was moved"
+                                 % (step.name, speed, slave, max_speed))
 
 
 def _preflight(plan, serial, ctx):
@@ -142,7 +188,7 @@ def _preflight(plan, serial, ctx):
             test.dut_id = serial  # first: a refused drive's record still names it
         if ctx.aborted:
             raise PreflightError("aborted before the first step")
-        variant, info = check_drive(bus.master, plan.drive)
+        variant, info = check_drive(bus.master, plan.drive, plan.steps)
         s = bus.slave
         test.test_record.metadata["drive"] = {"slave": s, "protocol": variant, "slave_type": info.type,
                                               "name": info.version}
@@ -150,9 +196,25 @@ def _preflight(plan, serial, ctx):
             test.dut_id = "slave%d-%s" % (s, re.sub(r"[^A-Za-z0-9.]+", "-", info.version).strip("-"))
         if plan.reset_jig_counters:
             bus.master.reset_counters(bus.jig_id)
+        _arm_safety_net(test, bus, ctx)
         bus.master.roundtrips.clear()
 
     return preflight
+
+
+def _arm_safety_net(test, bus, ctx):
+    """The jig's master-silence safety stop for the length of the run (plug.SafetyNet): what no
+    signal handler can catch (SIGKILL, a crashed PC, a pulled cable) the jig catches."""
+    try:
+        net = bus.arm_safety_net()
+    except JigError as exc:
+        note = "the jig's safety stop could not be armed (%s): a killed PC would leave the axis as it is" % exc
+        test.test_record.metadata["safety_net"] = {"armed": False, "problem": str(exc)}
+        ctx.say(note)
+        return
+    if net is not None:
+        test.test_record.metadata["safety_net"] = {"armed": True, "window_ms": net.window_ms,
+                                                   "action": net.action}
 
 
 def build_test(plan, ctx, operator=None):
@@ -181,6 +243,8 @@ def _writer(ctx, out_dir, db=None):
     ctx.write_errors = []
 
     def write(test_record):
+        if ctx.end_cause:
+            _name_the_cause(test_record, ctx.end_cause)
         as_json = json_factory.convert_test_record_to_json(test_record)
         text = "".join(json_factory.stream_json(as_json, indent=2))
         record = json.loads(text)
@@ -201,6 +265,17 @@ def _writer(ctx, out_dir, db=None):
             _store(ctx, db, record)
 
     return write
+
+
+def _name_the_cause(test_record, cause):
+    """The run's end cause first in its outcome details (what the summary, JUnit and the report
+    show), in place of what the interrupted step happened to raise."""
+    from openhtf.core.test_record import OutcomeDetails
+
+    test_record.metadata["end_cause"] = cause
+    code = cause.split()[-1] if "SIG" in cause else "ABORTED"
+    details = [d for d in test_record.outcome_details if d.description != cause]
+    test_record.outcome_details[:] = [OutcomeDetails(code, cause)] + details
 
 
 def check_out_dir(out_dir):
@@ -230,13 +305,13 @@ def _store(ctx, db, record):
 
 
 def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, out_dir=".", out=print,
-             confirm=None, timeout_ms=100, on_event=None, on_start=None, db=None):
+             confirm=None, timeout_ms=100, on_event=None, on_start=None, db=None, safety_window_ms=1000):
     """Run ``plan`` on the drive behind ``port``; returns the RunContext (``record``, ``files``).
     ``db``: the results database to store the run in (None: none), see ``station.store``."""
     ctx = RunContext(plan, out, confirm, on_event)
     load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": plan.drive.slave,
             "motorjig_jig_id": plan.drive.jig_id, "motorjig_timeout_ms": timeout_ms,
-            "motorjig_on_end": plan.on_end}
+            "motorjig_on_end": plan.on_end, "motorjig_safety_window_ms": safety_window_ms}
     if station:
         load["station_id"] = station
     CONF.load(**load)
@@ -247,16 +322,83 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
     if on_start is not None:  # the caller may abort from here on (ctx.abort)
         on_start(ctx)
     hook, threading.excepthook = threading.excepthook, _quiet_abort(threading.excepthook)
+    handlers = _catch_signals(ctx)
     try:
         test.execute(test_start=_preflight(plan, serial, ctx))
     except KeyboardInterrupt:
         pass  # OpenHTF has aborted the run, torn the plug down and written the record
+    except BaseException as exc:  # the engine itself failed: the axis is made safe all the same
+        ctx.abort("the station failed: %s: %s" % (type(exc).__name__, exc))  # finally: EmergencyStop
+        raise
     finally:
         ctx.test = None
         threading.excepthook = hook
-    if (ctx.aborted or (ctx.record or {}).get("outcome") == "ABORTED") and plan.on_end != "none":
-        _emergency_stop(port, baud, plan.drive.slave, timeout_ms)
+        if (ctx.aborted or (ctx.record or {}).get("outcome") == "ABORTED") and plan.on_end != "none":
+            _emergency_stop(port, baud, plan.drive.slave, timeout_ms)
+        _restore_signals(handlers)
     return ctx
+
+
+# What each signal means for a run: all of them abort it (EmergencyStop, servo off, the records
+# written with the cause), as Ctrl-C does. SIGHUP is a closed terminal or SSH session.
+SIGNAL_CAUSES = (("SIGINT", "interrupted by SIGINT (Ctrl-C)"), ("SIGTERM", "terminated by SIGTERM"),
+                 ("SIGHUP", "terminated by SIGHUP (the terminal was closed)"))
+
+
+def _catch_signals(ctx):
+    """Install the run's signal handlers (main thread only: the Desk's worker has its own
+    shutdown); returns the ones to put back."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    previous = {}
+    terminals = [fd for fd in (1, 2) if _isatty(fd)]  # known now: a hung-up terminal no longer says
+
+    def on_signal(signum, frame):
+        name = signal.Signals(signum).name
+        cause = dict(SIGNAL_CAUSES)[name]
+        first = not ctx.aborted
+        if signum == signal.SIGHUP:
+            _detach_terminal(terminals)
+        if first:
+            ctx.say("\n%s: stopping the axis (EmergencyStop, servo off) and writing the records" % cause)
+        else:
+            ctx.say("%s: already stopping the axis, please wait" % name)
+        # From a thread of its own: OpenHTF's abort takes a lock this (main) thread may hold.
+        threading.Thread(target=ctx.abort, args=(cause,), name="motorjig-abort", daemon=True).start()
+
+    for name, _cause in SIGNAL_CAUSES:
+        num = getattr(signal, name, None)
+        if num is not None:
+            previous[num] = signal.signal(num, on_signal)
+    return previous
+
+
+def _restore_signals(previous):
+    import signal
+
+    for num, handler in previous.items():
+        signal.signal(num, handler)
+
+
+def _isatty(fd):
+    try:
+        return os.isatty(fd)
+    except OSError:
+        return False
+
+
+def _detach_terminal(fds):
+    """After SIGHUP the terminal is gone: writing to it would fail (EIO). What is still to say goes
+    nowhere; the records say it all."""
+    for fd in fds:
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, fd)
+            os.close(null)
+        except OSError:
+            pass
 
 
 def _quiet_abort(hook):
