@@ -1,0 +1,109 @@
+"""What a user tripped over with `jigctl test`, each checked as they met it.
+
+A jig of one protocol variant serving a drive of the other; `--check` catching, before
+anything moves, a prompt nobody can answer and a speed above the drive's maximum;
+`--json` answering in JSON when the plan is missing; a run without `$USER`.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from motorjig.master import Master
+from motorjig.sim import Bench
+from motorjig.station import load_plan, run_plan
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SMOKE = os.path.join(ROOT, "plans", "smoke.toml")
+EOL = os.path.join(ROOT, "plans", "ezi-step-eol.toml")
+JIGCTL = os.path.join(os.path.dirname(sys.executable), "jigctl")
+DRIVE = 2
+
+
+def jigctl(*args, env=None, stdin=subprocess.DEVNULL):
+    return subprocess.run([JIGCTL] + list(args), capture_output=True, text=True, timeout=120, env=env, stdin=stdin)
+
+
+@pytest.mark.parametrize("jig_ver8,drive_ver8", [(False, True), (True, False)], ids=["jig6-drive8", "jig8-drive6"])
+def test_a_jig_and_a_drive_of_different_variants_run_the_smoke_plan(tmp_path, jig_ver8, drive_ver8):
+    """The station talks to the jig (ResetCounters, its safety stop) in the jig's variant and to
+    the drive in the drive's: before, the run ended ERROR at the jig's first frame."""
+    with Bench(driver_ids=(DRIVE,), baud=115200, pty=False, jig_ver8=jig_ver8,
+               ver8_drivers=(DRIVE,) if drive_ver8 else ()) as b:
+        p = jigctl("test", "--check", SMOKE, "--port", b.tcp_url)
+        assert p.returncode == 0, p.stderr
+        ctx = run_plan(load_plan(SMOKE), b.tcp_url, out_dir=str(tmp_path), out=None, timeout_ms=300,
+                       confirm=lambda m: True)
+        rec = ctx.record
+        assert rec["outcome"] == "PASS", (rec["outcome_details"], [(p["name"], p["outcome"]) for p in rec["phases"]])
+        assert rec["metadata"]["drive"]["protocol"] == (8 if drive_ver8 else 6)
+        assert rec["metadata"]["safety_net"]["armed"] is True
+        with Master(b.tcp_url, timeout=0.3) as m:
+            assert m.variant(1) == (8 if jig_ver8 else 6)
+            assert m.get_parameter(1, 9) == 0  # disarmed again
+
+
+def test_check_refuses_a_prompt_nobody_can_answer(tmp_path):
+    """EOL's first step is a prompt: no terminal (stdin is not one) and no --yes."""
+    p = jigctl("test", "--check", EOL)
+    assert p.returncode == 2
+    assert "step prompt asks the operator to confirm" in p.stderr and "--yes" in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+    assert jigctl("test", "--check", EOL, "--yes").returncode == 0
+
+
+def test_a_run_with_a_prompt_and_no_terminal_moves_nothing(tmp_path):
+    with Bench(driver_ids=(DRIVE,), baud=115200, pty=False) as b:
+        p = jigctl("test", EOL, "--port", b.tcp_url, "--out", str(tmp_path), "--db", "none")
+        assert p.returncode == 2 and "--yes" in p.stderr
+        d = b.sim.drivers[DRIVE]
+        assert not d.servo_on and d.motion.pos == 0
+        assert b.sim.counters["up_frames_in"] == 0  # the bus was not even asked
+    assert not list(tmp_path.iterdir())
+
+
+def test_check_with_the_port_refuses_a_speed_above_the_drives_maximum(tmp_path):
+    plan = tmp_path / "fast.toml"
+    with open(SMOKE) as f:
+        plan.write_text(f.read().replace("speed = 20000", "speed = 400000", 1))
+    with Bench(driver_ids=(DRIVE,), baud=115200, pty=False) as b:
+        with Master(b.tcp_url, timeout=0.3) as m:
+            m.set_parameter(DRIVE, 1, 300000)  # axis_max_speed
+        p = jigctl("test", "--check", str(plan), "--port", b.tcp_url)
+        assert p.returncode == 2
+        assert "step out moves at 400000 pps, above slave 2's axis_max_speed (parameter 1) of 300000" in p.stderr
+        assert jigctl("test", "--check", str(plan)).returncode == 0  # without the drive: nothing to compare
+        ctx = run_plan(load_plan(str(plan)), b.tcp_url, out_dir=str(tmp_path), out=None, timeout_ms=300,
+                       confirm=lambda m: True)
+        assert ctx.record["outcome"] == "ERROR"
+        assert "axis_max_speed" in ctx.record["outcome_details"][0]["description"]
+        assert b.sim.drivers[DRIVE].motion.pos == 0 and not b.sim.drivers[DRIVE].servo_on
+
+
+def test_json_errors_are_json(tmp_path):
+    p = jigctl("--json", "test", str(tmp_path / "nope.toml"))
+    assert p.returncode == 2
+    doc = json.loads(p.stdout)
+    assert doc["verdict"] == "ERROR" and "nope.toml" in doc["error"]
+
+
+def test_without_user_the_operator_is_the_login_name_or_unknown(monkeypatch):
+    import getpass
+    import pwd
+
+    from motorjig.testcmd import default_operator
+
+    monkeypatch.delenv("USER", raising=False)
+    monkeypatch.delenv("LOGNAME", raising=False)
+    assert default_operator() == pwd.getpwuid(os.getuid()).pw_name  # a service's own account
+
+    def no_user():
+        raise KeyError("getpwuid(): uid not found: 12345")  # a container's uid without a passwd entry
+
+    monkeypatch.setattr(getpass, "getuser", no_user)
+    assert default_operator() == "unknown"
+    monkeypatch.setenv("USER", "anna")
+    assert default_operator() == "anna"
