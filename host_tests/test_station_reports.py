@@ -336,6 +336,73 @@ def test_a_run_that_ended_in_error_outside_a_phase_exception_is_an_error_in_ci(r
     assert (errors[0].get("type"), errors[0].get("message")) == (etype, message)
 
 
+def refused_drive(test):
+    from motorjig.station.runner import PreflightError
+
+    raise PreflightError("the plan is for slave type 1, but slave 2 is type 20: nothing was moved")
+
+
+def no_terminal(test):
+    from motorjig.station.runner import PreflightError
+
+    raise PreflightError("the plan asks the operator to confirm 'motor on': run on a terminal or with --yes")
+
+
+def aborted_before(test):
+    from motorjig.station.phases import RunAborted
+
+    raise RunAborted("aborted before step move")
+
+
+def drive_went_quiet(test):
+    from motorjig.errors import NoReplyError
+
+    raise NoReplyError("slave 2 did not answer GetAllStatus (3 tries)")
+
+
+def a_bug(test):
+    return {}["oops"]
+
+
+@pytest.mark.parametrize("phase, etype, sentence", [
+    (refused_drive, "motorjig.station.runner.PreflightError", "the plan is for slave type 1, but slave 2 is type 20"),
+    (no_terminal, "motorjig.station.runner.PreflightError", "run on a terminal or with --yes"),
+    (aborted_before, "motorjig.station.phases.RunAborted", "aborted before step move"),
+    (drive_went_quiet, "motorjig.errors.NoReplyError", "slave 2 did not answer GetAllStatus"),
+])
+def test_an_expected_refusal_is_a_sentence_without_a_traceback(tmp_path, schema, phase, etype, sentence):
+    record, _ = run_plan(tmp_path, identify_drive, phase)
+    text = junit.junit_xml(record)
+    schema.validate(text)
+    _, suite = _suite(text)
+    error = suite.find("testcase[@name='%s']/error" % phase.__name__)
+    assert error.get("type") == etype
+    assert sentence in error.get("message") and error.text == error.get("message")
+    assert "Traceback" not in text and "File \"" not in text
+    page = report.html_report(record)
+    assert "Traceback" not in page and sentence.replace("'", "&#x27;") in page
+
+
+def test_an_unexpected_exception_keeps_its_traceback(tmp_path, schema):
+    record, _ = run_plan(tmp_path, identify_drive, a_bug)
+    _, suite = _suite(junit.junit_xml(record))
+    error = suite.find("testcase[@name='a_bug']/error")
+    assert error.get("type") == "KeyError" and error.get("message") == "KeyError: 'oops'"
+    assert error.text.startswith("Traceback") and "a_bug" in error.text
+    assert "Traceback" in report.html_report(record)
+
+
+def test_the_expected_exception_names_are_real_classes():
+    import importlib
+
+    for name in report.EXPECTED_EXCEPTIONS:
+        module, _, cls = name.rpartition(".")
+        assert isinstance(getattr(importlib.import_module(module or "builtins"), cls), type), name
+    from motorjig import errors
+
+    assert report.expected_exception("%s.%s" % (errors.NoReplyError.__module__, errors.NoReplyError.__name__))
+
+
 def test_junit_escapes_names_and_messages(runs):
     text = junit.junit_xml(runs["inject"][0])
     assert "<script>" not in text and "&lt;script&gt;" in text

@@ -6,8 +6,10 @@ named after the plan, with one ``<testcase>`` per phase:
 
 * a FAIL phase gets ``<failure type="measurement">`` naming each failing
   measurement with its value, unit and limit;
-* an ERROR phase gets ``<error>`` with the exception's type and message (the
-  traceback as text);
+* an ERROR phase gets ``<error>`` with the exception's type and message; its text is
+  the traceback for an unexpected exception (a bug) and just the sentence for an
+  expected refusal (a drive refused at the preflight, an abort, a drive that stops
+  answering: ``report.EXPECTED_EXCEPTIONS``);
 * a SKIP phase gets ``<skipped/>``;
 * a run that ended ERROR, ABORTED or TIMEOUT outside any phase (a plug that could
   not open the port, Ctrl-C between phases) gets one extra testcase, "test run",
@@ -21,7 +23,7 @@ import re
 import xml.etree.ElementTree as ET
 
 from .report import (failed_measurements, format_value, measurement_text, operator_name, outcome_details_text,
-                     phase_exception, record_dict, seconds, utc_time)
+                     phase_error_text, record_dict, seconds, utc_time)
 
 RUN_CASE = "test run"
 SCHEMA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "junit.xsd")
@@ -46,10 +48,11 @@ def _properties(record):
 
 
 def _phase_error(record, phase, is_last):
-    """(type, message, text) for an ERROR phase."""
-    exc = phase_exception(phase)
-    if exc:
-        return exc[0], "%s: %s" % exc[:2] if exc[1] else exc[0], exc[2] or exc[1]
+    """(type, message, text) for an ERROR phase: the text is the traceback only for an unexpected
+    exception; an expected refusal (report.EXPECTED_EXCEPTIONS) has its sentence."""
+    err = phase_error_text(record, phase)
+    if err:
+        return err
     # Killed or stopped phases record no exception; the run's outcome details say why.
     details = outcome_details_text(record) if is_last else ""
     result = (phase.get("result") or {}).get("phase_result") or ""

@@ -127,6 +127,40 @@ def operator_name(value):
     return text or "unknown"
 
 
+# Exceptions that end a run on purpose, each with a sentence that says all there is to say: a drive
+# refused at the preflight or a prompt nobody can answer (PreflightError), an abort (RunAborted,
+# OpenHTF's ThreadTerminationError, Ctrl-C), the bus library's errors (motorjig.errors: a drive
+# that stops answering, a refused command), a bad plan or database. Reports give their sentence;
+# a traceback only for anything else (a bug).
+EXPECTED_EXCEPTIONS = frozenset((
+    "motorjig.station.runner.PreflightError", "motorjig.station.phases.RunAborted",
+    "openhtf.util.threads.ThreadTerminationError", "KeyboardInterrupt", "motorjig.tomlsource.SourceError",
+    "motorjig.station.store.StoreError"))
+ABORT_EXCEPTIONS = frozenset(("motorjig.station.phases.RunAborted", "openhtf.util.threads.ThreadTerminationError",
+                              "KeyboardInterrupt"))
+
+
+def expected_exception(exc_type):
+    """True for an exception type (its recorded name) that ends a run on purpose (EXPECTED_EXCEPTIONS)."""
+    return exc_type in EXPECTED_EXCEPTIONS or exc_type.startswith("motorjig.errors.")
+
+
+def phase_error_text(record, phase):
+    """(type, sentence, body) of the exception that ended a phase, or None: the body is the sentence
+    for an expected refusal and the traceback for anything else."""
+    exc = phase_exception(phase)
+    if not exc:
+        return None
+    exc_type, message, tb = exc
+    if expected_exception(exc_type):
+        if not message and exc_type in ABORT_EXCEPTIONS:
+            message = outcome_details_text(record) or "the run was aborted"
+        sentence = message or exc_type.rsplit(".", 1)[-1]
+        return exc_type, sentence, sentence
+    sentence = "%s: %s" % (exc_type, message) if message else exc_type
+    return exc_type, sentence, tb or message
+
+
 def outcome_details_text(record):
     return "; ".join("%s: %s" % (d.get("code"), d.get("description")) if d.get("description") else str(d.get("code"))
                      for d in record.get("outcome_details") or ())
@@ -314,8 +348,8 @@ def _phase_table(phases):
     rows = []
     for p in phases:
         meas = list((p.get("measurements") or {}).values())
-        exc = phase_exception(p)
-        note = "%s: %s" % exc[:2] if exc else ("" if meas else "no measurements")
+        err = phase_error_text({}, p)
+        note = err[1] if err else ("" if meas else "no measurements")
         rows.append('<tr class="phase" data-phase="%s"><td>%s</td><td colspan="3" class="muted">%s</td>'
                     '<td class="num">%s</td><td>%s</td></tr>'
                     % (_e(p.get("name")), _e(p.get("name")), _e(note),
@@ -339,9 +373,9 @@ def _errors(record):
     parts = ["<p><b>%s</b>: %s</p>" % (_e(d.get("code")), _e(d.get("description")))
              for d in record.get("outcome_details") or ()]
     for p in record.get("phases") or ():
-        exc = phase_exception(p)
-        if exc:
-            parts.append("<h3>Phase %s: %s</h3><pre>%s</pre>" % (_e(p.get("name")), _e(exc[0]), _e(exc[2] or exc[1])))
+        err = phase_error_text(record, p)
+        if err:
+            parts.append("<h3>Phase %s: %s</h3><pre>%s</pre>" % (_e(p.get("name")), _e(err[0]), _e(err[2])))
     return ('<section data-testid="errors"><h2>Errors</h2>%s</section>' % "\n".join(parts)) if parts else ""
 
 
