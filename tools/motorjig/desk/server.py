@@ -171,6 +171,17 @@ def open_results(db, out):
         return None
 
 
+def _hangup_stops_the_desk():
+    """A closed terminal or SSH session (SIGHUP) stops the Desk as Ctrl-C and SIGTERM do (the server's
+    own shutdown, then stop_desk: a running test is aborted, the axis stopped, its records written)
+    instead of killing it mid-move."""
+    import signal
+    import threading
+
+    if hasattr(signal, "SIGHUP") and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGHUP, lambda signum, frame: os.kill(os.getpid(), signal.SIGTERM))
+
+
 def stop_desk(session, station=None, store=None, bench=None, timeout=10.0, capture=None):
     """What the Desk does when it stops: a running test is aborted and waited for (its tearDown:
     stop, emergency stop, servo off), then the recording (X), the bus session, the results
@@ -281,6 +292,7 @@ def serve(args, out=None):
         out.write("  from other computers: %s\n" % page_url(socket.gethostname(), args.http_port, token))
     out.flush()
     show = ("/?token=%s" % token if token else "/") if args.open else False
+    _hangup_stops_the_desk()
     ui.run(host=args.host, port=args.http_port, title="MotorJig Desk", reload=False, show=show,
            show_welcome_message=False, uvicorn_logging_level="warning", favicon="🛠", dark=False)
     return 0
