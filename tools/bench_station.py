@@ -13,12 +13,22 @@ says) and splits the run's wall time:
 
 Goals: the trace of a move sampled at >= 100 Hz through the jig at 115 200 baud; the
 engine adds <= 100 ms per step beyond its own bus traffic and motion.
+
+Then the proof that a busy PC does not fail a good drive (``--loaded N``, default 100):
+the bench in a process of its own (as a jig is a board of its own), two CPU burners
+beside it (load >= 4 on 2 cores), and ezi-step-eol run N times on the healthy drive:
+it prints how many runs ended FAIL (each one a false FAIL: the goal is 0) and ERROR
+(a measurement the station could not trust, with the reasons), and the load average.
+Then each injected fault, quiet and loaded: the plan must still fail at the step and
+measurement meant to catch it.
 """
 
 import argparse
 import base64
+import collections
 import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -67,12 +77,122 @@ def one_run(ver8, out_dir):
     return plan, ctx, wall
 
 
+# (fault, its value, the step that must catch it, a measurement that must fail there)
+FAULTS = (("step-out=20000", "move_speed_50000", "following_error"),
+          ("alarm=1@30", "move_speed_5000", "alarm"),
+          ("sluggish=1.5", "move_speed_5000", "duration_ratio"),
+          ("param=3:250", "parameters", "ram_axis_acc_time"),
+          ("no-origin", "home", "origin_ok"),
+          ("dead-input=26", "io", "relay_2_on"))
+
+
+def start_sim(*faults):
+    """`python -m motorjig.sim` wired as the plan says, in its own process: (process, TCP URL)."""
+    args = [sys.executable, "-m", "motorjig.sim", "--no-demo", "--no-pty", "--drivers", "2", "--wiring", EOL]
+    for f in faults:
+        args += ["--fault", f]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(os.path.join(ROOT, d) for d in ("firmware", "tools")))
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True, env=env)
+    for line in proc.stdout:
+        key, _, value = line.strip().partition(": ")
+        if key == "tcp":
+            return proc, value
+    proc.kill()
+    raise RuntimeError("the bench did not start")
+
+
+def stop_sim(proc):
+    proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+def burners(n):
+    """n busy processes: other work on the PC's cores."""
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
+def first_failure(record):
+    """(step, failed measurement names) of the first step that did not pass, or None."""
+    for ph in record.get("phases", []):
+        if ph["outcome"] != "PASS":
+            return ph["name"], sorted(n for n, m in ph.get("measurements", {}).items()
+                                      if m.get("outcome") not in ("PASS", None, "UNSET"))
+    return None
+
+
+def run_eol(url, out_dir):
+    ctx = run_plan(load_plan(EOL), url, out_dir=out_dir, out=None, confirm=lambda m: True, timeout_ms=300)
+    return ctx.record or {}
+
+
+def loaded_proof(runs, n_burners, out_dir):
+    print("false FAILs on a busy PC: ezi-step-eol %d times on a healthy drive, the bench in its own "
+          "process, %d CPU burners beside it" % (runs, n_burners))
+    hogs = burners(n_burners)
+    sim, url = start_sim()
+    verdicts = collections.Counter()
+    fails, errors = collections.Counter(), collections.Counter()
+    loads = []
+    t0 = time.monotonic()
+    try:
+        time.sleep(2)  # the burners' load builds up
+        for _ in range(runs):
+            rec = run_eol(url, out_dir)
+            verdict = rec.get("outcome", "ERROR")
+            verdicts[verdict] += 1
+            where = first_failure(rec)
+            if verdict == "FAIL":
+                fails["%s: %s" % (where[0], ", ".join(where[1]))] += 1
+            elif verdict != "PASS":
+                details = [d.get("description", "") for d in rec.get("outcome_details", [])]
+                errors["%s: %s" % (where[0] if where else "-", (details or ["?"])[0][:90])] += 1
+            loads.append(os.getloadavg()[0])
+    finally:
+        for h in hogs:
+            h.kill()
+        stop_sim(sim)
+    print("  %d runs in %.0f s, load average %.1f-%.1f: PASS %d, false FAIL %d (goal 0), ERROR %d"
+          % (runs, time.monotonic() - t0, min(loads), max(loads), verdicts["PASS"], verdicts["FAIL"],
+             sum(v for k, v in verdicts.items() if k not in ("PASS", "FAIL"))))
+    for what, n in fails.most_common():
+        print("    FAIL  %3d x %s" % (n, what))
+    for what, n in errors.most_common():
+        print("    ERROR %3d x %s" % (n, what))
+
+
+def faults_proof(out_dir, n_burners):
+    print("each fault, quiet and with %d CPU burners: the step and measurement that catch it" % n_burners)
+    for spec, step, measurement in FAULTS:
+        cells = []
+        for loaded in (False, True):
+            hogs = burners(n_burners) if loaded else []
+            sim, url = start_sim(spec)
+            try:
+                rec = run_eol(url, out_dir)
+            finally:
+                for h in hogs:
+                    h.kill()
+                stop_sim(sim)
+            where = first_failure(rec)
+            ok = rec.get("outcome") == "FAIL" and where and where[0] == step and measurement in where[1]
+            cells.append("%s %s%s" % ("ok" if ok else "MISSED", rec.get("outcome"),
+                                      "" if ok else " at %s %s" % where if where else ""))
+        print("  %-15s %-18s %-18s quiet: %-12s loaded: %s" % (spec, step, measurement, cells[0], cells[1]))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=2, help="runs per protocol variant (default 2)")
+    ap.add_argument("--loaded", type=int, default=100, metavar="N",
+                    help="runs of ezi-step-eol beside CPU burners for the false-FAIL count (default 100; 0: skip "
+                         "it and the faults)")
+    ap.add_argument("--burners", type=int, default=2, help="CPU burners beside the loaded runs (default 2)")
     args = ap.parse_args(argv)
-    if args.runs < 1:
-        print("error: --runs must be at least 1", file=sys.stderr)
+    if args.runs < 1 or args.loaded < 0 or args.burners < 0:
+        print("error: --runs must be at least 1, --loaded and --burners at least 0", file=sys.stderr)
         return 2
     print("station benchmark: plans/ezi-step-eol.toml on the real-time bench, 115 200 baud, through the jig")
     print("  %-5s %8s %8s %8s %8s %8s %9s %12s %10s" % ("", "run s", "motion", "bus", "steps", "engine",
@@ -96,6 +216,10 @@ def main(argv=None):
     print("  (motion: the axis moving; bus: waiting for replies, overlapping the motion while a move is")
     print("   sampled; steps: inside the step functions; engine = run - steps: OpenHTF, pre-flight,")
     print("   outputs; goals: >= 100 Hz sampling, engine <= 100 ms per step)")
+    if args.loaded:
+        with tempfile.TemporaryDirectory() as out:
+            loaded_proof(args.loaded, args.burners, out)
+            faults_proof(out, args.burners)
     return 0
 
 
