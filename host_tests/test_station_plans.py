@@ -62,7 +62,7 @@ def refused(capsys, tmp_path, text, line, key, words):
 
 @pytest.mark.parametrize("name", ["smoke.toml", "ezi-step-eol.toml"])
 def test_shipped_plans_check_out(capsys, name):
-    rc, out, err = check(capsys, os.path.join(PLANS, name))
+    rc, out, err = check(capsys, os.path.join(PLANS, name), "--yes")  # --yes: the eol plan has a prompt
     assert rc == 0, err
     assert "is valid" in out
 
@@ -280,3 +280,30 @@ def test_an_io_step_checks_the_relays_it_names_by_number_or_name(tmp_path):
     plan = P.load_plan(write(tmp_path, text))
     names = [m.name for m in phases.measures_io(plan.steps[0], plan)]
     assert names == ["relay_2_on", "relay_2_off", "relay_0_on", "relay_0_off", "sense_1_on", "sense_1_off"]
+
+
+def test_the_documented_measurements_are_the_ones_each_step_declares(tmp_path):
+    """The reference's 'Measurements:' line of every kind lists every measurement its phase declares."""
+    from motorjig.station import phases
+
+    with open(os.path.join(PLANS, "ezi-step-eol.toml")) as f:
+        eol = f.read()
+    wiring = eol[eol.index("[[wiring.relay]]"):eol.index("[[steps]]")] if "[[wiring.relay]]" in eol else ""
+    (tmp_path / "golden.toml").write_text("[parameters]\naxis_acc_time = 100\n")
+    steps = {
+        "identify": 'motor_pattern = "."', "parameters": 'file = "golden.toml"', "servo": "", "alarm-reset": "",
+        "move": "distance = 100\nspeed = 100\nduration_tolerance = 0.1", "home": "", "io": "",
+        "limit-sensor": 'relay = "limit+"', "stop-response": "", "bus-health": "", "prompt": 'message = "m"'}
+    assert set(steps) == set(schema.KINDS)
+    text = GOOD[: GOOD.index("[[steps]]")] + wiring + "".join(
+        '\n[[steps]]\nkind = "%s"\n%s\n' % (k, v) for k, v in steps.items())
+    plan = P.load_plan(write(tmp_path, text))
+    for step in plan.steps:
+        declared = [m.name for m in getattr(phases, "measures_" + step.kind.replace("-", "_"))(step, plan)]
+        documented = schema.KINDS[step.kind].measurements
+        if step.kind == "parameters":
+            assert declared == ["ram_axis_acc_time", "rom_axis_acc_time"]
+        elif step.kind == "io":
+            assert {re.sub(r"_\d+_", "_<n>_", n) for n in declared} == set(documented)
+        else:
+            assert declared == list(documented), step.kind

@@ -83,7 +83,7 @@ STEP_KINDS = (
         key("slave_type", "int", None, "expected slave type (default: the plan's drive.slave_type)", lo=0, hi=255),
         key("name_pattern", "regex", ".*", "regular expression the GetSlaveInfo text must match (re.search)"),
         key("motor_pattern", "regex", None, "regular expression for the GetMotorInfo text (not checked if absent)"),
-    ), ("slave_type", "name_ok", "motor_ok")),
+    ), ("slave_type", "slave_name", "name_ok", "motor_name", "motor_ok")),
     Kind("parameters", "RAM and ROM parameters against a parameter-set file (the format of `jigctl param "
          "dump`): verify them, or write them, save to ROM and verify.", (
         key("file", "str", REQUIRED, "the parameter-set file, relative to the plan file"),
@@ -107,7 +107,8 @@ STEP_KINDS = (
             "Ex move frame", lo=1, hi=9999, sweep=True),
         key("decel_ms", "int", None, "deceleration time, ms (default: the drive's parameter 4)", lo=1, hi=9999,
             sweep=True),
-    ) + _MOVE_LIMITS, ("duration", "position_error", "following_error", "in_position", "alarm")),
+    ) + _MOVE_LIMITS, ("duration", "duration_ratio", "expected_duration", "position_error", "following_error",
+                       "in_position", "alarm", "samples", "sample_rate")),
     Kind("home", "Origin search per the drive's parameters 17-24: done within limits, origin flag set.", (
         key("duration_s", "range", (0.0, 30.0), "limits of the search's duration, seconds"),
         key("timeout_s", "num", 60.0, "give up (MoveStop) after this many seconds", lo=0.1, hi=3600),
@@ -123,7 +124,8 @@ STEP_KINDS = (
         key("relay", "ref", REQUIRED, "the relay wired to the drive's limit input (number or wiring name)"),
         key("speed", "int", 5000, "speed of the move, pps", lo=SPEED[0], hi=SPEED[1], sweep=True),
         key("after_ms", "int", 100, "assert the relay this long after the move started, ms", lo=0, hi=60000),
-        key("stop_time_s", "range", (0.0, 0.5), "limits of the time from the relay to standstill, seconds"),
+        key("stop_time_s", "range", (0.0, 0.5), "limits of the time from the relay to standstill, seconds (see "
+            "*Choosing the limits*)"),
         key("timeout_s", "num", 10.0, "give up after this many seconds", lo=0.1, hi=3600),
     ), ("stopped", "limit_flag", "stop_time")),
     Kind("stop-response", "Start a move, send MoveStop or EmergencyStop, measure the time to standstill and "
@@ -131,17 +133,21 @@ STEP_KINDS = (
         key("stop", "choice", "move-stop", "the stop sent", choices=("move-stop", "emergency-stop")),
         key("speed", "int", 20000, "speed of the move, pps", lo=SPEED[0], hi=SPEED[1], sweep=True),
         key("after_ms", "int", 200, "send the stop this long after the move started, ms", lo=0, hi=60000),
-        key("stop_time_s", "range", (0.0, 0.5), "limits of the time to standstill, seconds"),
-        key("overshoot_max", "int", 100000, "largest allowed travel after the stop, pulses", lo=0),
+        key("stop_time_s", "range", (0.0, 0.5), "limits of the time to standstill, seconds (see *Choosing the "
+            "limits*)"),
+        key("overshoot_max", "int", 100000, "largest allowed travel after the stop, pulses; a MoveStop's "
+            "deceleration ramp counts: v * td / 2, 1 000 at 20 000 pps and 100 ms (see *Choosing the limits*)", lo=0),
         key("recover", "bool", True, "after an emergency stop: servo off and on again, so later steps can move"),
-    ), ("stop_time", "overshoot", "stopped")),
+    ), ("stopped", "stop_time", "overshoot")),
     Kind("bus-health", "The jig's own counters over the run and the round trips seen by the station.", (
         key("crc_errors_max", "int", 0, "CRC errors on either bus", lo=0),
         key("stuffing_errors_max", "int", 0, "stuffing errors on either bus", lo=0),
         key("timeouts_max", "int", 0, "forwarded requests that got no reply", lo=0),
         key("overflows_max", "int", 0, "receive-buffer overflows", lo=0),
-        key("turnaround_max_us", "int", 5000, "the jig's longest handling time, us", lo=0),
-        key("roundtrip_max_ms", "num", 50.0, "the longest request/reply round trip through the jig, ms", lo=0),
+        key("turnaround_max_us", "int", 5000, "the jig's longest handling time (last byte in to its answer "
+            "starting), us (see *Choosing the limits*)", lo=0),
+        key("roundtrip_max_ms", "num", 50.0, "the longest request/reply round trip through the jig as the station "
+            "saw it, ms (see *Choosing the limits*)", lo=0),
     ), ("crc_errors", "stuffing_errors", "timeouts", "overflows", "turnaround_max", "roundtrip_max",
         "roundtrip_avg", "roundtrip_min")),
     Kind("prompt", "An operator instruction, confirmed on the console or in the Desk (`--yes` confirms "
