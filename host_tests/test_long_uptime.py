@@ -15,17 +15,20 @@ since the bench started) to ``jig.parser.FrameParser`` as ``now``, whose state i
   stamps its ticks, and no heap allocation near a wrap (a tick plus a delay
   computed as ``(t + d) & mask`` is a heap-allocated long int on a 32-bit port
   for the d µs before each wrap, once per forwarded request);
+* the real-time bench starts a few seconds before a tick wrap, as the virtual
+  bench does, and survives the instant it used to die at (started just before it).
 """
 
 import os
 import shutil
 import subprocess
+import time
 
 import pytest
 
 from jig import frame as F
-from motorjig.sim import SimBench
-from motorjig.sim.bench import VIRTUAL_START_US
+from motorjig.sim import Bench, SimBench
+from motorjig.sim.bench import REALTIME_START_ENV, VIRTUAL_START_US
 from test_capture_bench import body, records
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -189,3 +192,41 @@ def test_firmware_through_five_tick_wraps_in_micropython():
     fwd, rep, tmo, local, lost, recorded, taken, pending = map(int, lines[-2].split()[1:])
     assert fwd == rep == local == pairs + 30 and tmo == 0 and lost == 0
     assert recorded >= 3 * pairs and taken > 0 and pending < 2000
+
+
+# --- the real-time bench ------------------------------------------------------------------
+
+def test_realtime_bench_starts_a_few_seconds_before_a_tick_wrap():
+    with Bench(driver_ids=(2,), pty=False) as bench:
+        now = bench.sim.clock.now
+        assert WRAP - 10e6 < now < WRAP  # the first wrap comes within seconds
+        assert bench.sim.hal.ticks_us() == tick(now)
+
+
+def test_realtime_bench_lives_on_past_2_31_us(monkeypatch):
+    """Started 2 s before 2**31 µs (the environment variable the bench reads for such
+    checks): the instant where the bench used to stop. Requests every 0.2 s, through
+    that instant, all answered."""
+    from motorjig.master import Master
+
+    monkeypatch.setenv(REALTIME_START_ENV, str((1 << 31) - 2000000))
+    with Bench(driver_ids=(2,), pty=False) as bench:
+        assert (1 << 31) - 3e6 < bench.sim.clock.now < 1 << 31
+        answers = 0
+        with Master(bench.tcp_url, timeout=0.5) as m:
+            t_end = time.monotonic() + 4.0
+            while time.monotonic() < t_end:
+                assert m.get_slave_info(2) is not None and m.get_slave_info(1) is not None
+                answers += 1
+                time.sleep(0.2)
+        assert bench.error is None
+        assert bench.sim.clock.now > (1 << 31) + 1e6 and answers >= 10
+
+
+def test_a_bad_start_time_is_one_line_of_error(monkeypatch, capsys):
+    from motorjig.sim import __main__ as sim_main
+
+    monkeypatch.setenv(REALTIME_START_ENV, "soon")
+    assert sim_main.main(["--no-pty", "--no-demo", "--duration", "0.1"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: cannot start the bench: MOTORJIG_SIM_START_US='soon'") and "Traceback" not in err

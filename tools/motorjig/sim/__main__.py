@@ -187,7 +187,7 @@ def main(argv=None):
                   jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8, wiring=wiring, faults=faults)
     try:
         bench.start()
-    except OSError as exc:
+    except (OSError, ValueError) as exc:  # (ValueError: a bad $MOTORJIG_SIM_START_US)
         bench.stop()
         print("error: cannot start the bench: %s" % exc, file=sys.stderr)
         return 1

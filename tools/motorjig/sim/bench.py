@@ -55,6 +55,27 @@ from .link import Bus
 # Start the virtual clock 3 s before the 2**30 µs tick wrap, so every test also
 # crosses the wrap that MicroPython's ticks_us has every ~18 minutes.
 VIRTUAL_START_US = float((1 << 30) - 3000000)
+# The real-time bench (Bench: python -m motorjig.sim, jigctl gui --bench) starts there
+# too, so a wrap bug shows within seconds of starting it, not after 17.9 min (or, with
+# a clock from 0, after 35.8 min at 2**31 µs). This environment variable sets another
+# start (µs), to check a moment of a long run without waiting for it.
+REALTIME_START_ENV = "MOTORJIG_SIM_START_US"
+
+
+def realtime_start_us():
+    """Where the real-time bench's clock starts: ``$MOTORJIG_SIM_START_US`` if set,
+    else VIRTUAL_START_US. ValueError for a value that is not a time ≥ 0."""
+    text = os.environ.get(REALTIME_START_ENV, "").strip()
+    if not text:
+        return VIRTUAL_START_US
+    try:
+        value = float(int(text, 0))
+    except ValueError:
+        raise ValueError("%s=%r: expected whole µs, e.g. %d" % (REALTIME_START_ENV, text, (1 << 31) - 2000000)) from None
+    if value < 0:
+        raise ValueError("%s=%r: the clock starts at 0 µs or later" % (REALTIME_START_ENV, text))
+    return value
+
 
 # The jig's main loop on the bench: None as on a board without a native emitter (the
 # portable loop, on CPython), True for jig.fastpath's source run as Python (the host
@@ -185,7 +206,7 @@ class SimBench:
         every driver follows ``ver8``) lists the ids of the Ver8 drivers, all others
         are Ver6."""
         if realtime:
-            self.clock = PacedClock()
+            self.clock = PacedClock(realtime_start_us() if start_us is None else start_us)
         else:
             self.clock = VirtualClock(VIRTUAL_START_US if start_us is None else start_us)
         fresh = fs is None
