@@ -59,6 +59,7 @@ cat >"$gen/manifest.py" <<EOF
 package("jig", base_path="$ROOT/firmware")
 $capture_line
 module("bridge_probe.py", base_path="$ROOT/host_tests")
+module("trace_probe.py", base_path="$ROOT/host_tests")
 module("qemu_suite.py", base_path="$ROOT/tools/qemu")
 module("board_check.py", base_path="$ROOT/tools/qemu")
 module("memrx.py", base_path="$ROOT/tools/qemu")

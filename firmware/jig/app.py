@@ -54,6 +54,7 @@ from jig.handlers import Handlers
 from jig.rs485 import Rs485
 from jig.safety import SafetyStop
 from jig.scan import Scanner
+from jig.trace import Trace
 
 RX_CHUNK = const(256)
 HEARTBEAT_US = const(500000)
@@ -119,6 +120,8 @@ class App:
                              self.capture, self.down_parser)
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
+        self.trace = Trace(self)  # (after the parsers and the bridge: it reads both)
+        self._trace_on = self.trace.ts  # [0] (T_ON): the slow pass calls the sampler only while it runs
         self.up_rx = bytearray(RX_CHUNK)
         self.down_rx = bytearray(RX_CHUNK)
         self._pc_scratch = [0] * PARSER_COUNTERS  # one parser's counters, for counter_values
@@ -275,6 +278,9 @@ class App:
         bridge.poll(now)
         self.scanner.poll(now)
         self.safety.poll(now)
+        tracing = self._trace_on[0]
+        if tracing:
+            self.trace.poll(now)
         cap = self.capture
         stream = -1
         if cap.port is not None or cap.cs[0]:  # (CS_ON) commands to read, or records to move
@@ -287,6 +293,8 @@ class App:
         due = _earlier(due, now, ticks_diff(self.t_beat, now) + HEARTBEAT_US)
         due = _earlier(due, now, bridge.wait_us(now))
         due = _earlier(due, now, self.safety.wait_us(now))
+        if tracing:
+            due = _earlier(due, now, self.trace.wait_us(now))
         if stream == 0:
             due = _earlier(due, now, QUIET_US)  # more for the capture port
         if ticks_diff(due, now) <= 0:

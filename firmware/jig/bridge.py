@@ -20,8 +20,13 @@ frames from either side and the timeout.
 * A new PC frame while a PC reply is awaited aborts the wait (counted). While
   the jig's own request is out, local frames are answered and the wait goes on;
   a PC frame for the driver bus aborts it (PC traffic has priority).
-* The jig itself (bus scan, safety stop) sends through ``request``; their replies
-  go to that client, never to the PC.
+* The jig itself (bus scan, safety stop, the trace sampler) sends through
+  ``request``; their replies go to that client, never to the PC. A request sent
+  with ``hold`` (jig.trace) is not aborted by the PC: a PC frame for the driver bus
+  that comes meanwhile is held (never passed on from its header, which would collide
+  with the drive's answer) and sent whole once the request is done (``_release``).
+  A client waiting for the bridge to be free sets ``bs[B_WAKE]``: the end of a relay,
+  a broadcast or a stub then asks for the slow pass (``due[0]``).
 
 Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
 
@@ -42,7 +47,7 @@ Two forwarding modes (parameter ``forward_mode``, docs/bridge.md):
 
 from array import array
 
-from jig import frame
+from jig import frame, mem
 from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED, C_DOWN_IN, C_DOWN_OUT,
                           C_FORWARDS, C_INT_ABORTS, C_INT_REPLIES, C_INT_REQUESTS, C_INT_TIMEOUTS, C_LOCAL,
                           C_LOCAL_ERRORS, C_RELAY_CORRUPT, C_REPLIES, C_STALE, C_TIMEOUTS, C_UNAWAITED, C_UP_IN,
@@ -106,7 +111,8 @@ B_DEADLINE = const(7)  # tick at which the pending wait times out
 B_T_PC = const(8)  # tick of the last good frame from the PC
 B_PC_FRAMES = const(9)  # good PC frames since boot (the safety stop arms on the first)
 B_SEEN = const(10)  # bitmap of driver ids that answered
-B_SIZE = const(11)
+B_WAKE = const(11)  # 1: a client (jig.trace) waits for the bridge to be free: ask for the slow pass then
+B_SIZE = const(12)
 
 # TRANSITIONS[state][event] = (action flags, next state)
 TRANSITIONS = (
@@ -200,6 +206,7 @@ _V_OVERLONG = const(4)
 _V_RESYNC = const(6)
 _V_SHORT = const(3)
 _V_TIMEOUT = const(5)
+_PIECE = const(16)  # bytes of a paced reply written at a time (the USART's transmit FIFO)
 _SHORT_STUB = const(3 << 8)  # _V_SHORT << 8: a stub ended with a tail (const() takes no imported name)
 
 
@@ -252,6 +259,12 @@ class Bridge:
         self.body = bytearray(frame.MAX_BODY)
         self.reply = bytearray(frame.MAX_DATA)
         self.client = None  # None: the PC; else an object with on_reply/on_timeout/on_abort
+        # A client's request that *holds* PC frames (jig.trace): a PC frame for the driver
+        # bus waits in ``held`` until that request's reply is in or its wait is over.
+        self.holding = False
+        self.held = bytearray(frame.MAX_BODY)
+        self.held_n = 0
+        self.held_t = 0
         self.sync_next = INT_SYNC_FIRST  # Ver8 sync numbers of jig-originated requests
         self.hdr = bytearray(2 + 2 * 3)  # AA CC + the (stuffed) head of a frame cut through
         self.hdr[0] = frame.STUFF
@@ -318,6 +331,7 @@ class Bridge:
             self.v[C_INT_ABORTS] += 1
             client = self.client
             self.client = None
+            self.holding = False
             client.on_abort()
 
     # --- bytes from the PC -------------------------------------------------------
@@ -382,8 +396,12 @@ class Bridge:
                 self.down.finish()
                 if self.cs[_CS_ON]:
                     self._record(_CH_DRV_OUT | _SHORT_STUB, body, 1)
+                if bs[B_WAKE]:
+                    self.due[0] = now  # the driver bus is free again (jig.trace waits for it)
             return  # answered when complete
         if not bs[B_FWD]:
+            if self.holding and bs[B_STATE] == AWAIT_INT:
+                return  # held: it goes on whole when the jig's own request is done (on_pc_frame)
             # Not passed on from its header (the jig's own request was out, or the
             # frame began with a resync): it starts now with header and id, re-stuffed.
             hdr = self.hdr
@@ -420,6 +438,8 @@ class Bridge:
             return
         bs[B_FWD] = 0
         self.down.finish()
+        if bs[B_WAKE]:
+            self.due[0] = now  # (jig.trace waits for a free driver bus)
         if rec:
             self._record_passed(_T_PC_PASSED | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
         if not bs[B_ROUTED]:
@@ -453,6 +473,8 @@ class Bridge:
             # Cut through: the tail has gone out with the raw bytes.
             bs[B_FWD] = 0
             self.down.finish()
+            if bs[B_WAKE] and bs[B_STATE] != AWAIT_PC:
+                self.due[0] = t_in  # a broadcast has gone (jig.trace waits for a free driver bus)
             if rec:
                 self._record_passed(_T_PC_PASSED, body, p.st[S_N], t_in)
             if bs[B_STATE] == AWAIT_PC:
@@ -470,22 +492,54 @@ class Bridge:
             ev = E_PC_BROADCAST
         else:
             ev = E_PC_FORWARD
+            if self.holding and bs[B_STATE] == AWAIT_INT:
+                n = p.st[S_N]  # held until the jig's own request is done (_release)
+                mem.copy(self.held, 0, body, 0, n)
+                self.held_n = n
+                self.held_t = t_in
+                return
+        if ev == E_PC_BROADCAST and self.holding and bs[B_STATE] == AWAIT_INT:
+            n = p.st[S_N]
+            mem.copy(self.held, 0, body, 0, n)
+            self.held_n = n
+            self.held_t = t_in
+            return
         flags = self._event(ev)
         if flags & F_ABORT:
             self._abort()
         if flags & F_LOCAL:
             self._local(p, t_in)
         elif flags & (F_FORWARD | F_BROADCAST):
-            self._send(self.down, body, p.st[S_N], t_in)
-            v[C_DOWN_OUT] += 1
-            if flags & F_FORWARD:
-                v[C_FORWARDS] += 1
-                self._pend_pc(body, p.st[S_N])
-                cs = self.cs
-                if cs[_CS_HEAD] != cs[_CS_TAIL] and (t_in - cs[_CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
-                    self.due[0] = t_in  # records wait, the drive thinks: the slow pass streams now
-            else:
-                v[C_BROADCASTS] += 1
+            self._route_whole(flags, body, p.st[S_N], t_in)
+
+    def _route_whole(self, flags, body, n, t_in):
+        """Send a whole PC frame body[0:n] on (forward or broadcast) and await its reply."""
+        v = self.v
+        self._send(self.down, body, n, t_in)
+        v[C_DOWN_OUT] += 1
+        if flags & F_FORWARD:
+            v[C_FORWARDS] += 1
+            self._pend_pc(body, n)
+            cs = self.cs
+            if cs[_CS_HEAD] != cs[_CS_TAIL] and (t_in - cs[_CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
+                self.due[0] = t_in  # records wait, the drive thinks: the slow pass streams now
+        else:
+            v[C_BROADCASTS] += 1
+            if self.bs[B_WAKE]:
+                self.due[0] = t_in  # (jig.trace waits for a free driver bus)
+
+    def _release(self):
+        """The jig's own request that held PC frames is done: a PC frame held meanwhile
+        goes on now, whole (as store-and-forward sends it)."""
+        self.holding = False
+        n = self.held_n
+        if n:
+            self.held_n = 0
+            body = self.held
+            flags = self._event(E_PC_BROADCAST if body[0] == _BROADCAST_ID else E_PC_FORWARD)
+            if flags & F_ABORT:
+                self._abort()
+            self._route_whole(flags, body, n, self.held_t)
 
     def _send(self, rs, body, blen, t_in):
         """Stuff body[0:blen] onto rs (re-stuffing a parsed body gives its received
@@ -564,10 +618,39 @@ class Bridge:
         self._send(self.up, self.body, blen, t_in)
         v[C_UP_OUT] += 1
 
+    def local_reply_paced(self, slave, ftype, sync, data, n, t_in, body, wire, client):
+        """``local_reply`` for a long reply, built in the caller's ``body`` and ``wire``
+        buffers and written in pieces of 16 bytes (the USART's FIFO); between the
+        pieces ``client.between()`` may send a request of its own on the driver bus
+        (jig.trace: a sample slot due), while the piece before it leaves."""
+        blen = frame.build_body(body, slave, ftype, data, 0, n, sync)
+        m = frame.stuff_into(wire, body, blen)
+        rs = self.up
+        t_tx = self._ticks()
+        k = _PIECE if m > _PIECE else m
+        rs.begin(wire, 0, k)
+        client.between()
+        while k < m:
+            rs.drain()
+            j = m - k
+            if j > _PIECE:
+                j = _PIECE
+            rs.part(wire, k, j)
+            k += j
+            client.between()
+        rs.finish()
+        self._turnaround(ticks_diff(t_tx, t_in))
+        if self.cs[_CS_ON]:
+            self.cs[_CS_START + _CH_PC_OUT] = t_tx
+            self._record(_CH_PC_OUT, body, blen)
+        self.v[C_UP_OUT] += 1
+
     # --- jig-originated requests ---------------------------------------------
-    def request(self, client, slave, ftype, data, n, timeout_ms, framing=-1):
+    def request(self, client, slave, ftype, data, n, timeout_ms, framing=-1, hold=False):
         """Send a request of our own downstream; False if the bridge is busy.
-        ``framing``: -1 the jig's protocol, 0 Ver6, 1 Ver8 (a mixed bus)."""
+        ``framing``: -1 the jig's protocol, 0 Ver6, 1 Ver8 (a mixed bus). ``hold``: a
+        PC frame for the driver bus that comes meanwhile waits until this request is
+        done (its reply in, or its wait over) instead of aborting it (jig.trace)."""
         if self.bs[B_FWD]:  # a broadcast is being cut through (the state is IDLE)
             return False
         flags = self._event(E_INTERNAL)
@@ -587,6 +670,7 @@ class Bridge:
         v[C_INT_REQUESTS] += 1
         v[C_DOWN_OUT] += 1
         self._pend(client, slave, self.body[1], timeout_ms)
+        self.holding = hold
         return True
 
     # --- bytes from the drivers ------------------------------------------------
@@ -631,6 +715,8 @@ class Bridge:
             if checked:
                 self.v[C_RELAY_CORRUPT] += 1
                 self._event(E_REPLY)  # the answer came, broken: the PC's CRC check rejects it
+                if bs[B_WAKE]:
+                    self.due[0] = now  # (jig.trace waits for a free driver bus)
             # (else it broke off before its first two bytes: not the answer, still awaited)
         elif rec:
             self._record(_CH_DRV_IN | drop_verdict(st) << 8, body, st[S_DROP_N], drop_tick(st, now))
@@ -737,6 +823,8 @@ class Bridge:
                 bs[B_SEEN] |= 1 << body[0]
             v[C_REPLIES] += 1
             v[C_UP_OUT] += 1
+            if bs[B_WAKE]:
+                self.due[0] = t_in  # (jig.trace waits for a free driver bus)
             return
         if rec:
             self._record(_CH_DRV_IN, body, p.st[S_N], t_in)
@@ -750,12 +838,16 @@ class Bridge:
             self._send(self.up, body, p.st[S_N], t_in)
             v[C_REPLIES] += 1
             v[C_UP_OUT] += 1
+            if bs[B_WAKE]:
+                self.due[0] = t_in  # (jig.trace waits for a free driver bus)
         elif flags & F_DELIVER:
             client = self.client
             self.client = None
             v[C_INT_REPLIES] += 1
             self.due[0] = t_in  # let the client send its next request at once
             client.on_reply(p)
+            if self.holding:
+                self._release()
         elif flags & F_STALE:
             v[C_STALE] += 1
 
@@ -774,6 +866,8 @@ class Bridge:
                 self.client = None
                 self.v[C_INT_TIMEOUTS] += 1
                 client.on_timeout()
+                if self.holding:
+                    self._release()
 
     def wait_us(self, now):
         """µs until the pending wait times out (-1: nothing pending, or a frame is

@@ -1,6 +1,6 @@
 """Wire layouts of the jig's own diagnostic frames and of its GetSlaveInfo reply.
 
-Frame types 0xF0-0xF4 are not used by the Plus-R protocol. Request and reply
+Frame types 0xF0-0xF8 are not used by the Plus-R protocol. Request and reply
 layouts (reply data always starts with the status byte)::
 
     0xF0 ReadCounters      req: -        reply: St, u8 n, n x u32 in WIRE_NAMES order
@@ -11,6 +11,16 @@ layouts (reply data always starts with the status byte)::
     0xF4 ReadCrashLog      req: -        reply: St, ASCII text (at most CRASH_TEXT_MAX bytes,
                                                 printable only), NUL; empty text when there is
                                                 no crash log or the HAL has no crash_summary()
+    0xF5 StartTrace        req: u8 slave, u32 period µs, u8 framing (0 detect, 1 Ver6, 2 Ver8)
+                                         reply: St, u16 ring size (samples), u32 jig tick now
+    0xF6 StopTrace         req: -        reply: St, the trace status (below); samples stay readable
+    0xF7 ReadTrace         req: u16 from index, u8 max n (0: 12)
+                                         reply: St, u8 state, u16 next index, u8 n, n x sample
+                                                (u32 tick, i32 command, i32 actual, i32 velocity,
+                                                u32 axis flags)
+    0xF8 GetTraceStatus    req: -        reply: St, u8 state (0 off, 1 running), u8 slave, u32 period µs,
+                                                u32 taken, u32 skipped, u32 lost (ring full),
+                                                u32 failed, u16 oldest index held, u16 next index
 
 The PC library decodes with ``decode_counters`` / ``decode_scan`` / ``decode_crash_log`` below, so the
 layout exists once. ``SLAVE_TYPE`` is what the jig reports in GetSlaveInfo: 200
@@ -26,6 +36,15 @@ RESET_COUNTERS = const(0xF1)
 START_BUS_SCAN = const(0xF2)
 GET_BUS_SCAN_RESULT = const(0xF3)
 READ_CRASH_LOG = const(0xF4)
+START_TRACE = const(0xF5)
+STOP_TRACE = const(0xF6)
+READ_TRACE = const(0xF7)
+GET_TRACE_STATUS = const(0xF8)
+
+TRACE_SAMPLE = const(20)  # bytes: u32 tick, i32 command, i32 actual, i32 velocity, u32 flags
+TRACE_CHUNK = const(12)  # samples per ReadTrace reply at most
+TRACE_STATUS_REPLY_LEN = const(27)  # incl. status
+TRACE_STATE_NAMES = ("off", "running")
 
 SLAVE_TYPE = const(200)
 NAME = b"MotorJig bridge"
@@ -82,3 +101,36 @@ def decode_crash_log(data):
     if 0 in text or any(c < 0x20 or c > 0x7E for c in text):
         raise ValueError("ReadCrashLog text is not printable ASCII")
     return text.decode("ascii")
+
+
+def decode_trace_start(data):
+    """Reply data of StartTrace -> (ring size in samples, jig tick at the start) (host side)."""
+    if len(data) != 7 or data[0] != 0:
+        raise ValueError("bad StartTrace reply")
+    return frame.get_u16(data, 1), frame.get_u32(data, 3)
+
+
+def decode_trace_status(data):
+    """Reply data of StopTrace / GetTraceStatus -> dict (host side)."""
+    if len(data) != TRACE_STATUS_REPLY_LEN or data[0] != 0 or data[1] >= len(TRACE_STATE_NAMES):
+        raise ValueError("bad trace status reply")
+    g = frame.get_u32
+    return {"state": TRACE_STATE_NAMES[data[1]], "slave": data[2], "period_us": g(data, 3), "taken": g(data, 7),
+            "skipped": g(data, 11), "lost": g(data, 15), "failed": g(data, 19), "first": frame.get_u16(data, 23),
+            "next": frame.get_u16(data, 25)}
+
+
+def decode_trace_chunk(data):
+    """Reply data of ReadTrace -> (state name, next index, [(tick, command, actual,
+    velocity, flags), ...]) with raw 30-bit ticks (host side)."""
+    if len(data) < 5 or data[0] != 0 or data[1] >= len(TRACE_STATE_NAMES):
+        raise ValueError("bad ReadTrace reply")
+    n = data[4]
+    if n > TRACE_CHUNK or len(data) != 5 + TRACE_SAMPLE * n:
+        raise ValueError("bad ReadTrace reply length")
+    out = []
+    for i in range(n):
+        k = 5 + TRACE_SAMPLE * i
+        out.append((frame.get_u32(data, k), frame.get_i32(data, k + 4), frame.get_i32(data, k + 8),
+                    frame.get_i32(data, k + 12), frame.get_u32(data, k + 16)))
+    return TRACE_STATE_NAMES[data[1]], frame.get_u16(data, 2), out

@@ -72,6 +72,7 @@ _B_DEADLINE = const(7)
 _B_T_PC = const(8)
 _B_PC_FRAMES = const(9)
 _B_SEEN = const(10)
+_B_WAKE = const(11)
 _SEEN_IDS = const(30)
 # jig.counters
 _C_UP_IN = const(0)
@@ -265,6 +266,8 @@ def pump(ctx, passes: int) -> int:
                         bs[_B_SEEN] |= 1 << b0
                     v[_C_REPLIES] += 1
                     v[_C_UP_OUT] += 1
+                    if bs[_B_WAKE] != 0:
+                        due[0] = now  # the driver bus is free (jig.trace waits for it)
                 else:
                     down_event(down_parser, ev, now)
             # Bridge._early: the PC bus taken while a reply's header may be arriving
@@ -325,6 +328,8 @@ def pump(ctx, passes: int) -> int:
                         down_de(0)
                         if cs[_CS_ON] != 0:
                             cap_put(cs_arr, cap_ring, _CH_DRV_OUT | _STUB, up_body, 1, ticks())
+                        if bs[_B_WAKE] != 0:
+                            due[0] = now  # (jig.trace waits for a free driver bus)
                         continue
                     bs[_B_ROUTED] = 1
                     v[_C_DOWN_OUT] += 1
@@ -350,6 +355,8 @@ def pump(ctx, passes: int) -> int:
                     if post != 0:
                         sleep(post)
                     down_de(0)
+                    if bs[_B_WAKE] != 0 and state != _AWAIT_PC:
+                        due[0] = now  # a broadcast has gone (jig.trace waits for a free driver bus)
                     if cs[_CS_ON] != 0:
                         cs[_CS_T_IN] = now
                         cap_put(cs_arr, cap_ring, _T_PC_PASSED, up_body, ust[_S_N], ticks())

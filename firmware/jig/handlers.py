@@ -120,6 +120,10 @@ class Handlers:
             diag.START_BUS_SCAN: (self.start_scan, 0),
             diag.GET_BUS_SCAN_RESULT: (self.scan_result, 0),
             diag.READ_CRASH_LOG: (self.crash_log, 0),
+            diag.START_TRACE: (self.trace_start, 6),
+            diag.STOP_TRACE: (self.trace_stop, 0),
+            diag.READ_TRACE: (self.trace_read, 3),
+            diag.GET_TRACE_STATUS: (self.trace_status, 0),
         }
         self.table = [None] * 256
         for ftype, entry in by_type.items():
@@ -258,6 +262,19 @@ class Handlers:
 
     def scan_result(self, p, d, o, out):
         return self.app.scanner.result_into(out)
+
+    # --- the jig's own sampler (jig.trace) -------------------------------------------
+    def trace_start(self, p, d, o, out):
+        return self.app.trace.start(p, d, o, out)
+
+    def trace_stop(self, p, d, o, out):
+        return self.app.trace.stop(p, d, o, out)
+
+    def trace_read(self, p, d, o, out):
+        return self.app.trace.read(p, d, o, out)  # sends its reply itself: DEFERRED
+
+    def trace_status(self, p, d, o, out):
+        return self.app.trace.status(p, d, o, out)
 
     def crash_log(self, p, d, o, out):
         # Allocates (the HAL's string, its encoding): fine for a frame a person sends

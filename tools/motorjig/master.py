@@ -75,6 +75,9 @@ IDEMPOTENT = frozenset((
     F.POS_TABLE_WRITE_ITEM, F.POS_TABLE_READ_ROM, F.POS_TABLE_READ_ONE_ITEM,
     F.POS_TABLE_WRITE_ONE_ITEM, F.GET_PUSH_STATUS,
     D.READ_COUNTERS, D.RESET_COUNTERS, D.START_BUS_SCAN, D.GET_BUS_SCAN_RESULT, D.READ_CRASH_LOG,
+    # the jig's sampler: a repeated StartTrace restarts it, a repeated ReadTrace (same
+    # from-index) returns the same samples
+    D.START_TRACE, D.STOP_TRACE, D.READ_TRACE, D.GET_TRACE_STATUS,
 ))
 
 VAR = -1  # variable-length reply (info strings)
@@ -97,6 +100,8 @@ REPLY_LEN = {
     # the jig's diagnostic frames (jig.diag)
     D.READ_COUNTERS: VAR, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0,
     D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1, D.READ_CRASH_LOG: VAR,
+    D.START_TRACE: 6, D.STOP_TRACE: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRACE: VAR,
+    D.GET_TRACE_STATUS: D.TRACE_STATUS_REPLY_LEN - 1,
 }
 #: data bytes of a request (Ver6); the monitor tells requests from replies with it
 REQUEST_LEN = {
@@ -117,7 +122,7 @@ REQUEST_LEN = {
     F.MOVE_PUSH: (26, 28), F.GET_PUSH_STATUS: 0, F.MOVE_ABS_POS_EX: 40, F.MOVE_INC_POS_EX: 40,
     F.MOVE_VELOCITY_EX: 37,
     D.READ_COUNTERS: 0, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0, D.GET_BUS_SCAN_RESULT: 0,
-    D.READ_CRASH_LOG: 0,
+    D.READ_CRASH_LOG: 0, D.START_TRACE: 6, D.STOP_TRACE: 0, D.READ_TRACE: 3, D.GET_TRACE_STATUS: 0,
 }
 
 #: Ver8 libraries widen the inputs to 64 bits; drives that keep 32 are accepted too
@@ -145,6 +150,10 @@ MotionStatus.__doc__ = """GetMotionStatus: Ver6 ends with the running PT number 
 the axis flags instead (pt_number None)."""
 IOAxisStatus = namedtuple("IOAxisStatus", "inputs outputs axis")
 BusScan = namedtuple("BusScan", "state types")
+TraceSample = namedtuple("TraceSample", "t_us command_pos actual_pos actual_vel axis")
+TraceSample.__doc__ = """One sample of the jig's own trace (``Master.trace_read``): t_us is the jig's
+clock in µs since StartTrace (unfolded from its 30-bit ticks), the time the jig began sending
+that GetAllStatus request; axis is the AxisStatus word."""
 AllStatus = namedtuple("AllStatus", "inputs outputs axis command_pos actual_pos pos_error actual_vel "
                                     "pt_number")
 
@@ -280,6 +289,7 @@ class Master:
         self._variants = {}  # slave id -> 6 or 8, as detected
         self._rx = b""
         self._rx_pos = 0
+        self._trace = None  # the running trace_start's jig, next index and clock unfolding
         if open:
             self.open()
 
@@ -878,6 +888,64 @@ class Master:
         """The jig's crash summary (0xF4) as text; '' from a jig whose HAL keeps no crash log."""
         return self._jig_reply(jig, D.READ_CRASH_LOG, D.decode_crash_log, "ReadCrashLog")
 
+    # --- the jig's own sampler (0xF5..0xF8; layouts in jig.diag) ------------------------------
+    def trace_start(self, slave, period_us, jig=1, ver8=None):
+        """Make the jig poll slave with GetAllStatus every period_us µs on its own clock
+        and keep the samples (read them with ``trace_read``). The slave is contacted first
+        if this Master has not (the jig samples only drives it has seen answer), and
+        polled in its variant (``ver8`` forces one). Returns the jig's ring size in samples."""
+        _check_slave(slave)
+        v8 = self.variant(slave) == 8 if ver8 is None else bool(ver8)
+        framing = 2 if v8 else 1
+        fr = self.request(jig, D.START_TRACE, pack(("u8", slave), ("u32", period_us), ("u8", framing)))
+        try:
+            size, t0 = D.decode_trace_start(fr.data)
+        except ValueError as exc:
+            raise BadReplyError("slave %d sent a bad StartTrace reply (%s)" % (jig, exc), jig, D.START_TRACE) from None
+        self._trace = {"jig": jig, "next": 0, "raw": t0, "t": 0}
+        return size
+
+    def trace_read(self, jig=None, max_chunks=None):
+        """The samples the jig has taken since the last read, as TraceSample tuples (t_us
+        since trace_start, wrap-unfolded). Reads chunks until one comes back short
+        (``max_chunks`` limits the reads)."""
+        tr = self._trace
+        if tr is None:
+            raise JigError("trace_read before trace_start")
+        if jig is None:
+            jig = tr["jig"]
+        out = []
+        reads = 0
+        while max_chunks is None or reads < max_chunks:
+            fr = self.request(jig, D.READ_TRACE, pack(("u16", tr["next"]), ("u8", 0)))
+            reads += 1
+            try:
+                _state, nxt, samples = D.decode_trace_chunk(fr.data)
+            except ValueError as exc:
+                raise BadReplyError("slave %d sent a bad ReadTrace reply (%s)" % (jig, exc), jig, D.READ_TRACE) from None
+            for raw, cmd, act, vel, flags in samples:
+                d = (raw - tr["raw"]) & 0x3FFFFFFF  # 30-bit ticks; samples are < 2**29 µs apart
+                if d >= 0x20000000:
+                    d -= 0x40000000
+                tr["t"] += d
+                tr["raw"] = raw
+                out.append(TraceSample(tr["t"], cmd, act, vel, AxisStatus(flags)))
+            tr["next"] = nxt
+            if len(samples) < D.TRACE_CHUNK:
+                break
+        return out
+
+    def trace_status(self, jig=1):
+        """The jig's sampler: {state, slave, period_us, taken, skipped, lost, failed, first, next}."""
+        return self._jig_reply(jig, D.GET_TRACE_STATUS, D.decode_trace_status, "GetTraceStatus")
+
+    def trace_stop(self, jig=None):
+        """Stop the jig's sampler; returns its final status (``trace_status``). The samples
+        not read yet stay readable with ``trace_read``."""
+        if jig is None:
+            jig = self._trace["jig"] if self._trace else 1
+        return self._jig_reply(jig, D.STOP_TRACE, D.decode_trace_status, "StopTrace")
+
     def jig_bus_scan(self, jig=1, timeout=5.0, poll=0.05):
         """Start the jig's bus scan and wait for its result."""
         self.start_bus_scan(jig)
@@ -917,5 +985,5 @@ def _unstuffed_body(slave, ftype, data, sync):
 
 
 __all__ = ["Master", "Frame", "SlaveInfo", "MotorInfo", "Alarm", "IOAssign", "MotionStatus",
-           "IOAxisStatus", "AllStatus", "BusScan", "AxisStatus", "MotionTimeoutError", "StatusError", "jsonable",
+           "IOAxisStatus", "AllStatus", "BusScan", "TraceSample", "AxisStatus", "MotionTimeoutError", "StatusError", "jsonable",
            "pack", "BAUD_RATES", "DEFAULT_TIMEOUT"]

@@ -18,7 +18,9 @@ which runs ``import qemu_suite; qemu_suite.main()`` in qemu-system-arm with
    on a HAL whose ports are memory buffers (``memport``, a C module of the qemu
    build: its calls cost a few hundred instructions, always the same, and are
    taken out), plus heap bytes allocated in steady state (expected 0); then the
-   same with the HAL calls priced at what board_check measured for the board's.
+   same with the HAL calls priced at what board_check measured for the board's;
+5. one sample of the jig's own trace (jig.trace): request built and sent, reply
+   parsed and stored, heap locked, at the board's prices (``bench_trace``).
 
 Lines starting with ``RESULT`` are the summary the shell script prints; a line
 starting with ``FAIL`` makes it exit non-zero. The module also runs under CPython
@@ -742,6 +744,125 @@ def bench_stream(rig, n, slow_off):
            % (whole, slow_off, instr(empty) // streams, moved // streams, instr(total) // streams))
 
 
+def _snap(dst):
+    for k in range(len(HAL_CALLS)):
+        dst[k] = HAL_CALLS[k]
+
+
+def _hal_diff(before, after, acc):
+    for k in range(len(HAL_CALLS)):
+        acc[k] += after[k] - before[k]
+
+
+def bench_trace(n=100, prices=None):
+    """One sample of the jig's own trace (jig.trace, StartTrace 0xF5) on BridgeRig's
+    cut-through App: the slot's request built and sent (``Trace.poll``, in the slow
+    pass) and the drive's GetAllStatus reply read, parsed and stored (one main-loop
+    pass, ``App.run(1)``, with the slow pass the reply asks for taken out), heap locked;
+    the stand-in HAL's own instructions taken out, then the HAL calls at the board's
+    prices. Also the slow pass with a trace running and nothing due."""
+    from jig import params
+    from jig.trace import T_NEXT, T_TAKEN
+
+    import trace_probe
+
+    costs = hal_call_costs()
+    gc.collect()
+    rig = BridgeRig(params.CUT_THROUGH)
+    app = rig.app
+    slow_off = slow_pass_cost(rig, 50)
+    rig.forward(1)  # drive 2 answers through the jig once: it may be traced
+    data = bytearray(6)
+    data[0] = 2
+    frame.put_u32(data, 1, 1000000)  # (a slot only when the probe makes one due)
+    data[5] = 1  # Ver6
+    start = frame.encode(1, 0xF5, bytes(data))
+    up = rig.hal.up
+    down = rig.hal.down
+    up.load(start, len(start), 0, 0)
+    rig.poll(1)
+    tr = app.trace
+    ts = tr.ts
+    if ts[0] != 1:
+        fail("trace: StartTrace did not start the sampler")
+        return
+    reply = trace_probe.all_status_reply(2)
+    nr = len(reply)
+    run = rig.poll
+    setup = rig.setup_cost()
+    ticks = ticks_us
+
+    down.load(reply, nr, 0, 0)  # the answer to the request StartTrace sent at once
+    run(1)
+    for _ in range(5):
+        ts[T_NEXT] = ticks()
+        tr.poll(ticks())
+        down.load(reply, nr, 0, 0)
+        run(1)
+    slow_on = slow_pass_cost(rig, 50)  # a trace running, the next slot not due
+    b0 = array("i", [0] * len(HAL_CALLS))
+    b1 = array("i", [0] * len(HAL_CALLS))
+    acc_a = array("i", [0] * len(HAL_CALLS))
+    acc_b = array("i", [0] * len(HAL_CALLS))
+    taken0 = ts[T_TAKEN]
+    dt_a = 0
+    dt_b = 0
+    gc.collect()
+    m0 = mem_total()
+    heap_lock(True)
+    try:
+        for _ in range(n):
+            ts[T_NEXT] = ticks()
+            _snap(b0)
+            t0 = ticks()
+            tr.poll(t0)
+            t1 = ticks()
+            _snap(b1)
+            _hal_diff(b0, b1, acc_a)
+            dt_a += ticks_diff(t1, t0)
+            down.load(reply, nr, 0, 0)
+            _snap(b0)
+            t0 = ticks()
+            run(1)
+            t1 = ticks()
+            _snap(b1)
+            _hal_diff(b0, b1, acc_b)
+            dt_b += ticks_diff(t1, t0)
+    except MemoryError:
+        heap_lock(False)
+        fail("trace: a sample allocated with the heap locked")
+        return
+    heap_lock(False)
+    heap = (mem_total() - m0) // n
+    if ts[T_TAKEN] - taken0 != n:
+        fail("trace: %d samples stored of %d" % (ts[T_TAKEN] - taken0, n))
+    hal_a = 0
+    hal_b = 0
+    calls_a = 0
+    calls_b = 0
+    for k in range(len(costs)):
+        hal_a += acc_a[k] * costs[k]
+        hal_b += acc_b[k] * costs[k]
+        if k != H_LOAD:
+            calls_a += acc_a[k]
+            calls_b += acc_b[k]
+    own_a = (instr(dt_a) - hal_a) // n
+    own_b = (instr(dt_b) - hal_b) // n - setup - slow_on
+    if heap and compat.IS_MICROPYTHON:
+        fail("trace: %d heap bytes per sample" % heap)
+    result("trace sample (jig.trace, GetAllStatus %d+%d bytes): request built and sent (Trace.poll) %d instructions + "
+           "%d HAL calls; reply read, parsed and stored (a main-loop pass, its slow pass taken out) %d + %d HAL calls; "
+           "heap allocated per sample %d bytes (heap locked); slow pass, nothing due: %d with a trace running, "
+           "%d without" % (len(frame.encode(2, frame.GET_ALL_STATUS)), nr, own_a, calls_a // n, own_b, calls_b // n,
+                           heap, slow_on, slow_off))
+    if prices is not None:
+        board_a = own_a + int(board_hal(acc_a, costs, prices)) // n
+        board_b = own_b + int(board_hal(acc_b, costs, prices)) // n
+        result("trace sample with its HAL calls at the board's prices (board_check): request %d + reply %d = %d "
+               "instructions a sample; with the two slow passes it brings (the slot's, and the one after the "
+               "reply) %d" % (board_a, board_b, board_a + board_b, board_a + board_b + 2 * slow_on))
+
+
 def probe_cross_check(n=200):
     """The same figures through host_tests/bridge_probe.Rig, the harness the other
     benchmarks use: a second opinion on the numbers above."""
@@ -790,11 +911,13 @@ def main(quick=False):
     if quick:
         bench_parser(2)
         bench_bridge(5)
+        bench_trace(5)
     else:
         bench_crc()
         bench_parser()
         prices = check_board()
         bench_bridge(prices=prices)
+        bench_trace(prices=prices)
         probe_cross_check()
         result("bridge_probe heap with capture on: forward %+d bytes over 200 transactions (records streamed)"
                % capture_alloc())

@@ -1,0 +1,105 @@
+"""The jig's sampler (jig.trace) on bridge_probe's in-memory rig, one sample at a time.
+
+Runs under CPython, on the WebAssembly MicroPython VM (host_tests/test_trace.py:
+heap bytes per sample with the collector off) and frozen into the qemu build
+(tools/qemu/qemu_suite.py). ``TraceRig.sample_once`` is one slot: the clock moves
+to the slot, a pass sends the GetAllStatus request, the drive's reply comes in, a
+pass stores the sample.
+"""
+
+import gc
+
+from jig import frame
+from jig.trace import T_NEXT
+
+import bridge_probe
+
+MASK = 0x3FFFFFFF
+SLAVE = 2
+PERIOD_US = 1000
+
+
+def all_status_reply(slave, sync=-1, inputs64=False):
+    """A GetAllStatus reply: inputs, outputs, flags, command 1000, actual 999, error 1,
+    velocity 5000, PT 0 (Ver8 with 64-bit inputs: 36 data bytes)."""
+    d = bytearray(1 + (36 if inputs64 else 32))
+    w = 8 if inputs64 else 4
+    frame.put_u32(d, 1, 0x11)
+    frame.put_u32(d, 1 + w, 0x22)
+    frame.put_u32(d, 1 + w + 4, 0x08000000)  # moving
+    frame.put_u32(d, 1 + w + 8, 1000)
+    frame.put_u32(d, 1 + w + 12, 999)
+    frame.put_u32(d, 1 + w + 16, 1)
+    frame.put_u32(d, 1 + w + 20, 5000)
+    return bytearray(frame.encode(slave, frame.GET_ALL_STATUS, bytes(d), sync))
+
+
+class TraceRig(bridge_probe.Rig):
+    def __init__(self, period_us=PERIOD_US):
+        bridge_probe.Rig.__init__(self)
+        # drive 2 answers once through the bridge: the jig has seen it
+        self.req = bytearray(frame.encode(SLAVE, frame.GET_AXIS_STATUS))
+        self.reply = bytearray(frame.encode(SLAVE, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08"))
+        self.forward_once()
+        self.status = all_status_reply(SLAVE)
+        data = bytearray(6)
+        data[0] = SLAVE
+        frame.put_u32(data, 1, period_us)
+        data[5] = 1  # Ver6
+        self.local_once(bytearray(frame.encode(1, 0xF5, bytes(data))))
+        self.read_req = bytearray(frame.encode(1, 0xF7, b"\x00\x00\x00"))
+        self.trace = self.app.trace
+
+    def sample_once(self):
+        """One slot: the request goes out, the reply comes in and is stored."""
+        hal = self.hal
+        hal.t = self.trace.ts[T_NEXT]
+        self.app.poll()  # the slow pass is due: the request goes out
+        self._in(hal.down, self.status)
+        self.app.poll()  # the reply: stored
+
+    def read_once(self):
+        """ReadTrace from index 0: the first 12 samples again (a read releases only the
+        samples before the index it names, so the ring keeps them)."""
+        self.local_once(self.read_req)
+
+
+def sample_alloc(n=200):
+    """Heap bytes allocated over n samples after a warm-up (gc.mem_alloc: MicroPython),
+    and whether every sample was stored."""
+    r = TraceRig()
+    for _ in range(20):
+        r.sample_once()
+    gc.collect()
+    has_mem = hasattr(gc, "mem_alloc")
+    if has_mem:
+        gc.disable()
+        a0 = gc.mem_alloc()
+    for _ in range(n):
+        r.sample_once()
+    used = gc.mem_alloc() - a0 if has_mem else -1
+    if has_mem:
+        gc.enable()
+    return used, r.trace.ts[6] == n + 20  # T_TAKEN
+
+
+def read_alloc(n=100):
+    """Heap bytes allocated over n ReadTrace requests answered (12 samples each, the
+    reply written in pieces), and whether every reply went out."""
+    r = TraceRig()
+    for _ in range(30):
+        r.sample_once()
+    for _ in range(10):
+        r.read_once()
+    w0 = r.hal.up.writes
+    gc.collect()
+    has_mem = hasattr(gc, "mem_alloc")
+    if has_mem:
+        gc.disable()
+        a0 = gc.mem_alloc()
+    for _ in range(n):
+        r.read_once()
+    used = gc.mem_alloc() - a0 if has_mem else -1
+    if has_mem:
+        gc.enable()
+    return used, r.hal.up.writes - w0 == n
