@@ -16,7 +16,9 @@ since the bench started) to ``jig.parser.FrameParser`` as ``now``, whose state i
   computed as ``(t + d) & mask`` is a heap-allocated long int on a 32-bit port
   for the d µs before each wrap, once per forwarded request);
 * the real-time bench starts a few seconds before a tick wrap, as the virtual
-  bench does, and survives the instant it used to die at (started just before it).
+  bench does, and survives the instant it used to die at (started just before it);
+* the board's crash log gives the bridge's uptime right after weeks (it took
+  ``ticks_diff(ticks_ms(), t0)``, which spans +-2**29 ms: 6.2 days).
 """
 
 import os
@@ -29,6 +31,7 @@ import pytest
 from jig import frame as F
 from motorjig.sim import Bench, SimBench
 from motorjig.sim.bench import REALTIME_START_ENV, VIRTUAL_START_US
+from test_board import FakePin, fakes, load_main  # noqa: F401 (fakes: a fixture)
 from test_capture_bench import body, records
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -230,3 +233,35 @@ def test_a_bad_start_time_is_one_line_of_error(monkeypatch, capsys):
     assert sim_main.main(["--no-pty", "--no-demo", "--duration", "0.1"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: cannot start the bench: MOTORJIG_SIM_START_US='soon'") and "Traceback" not in err
+
+
+# --- the board's uptime ----------------------------------------------------------------------
+
+def test_the_crash_log_gives_weeks_of_bridge_uptime(fakes, monkeypatch, tmp_path):
+    """main.py on the board HAL (fake hardware), ticks_ms starting 5 s before its wrap:
+    20 days of bridging (the slow pass feeding the watchdog), then a crash."""
+    import jig.compat
+    import jig.crashlog
+    from jig.app import App
+
+    clock = [MASK - 5000]
+    monkeypatch.setattr(fakes.board, "ticks_ms", lambda: clock[0])
+    monkeypatch.setattr(jig.compat, "ticks_ms", lambda: clock[0])  # what main.py imports
+    FakePin.levels = {"BTN_SAFE": 0}
+    mod = load_main(fakes, monkeypatch, tmp_path)
+    FakePin.levels = {"BTN_SAFE": 1}
+    days = 20
+    real_run = App.run
+
+    def run(self, passes=-1):
+        real_run(self, 1)
+        for _ in range(days * 24):
+            clock[0] = (clock[0] + 3600000) & MASK
+            self.hal.wdt_feed()  # (the slow pass's: the board's housekeeping runs)
+        clock[0] = (clock[0] + 1234) & MASK
+        raise RuntimeError("bridge fell over")
+
+    monkeypatch.setattr(App, "run", run)
+    assert mod.main() == "crashed"
+    log = jig.crashlog.read_crash_log()
+    assert "RuntimeError: bridge fell over (after %d ms of bridge uptime)" % (days * 86400000 + 1234) in log, log

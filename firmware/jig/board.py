@@ -22,7 +22,7 @@ import machine
 import micropython
 
 from jig import crashlog, flashfs
-from jig.compat import const, sleep_us, ticks_diff, ticks_ms, ticks_us
+from jig.compat import const, sleep_us, ticks_add, ticks_diff, ticks_ms, ticks_us
 from jig.params import FileFS
 from jig.safeboot import CLEAN_RUN_MS
 from jig.uartport import UartPort
@@ -113,6 +113,11 @@ class Board:
         self.down = None
         self.wdt = None
         self.t_start = ticks_ms()
+        # Uptime past ticks_ms' range: ticks_diff spans +-2**29 ms (6.2 days) and a jig
+        # runs for weeks. The housekeeping moves whole seconds into up_s (a small int
+        # for 34 years, so nothing is allocated); t_up is the tick they were counted to.
+        self.up_s = 0
+        self.t_up = self.t_start
         self.t_house = self.t_start
         self.t_traffic = self.t_start
         self.traffic_on = False
@@ -185,7 +190,11 @@ class Board:
         self.housekeep(now)
 
     def housekeep(self, now):
-        """LEDs, overflow counts and the crash streak; allocates nothing."""
+        """LEDs, overflow counts, the crash streak and the uptime; allocates nothing."""
+        d = ticks_diff(now, self.t_up)
+        if d >= 1000:
+            self.up_s += d // 1000
+            self.t_up = ticks_add(self.t_up, d - d % 1000)
         up = self.up
         down = self.down
         if up is None:
@@ -213,6 +222,11 @@ class Board:
         if not self.streak_cleared and ticks_diff(now, self.t_start) > CLEAN_RUN_MS:
             self.streak_cleared = True
             crashlog.clear_crash_streak()
+
+    def uptime_ms(self):
+        """ms since the HAL was made (main.py starts the bridge right after), right
+        after weeks too (for the crash log; may allocate: a long int past 12.4 days)."""
+        return self.up_s * 1000 + ticks_diff(ticks_ms(), self.t_up)
 
     def keep_watchdog_fed(self):
         """After the bridge stops (Ctrl-C): feed a running watchdog from a timer so the
