@@ -187,3 +187,41 @@ def test_sigkill_mid_move_the_jig_stops_the_axis_within_the_window(tmp_path, on_
         assert d.servo_on != servo_off
         assert b.sim.counters["safety_stops"] == 1
     assert not glob.glob(str(tmp_path / "long_*.json"))  # SIGKILL: no record, as the docs say
+
+
+def test_ctrl_c_at_an_operator_prompt_ends_the_run_at_once(tmp_path):
+    """The prompt waits on the terminal; Ctrl-C there ends the run within seconds (it waited for the
+    operator's next Enter before), ABORTED, the records written."""
+    plan = LONG_PLAN.replace('[[steps]]\nkind = "servo"\n',
+                             '[[steps]]\nkind = "prompt"\nmessage = "fit the motor"\n[[steps]]\nkind = "servo"\n', 1)
+    master, slave = os.openpty()
+
+    def own_terminal():
+        os.setsid()
+        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+    with bench() as b:
+        db = str(tmp_path / "results.sqlite")
+        p = subprocess.Popen([JIGCTL, "test", long_plan(tmp_path, plan), "--port", b.tcp_url, "--out", str(tmp_path),
+                              "--db", db], stdin=slave, stdout=slave, stderr=slave, preexec_fn=own_terminal)
+        os.close(slave)
+        seen = b""
+        deadline = time.monotonic() + 60
+        try:
+            while b"press Enter when done" not in seen:
+                assert time.monotonic() < deadline and p.poll() is None, seen
+                try:
+                    seen += os.read(master, 4096)
+                except OSError:
+                    break
+            p.send_signal(signal.SIGINT)
+            t0 = time.monotonic()
+            rc = p.wait(timeout=20)
+            assert time.monotonic() - t0 < 5
+        finally:
+            os.close(master)
+        assert rc == 2
+        assert b.sim.drivers[DRIVE].motion.pos == 0
+    record, _ = records(tmp_path)
+    assert record["outcome"] == "ABORTED"
+    assert record["outcome_details"][0] == {"code": "SIGINT", "description": "interrupted by SIGINT (Ctrl-C)"}

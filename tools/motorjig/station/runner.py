@@ -133,9 +133,20 @@ def _never_fails(out):
 
 
 def console_confirm(message, stdin=sys.stdin, out=sys.stderr):
-    """Ask on the terminal; Enter or y confirms."""
+    """Ask on the terminal; Enter or y confirms. The wait polls the terminal in short slices, so an
+    abort (Ctrl-C, SIGTERM: OpenHTF stops the step's thread between two Python instructions)
+    ends it at once instead of after the operator's next Enter."""
+    import select
+
     out.write("\n>>> %s\n    press Enter when done (n + Enter: not done): " % message)
     out.flush()
+    while True:
+        try:
+            ready = select.select([stdin], [], [], 0.2)[0]
+        except (ValueError, OSError, TypeError):  # not a selectable file (a test's StringIO): just read
+            ready = True
+        if ready:
+            break
     answer = stdin.readline()
     if not answer:
         raise PreflightError("no answer to %r (input closed)" % message)
@@ -223,7 +234,7 @@ def build_test(plan, ctx, operator=None):
     argv, sys.argv = sys.argv, sys.argv[:1]
     try:
         test = htf.Test(*phases, test_name=plan.name, test_version=plan.version, plan_hash=plan.hash,
-                        plan_file=os.path.abspath(plan.path), operator=operator or "")
+                        plan_file=os.path.abspath(plan.path), operator=operator or "unknown")
         test.configure(stop_on_first_failure=plan.stop_on_fail, default_dut_id="unknown")
     finally:
         sys.argv = argv
@@ -273,7 +284,7 @@ def _name_the_cause(test_record, cause):
     from openhtf.core.test_record import OutcomeDetails
 
     test_record.metadata["end_cause"] = cause
-    code = cause.split()[-1] if "SIG" in cause else "ABORTED"
+    code = next((name for name, c in SIGNAL_CAUSES if c == cause), "ABORTED")
     details = [d for d in test_record.outcome_details if d.description != cause]
     test_record.outcome_details[:] = [OutcomeDetails(code, cause)] + details
 
