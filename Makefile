@@ -30,6 +30,7 @@ check-mpy: setup ## compile every firmware module with mpy-cross -march=armv7emd
 bench: setup ## print parser, bridge, station and results-database figures (takes several minutes)
 	@$(PY) tools/bench_parser.py
 	@$(PY) tools/bench_bridge.py
+	@$(PY) tools/bench_trace.py
 	@$(PY) tools/bench_station.py
 	@$(PY) tools/bench_store.py
 

@@ -844,10 +844,12 @@ class Bridge:
             client = self.client
             self.client = None
             v[C_INT_REPLIES] += 1
-            self.due[0] = t_in  # let the client send its next request at once
-            client.on_reply(p)
             if self.holding:
+                client.on_reply(p)  # (jig.trace: its next slot is already in due[0])
                 self._release()
+            else:
+                self.due[0] = t_in  # let the client send its next request at once
+                client.on_reply(p)
         elif flags & F_STALE:
             v[C_STALE] += 1
 

@@ -63,6 +63,8 @@ MIN_PERIOD_US = const(100)
 MAX_PERIOD_US = const(1000000)
 _SEQ_MASK = const(0xFFFF)
 _RX_CHUNK = const(256)  # app.RX_CHUNK
+_TICKS_MASK = const(0x3FFFFFFF)
+_TICKS_HALF = const(0x20000000)
 
 # StartTrace flags: the framing of the requests to the drive
 FRAMING_DETECT = const(0)  # the jig's protocol, the other one after a bare error reply
@@ -275,9 +277,18 @@ class Trace:
             return -1
         return self.byte_us if self.up_st[S_STATE] != HUNT else 0
 
+    def _next_slot(self):
+        """Our request is done: the slow pass must run by the next slot (the bridge does
+        not ask for one after a reply to a request sent with ``hold``)."""
+        t = self.ts[T_NEXT]
+        due = self.app.due
+        if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
+            due[0] = t
+
     def on_reply(self, p):
         ts = self.ts
         ts[T_WAITING] = 0
+        self._next_slot()
         if not ts[T_ON] or ts[T_STALE]:
             ts[T_STALE] = 0
             return  # stopped or restarted meanwhile: StopTrace's figures are the final ones
@@ -308,6 +319,7 @@ class Trace:
     def on_timeout(self):
         ts = self.ts
         ts[T_WAITING] = 0
+        self._next_slot()
         if ts[T_STALE]:
             ts[T_STALE] = 0
         elif ts[T_ON]:
