@@ -350,3 +350,40 @@ def test_zero_heap_bytes_per_sample_on_micropython():
     lines = r.stdout.split("\n")
     assert lines[2] == "micropython"
     assert lines[0] == "(0, True)" and lines[1] == "(0, True)", r.stdout
+
+
+@pytest.mark.parametrize("mode", [0, 1])
+def test_transaction_times_on_the_jigs_clock(fast, mode):
+    """ReadTransactionTimes: per forwarded request the tick its last stop bit left on the
+    driver bus and the tick the reply's last byte came in, as the bus saw them; a
+    request without a reply has none; the last 16 are kept, oldest first."""
+    from jig import params as P
+
+    b = SimBench(driver_ids=(2, 3), baud=115200, fastpath=fast, jig_params={P.P_FORWARD_MODE: mode})
+    segs = []
+    b.down_bus.monitor = lambda seg, data: segs.append((seg.node.name, seg.end, bytes(data)))
+    want = []
+    for i in range(20):
+        slave = (2, 3, 9)[i % 3]
+        segs.clear()
+        _w, d = b.request(slave, F.GET_AXIS_STATUS, timeout_us=200000.0)
+        req_end = [t for name, t, _d in segs if name == "jig-down"][-1]
+        rep = [t for name, t, _d in segs if name.startswith("driver")]
+        want.append((slave, F.GET_AXIS_STATUS, int(req_end) & MASK, int(rep[-1]) & MASK if rep else None))
+        assert (d is None) == (slave == 9)
+    _w, d = b.request(1, D.READ_TRANSACTION_TIMES)
+    got = D.decode_transaction_times(d)
+    assert len(got) == 16
+    assert got == want[-16:]
+
+
+def test_master_transaction_times():
+    m = Master("loop://", open=False)
+
+    class Fr:
+        data = b"\x00\x02" + struct.pack("<BBII", 2, 0x40, MASK - 10, 990) + struct.pack("<BBIi", 9, 0x40, 5000, -1)
+
+    m.request = lambda *a, **k: Fr()
+    rows = m.transaction_times()
+    assert rows[0].round_trip_us == 1001 and rows[0].slave == 2 and rows[1].reply_end is None
+    assert rows[1].round_trip_us is None

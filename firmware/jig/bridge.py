@@ -112,7 +112,14 @@ B_T_PC = const(8)  # tick of the last good frame from the PC
 B_PC_FRAMES = const(9)  # good PC frames since boot (the safety stop arms on the first)
 B_SEEN = const(10)  # bitmap of driver ids that answered
 B_WAKE = const(11)  # 1: a client (jig.trace) waits for the bridge to be free: ask for the slow pass then
-B_SIZE = const(12)
+B_XHEAD = const(12)  # the next entry of Bridge.xt to write
+B_XCUR = const(13)  # the entry of the forwarded request awaiting its reply (-1: none)
+B_SIZE = const(14)
+
+# Bridge.xt: the last XT_N forwarded PC requests, 4 ints each: id, second body byte
+# (Ver6 type / Ver8 sync), tick when the request's last stop bit had left on the driver
+# bus, tick when the reply's last byte came in (-1: none); ReadTransactionTimes (0xF9).
+XT_N = const(16)
 
 # TRANSITIONS[state][event] = (action flags, next state)
 TRANSITIONS = (
@@ -254,7 +261,9 @@ class Bridge:
         self.due = due if due is not None else array("i", [0])
         bs = array("i", bytes(4 * B_SIZE))
         bs[B_P_B0] = bs[B_P_B1] = -1
+        bs[B_XCUR] = -1
         self.bs = bs
+        self.xt = array("i", [-1] * (4 * XT_N))
         self.txbuf = bytearray(frame.MAX_WIRE)
         self.body = bytearray(frame.MAX_BODY)
         self.reply = bytearray(frame.MAX_DATA)
@@ -479,6 +488,7 @@ class Bridge:
                 self._record_passed(_T_PC_PASSED, body, p.st[S_N], t_in)
             if bs[B_STATE] == AWAIT_PC:
                 self._pend_pc(body, p.st[S_N])
+                self._xt_request(body, self._ticks())
                 cs = self.cs
                 if cs[_CS_HEAD] != cs[_CS_TAIL] and (t_in - cs[_CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
                     self.due[0] = t_in  # records wait, the drive thinks: the slow pass streams now
@@ -520,6 +530,7 @@ class Bridge:
         if flags & F_FORWARD:
             v[C_FORWARDS] += 1
             self._pend_pc(body, n)
+            self._xt_request(body, self._ticks())
             cs = self.cs
             if cs[_CS_HEAD] != cs[_CS_TAIL] and (t_in - cs[_CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
                 self.due[0] = t_in  # records wait, the drive thinks: the slow pass streams now
@@ -527,6 +538,52 @@ class Bridge:
             v[C_BROADCASTS] += 1
             if self.bs[B_WAKE]:
                 self.due[0] = t_in  # (jig.trace waits for a free driver bus)
+
+    def _xt_request(self, body, t):
+        """A forwarded PC request's last stop bit has left at tick t: a new entry of xt."""
+        bs = self.bs
+        k = bs[B_XHEAD]
+        bs[B_XHEAD] = k + 1 if k + 1 < XT_N else 0
+        bs[B_XCUR] = k
+        xt = self.xt
+        k *= 4
+        xt[k] = body[0]
+        xt[k + 1] = body[1]
+        xt[k + 2] = t
+        xt[k + 3] = -1
+
+    def _xt_reply(self, t):
+        """The awaited reply's last byte came in at tick t."""
+        bs = self.bs
+        k = bs[B_XCUR]
+        if k >= 0:
+            self.xt[4 * k + 3] = t
+            bs[B_XCUR] = -1
+
+    def transaction_times_into(self, out):
+        """ReadTransactionTimes reply data (St, u8 n, n x (u8 id, u8 b1, u32 request sent,
+        u32 reply in or 0xFFFFFFFF)), oldest first, into out; returns its length."""
+        xt = self.xt
+        k = self.bs[B_XHEAD]
+        n = 0
+        o = 2
+        for _ in range(XT_N):
+            j = 4 * k
+            if xt[j] >= 0:
+                out[o] = xt[j]
+                out[o + 1] = xt[j + 1]
+                frame.put_u32(out, o + 2, xt[j + 2])
+                t = xt[j + 3]
+                if t < 0:
+                    out[o + 6] = out[o + 7] = out[o + 8] = out[o + 9] = 0xFF
+                else:
+                    frame.put_u32(out, o + 6, t)
+                o += 10
+                n += 1
+            k = k + 1 if k + 1 < XT_N else 0
+        out[0] = frame.STATUS_OK
+        out[1] = n
+        return o
 
     def _release(self):
         """The jig's own request that held PC frames is done: a PC frame held meanwhile
@@ -823,6 +880,7 @@ class Bridge:
                 bs[B_SEEN] |= 1 << body[0]
             v[C_REPLIES] += 1
             v[C_UP_OUT] += 1
+            self._xt_reply(t_in)
             if bs[B_WAKE]:
                 self.due[0] = t_in  # (jig.trace waits for a free driver bus)
             return
@@ -838,6 +896,7 @@ class Bridge:
             self._send(self.up, body, p.st[S_N], t_in)
             v[C_REPLIES] += 1
             v[C_UP_OUT] += 1
+            self._xt_reply(t_in)
             if bs[B_WAKE]:
                 self.due[0] = t_in  # (jig.trace waits for a free driver bus)
         elif flags & F_DELIVER:

@@ -1,6 +1,6 @@
 """Wire layouts of the jig's own diagnostic frames and of its GetSlaveInfo reply.
 
-Frame types 0xF0-0xF8 are not used by the Plus-R protocol. Request and reply
+Frame types 0xF0-0xF9 are not used by the Plus-R protocol. Request and reply
 layouts (reply data always starts with the status byte)::
 
     0xF0 ReadCounters      req: -        reply: St, u8 n, n x u32 in WIRE_NAMES order
@@ -21,6 +21,11 @@ layouts (reply data always starts with the status byte)::
     0xF8 GetTraceStatus    req: -        reply: St, u8 state (0 off, 1 running), u8 slave, u32 period µs,
                                                 u32 taken, u32 skipped, u32 lost (ring full),
                                                 u32 failed, u16 oldest index held, u16 next index
+    0xF9 ReadTransactionTimes req: -     reply: St, u8 n, n x (u8 id, u8 type (Ver6) / sync (Ver8),
+                                                u32 tick the request's last stop bit left on the driver
+                                                bus, u32 tick the reply's last byte came in or
+                                                0xFFFFFFFF: none), the last 16 forwarded requests,
+                                                oldest first
 
 The PC library decodes with ``decode_counters`` / ``decode_scan`` / ``decode_crash_log`` below, so the
 layout exists once. ``SLAVE_TYPE`` is what the jig reports in GetSlaveInfo: 200
@@ -40,6 +45,8 @@ START_TRACE = const(0xF5)
 STOP_TRACE = const(0xF6)
 READ_TRACE = const(0xF7)
 GET_TRACE_STATUS = const(0xF8)
+READ_TRANSACTION_TIMES = const(0xF9)
+XT_ENTRY = const(10)  # u8 id, u8 b1, u32 request sent, u32 reply in
 
 TRACE_SAMPLE = const(20)  # bytes: u32 tick, i32 command, i32 actual, i32 velocity, u32 flags
 TRACE_CHUNK = const(12)  # samples per ReadTrace reply at most
@@ -134,3 +141,16 @@ def decode_trace_chunk(data):
         out.append((frame.get_u32(data, k), frame.get_i32(data, k + 4), frame.get_i32(data, k + 8),
                     frame.get_i32(data, k + 12), frame.get_u32(data, k + 16)))
     return TRACE_STATE_NAMES[data[1]], frame.get_u16(data, 2), out
+
+
+def decode_transaction_times(data):
+    """Reply data of ReadTransactionTimes -> [(id, type or sync, t request sent, t reply in
+    or None), ...] oldest first, raw 30-bit ticks (host side)."""
+    if len(data) < 2 or data[0] != 0 or len(data) != 2 + XT_ENTRY * data[1]:
+        raise ValueError("bad ReadTransactionTimes reply")
+    out = []
+    for i in range(data[1]):
+        k = 2 + XT_ENTRY * i
+        t_rep = frame.get_u32(data, k + 6)
+        out.append((data[k], data[k + 1], frame.get_u32(data, k + 2), None if t_rep == 0xFFFFFFFF else t_rep))
+    return out

@@ -73,6 +73,9 @@ _B_T_PC = const(8)
 _B_PC_FRAMES = const(9)
 _B_SEEN = const(10)
 _B_WAKE = const(11)
+_B_XHEAD = const(12)
+_B_XCUR = const(13)
+_XT_N = const(16)
 _SEEN_IDS = const(30)
 # jig.counters
 _C_UP_IN = const(0)
@@ -136,7 +139,7 @@ def context(app):
             TABLES, b.pc_event, b.down_event, b.bs, app.counters.v, app.due, app.params.ram, b.hdr, b.tail,
             TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS,
             app.handlers.handle, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
-            crc.TABLE, app.capture.cs, app.capture.ring, app.capture.put)
+            crc.TABLE, app.capture.cs, app.capture.ring, app.capture.put, b.xt)
 
 
 @micropython.viper
@@ -148,7 +151,7 @@ def pump(ctx, passes: int) -> int:
      up_parser, up_scan, up_st, up_rx, up_body, down_parser, down_scan, down_st, down_rx, down_body,
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
      flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
-     crc_table, cs_arr, cap_ring, cap_put) = ctx
+     crc_table, cs_arr, cap_ring, cap_put, xt_arr) = ctx
     head = int(head_obj)
     reply = ptr8(reply_buf)
     ust = ptr32(up_st)
@@ -165,6 +168,7 @@ def pump(ctx, passes: int) -> int:
     uearly = ptr32(up_early)  # Rs485.early: tick DE went up ahead of a frame, -1: not
     dearly = ptr32(down_early)
     cs = ptr32(cs_arr)  # jig.capture's state: recording on, where each frame began
+    xt = ptr32(xt_arr)  # Bridge.xt: the last forwarded requests' times
     while passes != 0:
         if passes > 0:
             passes -= 1
@@ -266,6 +270,10 @@ def pump(ctx, passes: int) -> int:
                         bs[_B_SEEN] |= 1 << b0
                     v[_C_REPLIES] += 1
                     v[_C_UP_OUT] += 1
+                    k = bs[_B_XCUR]  # Bridge._xt_reply
+                    if k >= 0:
+                        xt[4 * k + 3] = now
+                        bs[_B_XCUR] = -1
                     if bs[_B_WAKE] != 0:
                         due[0] = now  # the driver bus is free (jig.trace waits for it)
                 else:
@@ -367,10 +375,20 @@ def pump(ctx, passes: int) -> int:
                             m = tmult[ub[2]]
                         bs[_B_P_B0] = ub[0]
                         bs[_B_P_B1] = ub[1]
-                        d = (int(ticks()) + int(ram[_P_REPLY_TIMEOUT_MS]) * m * 1000) & _MASK
+                        t = int(ticks())
+                        d = (t + int(ram[_P_REPLY_TIMEOUT_MS]) * m * 1000) & _MASK
                         bs[_B_DEADLINE] = d
                         if ((d - due[0]) & _MASK) >= _HALF:
                             due[0] = d
+                        # Bridge._xt_request
+                        k = bs[_B_XHEAD]
+                        bs[_B_XHEAD] = k + 1 if k + 1 < _XT_N else 0
+                        bs[_B_XCUR] = k
+                        k *= 4
+                        xt[k] = ub[0]
+                        xt[k + 1] = ub[1]
+                        xt[k + 2] = t
+                        xt[k + 3] = -1
                         # as Bridge.on_pc_frame after _pend_pc: records wait, the drive is thinking:
                         # the slow pass now
                         if cs[_CS_HEAD] != cs[_CS_TAIL] and ((now - cs[_CS_NEXT]) & _MASK) < _HALF:

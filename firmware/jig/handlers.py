@@ -124,6 +124,7 @@ class Handlers:
             diag.STOP_TRACE: (self.trace_stop, 0),
             diag.READ_TRACE: (self.trace_read, 3),
             diag.GET_TRACE_STATUS: (self.trace_status, 0),
+            diag.READ_TRANSACTION_TIMES: (self.transaction_times, 0),
         }
         self.table = [None] * 256
         for ftype, entry in by_type.items():
@@ -275,6 +276,9 @@ class Handlers:
 
     def trace_status(self, p, d, o, out):
         return self.app.trace.status(p, d, o, out)
+
+    def transaction_times(self, p, d, o, out):
+        return self.app.bridge.transaction_times_into(out)
 
     def crash_log(self, p, d, o, out):
         # Allocates (the HAL's string, its encoding): fine for a frame a person sends

@@ -77,7 +77,7 @@ IDEMPOTENT = frozenset((
     D.READ_COUNTERS, D.RESET_COUNTERS, D.START_BUS_SCAN, D.GET_BUS_SCAN_RESULT, D.READ_CRASH_LOG,
     # the jig's sampler: a repeated StartTrace restarts it, a repeated ReadTrace (same
     # from-index) returns the same samples
-    D.START_TRACE, D.STOP_TRACE, D.READ_TRACE, D.GET_TRACE_STATUS,
+    D.START_TRACE, D.STOP_TRACE, D.READ_TRACE, D.GET_TRACE_STATUS, D.READ_TRANSACTION_TIMES,
 ))
 
 VAR = -1  # variable-length reply (info strings)
@@ -101,7 +101,7 @@ REPLY_LEN = {
     D.READ_COUNTERS: VAR, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0,
     D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1, D.READ_CRASH_LOG: VAR,
     D.START_TRACE: 6, D.STOP_TRACE: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRACE: VAR,
-    D.GET_TRACE_STATUS: D.TRACE_STATUS_REPLY_LEN - 1,
+    D.GET_TRACE_STATUS: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRANSACTION_TIMES: VAR,
 }
 #: data bytes of a request (Ver6); the monitor tells requests from replies with it
 REQUEST_LEN = {
@@ -123,6 +123,7 @@ REQUEST_LEN = {
     F.MOVE_VELOCITY_EX: 37,
     D.READ_COUNTERS: 0, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0, D.GET_BUS_SCAN_RESULT: 0,
     D.READ_CRASH_LOG: 0, D.START_TRACE: 6, D.STOP_TRACE: 0, D.READ_TRACE: 3, D.GET_TRACE_STATUS: 0,
+    D.READ_TRANSACTION_TIMES: 0,
 }
 
 #: Ver8 libraries widen the inputs to 64 bits; drives that keep 32 are accepted too
@@ -154,6 +155,7 @@ TraceSample = namedtuple("TraceSample", "t_us command_pos actual_pos actual_vel 
 TraceSample.__doc__ = """One sample of the jig's own trace (``Master.trace_read``): t_us is the jig's
 clock in µs since StartTrace (unfolded from its 30-bit ticks), the time the jig began sending
 that GetAllStatus request; axis is the AxisStatus word."""
+TransactionTime = namedtuple("TransactionTime", "slave b1 request_end reply_end round_trip_us")
 AllStatus = namedtuple("AllStatus", "inputs outputs axis command_pos actual_pos pos_error actual_vel "
                                     "pt_number")
 
@@ -946,6 +948,22 @@ class Master:
             jig = self._trace["jig"] if self._trace else 1
         return self._jig_reply(jig, D.STOP_TRACE, D.decode_trace_status, "StopTrace")
 
+    def transaction_times(self, jig=1):
+        """The jig's clock on the last 16 requests it forwarded (0xF9), oldest first:
+        TransactionTime(slave, b1, request_end, reply_end, round_trip_us) -- b1 the frame type
+        (Ver6) or sync (Ver8); request_end the jig tick (µs, 30-bit) when the request's last
+        stop bit left on the driver bus, reply_end when the reply's last byte came in (None:
+        no reply), round_trip_us their difference (None without a reply). This request
+        itself is for the jig, so it is not among them."""
+        fr = self.request(jig, D.READ_TRANSACTION_TIMES)
+        try:
+            rows = D.decode_transaction_times(fr.data)
+        except ValueError as exc:
+            raise BadReplyError("slave %d sent a bad ReadTransactionTimes reply (%s)" % (jig, exc), jig,
+                                D.READ_TRANSACTION_TIMES) from None
+        return [TransactionTime(s, b1, t0, t1, None if t1 is None else (t1 - t0) & 0x3FFFFFFF)
+                for s, b1, t0, t1 in rows]
+
     def jig_bus_scan(self, jig=1, timeout=5.0, poll=0.05):
         """Start the jig's bus scan and wait for its result."""
         self.start_bus_scan(jig)
@@ -985,5 +1003,5 @@ def _unstuffed_body(slave, ftype, data, sync):
 
 
 __all__ = ["Master", "Frame", "SlaveInfo", "MotorInfo", "Alarm", "IOAssign", "MotionStatus",
-           "IOAxisStatus", "AllStatus", "BusScan", "TraceSample", "AxisStatus", "MotionTimeoutError", "StatusError", "jsonable",
+           "IOAxisStatus", "AllStatus", "BusScan", "TraceSample", "TransactionTime", "AxisStatus", "MotionTimeoutError", "StatusError", "jsonable",
            "pack", "BAUD_RATES", "DEFAULT_TIMEOUT"]
