@@ -387,3 +387,22 @@ def test_master_transaction_times():
     rows = m.transaction_times()
     assert rows[0].round_trip_us == 1001 and rows[0].slave == 2 and rows[1].reply_end is None
     assert rows[1].round_trip_us is None
+
+
+def test_store_and_forward_with_hardware_de(fast):
+    """Store-and-forward with the USART's hardware DE (no transmit queue for the pieces):
+    the ReadTrace reply goes out whole; the sampler and the PC's frames work as cut through."""
+    from jig import params as P
+
+    b = SimBench(driver_ids=(2,), baud=921600, servo_on=True, fastpath=fast,
+                 jig_params={P.P_FORWARD_MODE: P.STORE_AND_FORWARD, P.P_DE_MODE: 1})
+    known(b, 2)
+    started(b, 2, 1000)
+    for _ in range(20):
+        assert b.request(2, F.GET_AXIS_STATUS)[1][0] == 0
+        b.run_for(1500.0)
+    b.run_for(20000.0)
+    samples, _ = read_all(b)
+    st = status(b)
+    assert st["failed"] == 0 and len(samples) >= st["taken"] - 2 and st["taken"] >= 40
+    assert b.down_bus.collisions == 0

@@ -37,10 +37,41 @@ from motorjig.sim import SimBench  # noqa: E402
 MASK = 0x3FFFFFFF
 GOALS = ((115200, 150.0), (921600, 1000.0))
 
+# The sampler's own CPU time, from `make test-qemu` (2026-12-02, HAL calls at the board's
+# prices): building and sending a slot's request (Trace.poll) 27 145 instructions, and
+# the slow pass costs 4 620 more while a trace runs (24 040 against 19 420). Charged on
+# the virtual timeline before the request goes out, so it delays the sample instant as
+# it would on the board. (The reply's parse and store, 32 442, is about what the model
+# already charges for its 41 bytes and one pass: 2 366 + 41 x 641 = 28 647.)
+TRACE_REQUEST_INSTR = 27145 + 4620
+
+
+def _charge_trace(b, us):
+    """Model the sampler's request building: the virtual clock moves on by ``us`` before a
+    due slot's request can go out (the jig's CPU is busy with it meanwhile)."""
+    from jig.compat import ticks_diff
+    from jig.trace import T_NEXT, T_ON, T_WAITING
+
+    tr = b.app.trace
+    orig = tr.poll
+    clock = b.clock
+    hal = b.hal
+
+    def poll(now):
+        ts = tr.ts
+        if ts[T_ON] and not ts[T_WAITING] and ticks_diff(now, ts[T_NEXT]) >= 0 and not b.app.bridge.busy():
+            hal.cpu_us += us
+            clock.run_until(clock.now + us)
+        orig(now)
+
+    tr.poll = poll
+
 
 def _bench(baud, cpu_model, ids=(2, 3)):
     b = SimBench(driver_ids=ids, baud=baud, turnaround_us=DRIVER_TURNAROUND_US, record=False, servo_on=True,
                  cpu_model=cpu_model)
+    if any(cpu_model):
+        _charge_trace(b, TRACE_REQUEST_INSTR / 400.0)  # (400 MHz, 1 instruction a cycle: as JIG_CPU_MODEL)
     for i in ids:
         _w, d = b.request(i, F.GET_SLAVE_INFO)  # the jig sees each drive answer
         if d is None or d[0]:
@@ -166,8 +197,9 @@ def main(argv=None):
     dur = int(args.seconds * 1e6)
     print("trace benchmark: the jig samples driver 2 with GetAllStatus (virtual timeline, drive turnaround %.0f us,"
           % DRIVER_TURNAROUND_US)
-    print("  jig CPU model %s)" % ("off" if args.no_cpu_model else "as bench_bridge: %d + %d/byte + %d per slow pass"
-                                   % tuple(round(x * 400) for x in model)))
+    print("  jig CPU model %s)" % ("off" if args.no_cpu_model else
+                                   "as bench_bridge: %d + %d/byte + %d per slow pass, + %d per sample's request"
+                                   % (tuple(round(x * 400) for x in model) + (TRACE_REQUEST_INSTR,))))
     print("  %7s %-34s %9s %8s %7s %6s %6s %23s %s" % ("baud", "run", "period us", "rate /s", "skipped", "failed",
                                                      "lost", "offset mean/p95/max us", "interval min..max us"))
     for baud, goal in GOALS:

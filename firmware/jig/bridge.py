@@ -679,23 +679,30 @@ class Bridge:
         """``local_reply`` for a long reply, built in the caller's ``body`` and ``wire``
         buffers and written in pieces of 16 bytes (the USART's FIFO); between the
         pieces ``client.between()`` may send a request of its own on the driver bus
-        (jig.trace: a sample slot due), while the piece before it leaves."""
+        (jig.trace: a sample slot due), while the piece before it leaves. A port
+        without a transmit queue (``Rs485.queued``: hardware DE, echo, no ``queue``)
+        sends it whole."""
         blen = frame.build_body(body, slave, ftype, data, 0, n, sync)
         m = frame.stuff_into(wire, body, blen)
         rs = self.up
         t_tx = self._ticks()
-        k = _PIECE if m > _PIECE else m
-        rs.begin(wire, 0, k)
-        client.between()
-        while k < m:
-            rs.drain()
-            j = m - k
-            if j > _PIECE:
-                j = _PIECE
-            rs.part(wire, k, j)
-            k += j
+        if rs.queued:
+            k = _PIECE if m > _PIECE else m
+            rs.begin(wire, 0, k)
             client.between()
-        rs.finish()
+            while k < m:
+                rs.drain()
+                j = m - k
+                if j > _PIECE:
+                    j = _PIECE
+                rs.part(wire, k, j)
+                k += j
+                client.between()
+            rs.finish()
+        else:
+            # No transmit queue (or hardware DE, which drops between pieces): whole.
+            rs.send(wire, m)
+            client.between()
         self._turnaround(ticks_diff(t_tx, t_in))
         if self.cs[_CS_ON]:
             self.cs[_CS_START + _CH_PC_OUT] = t_tx
