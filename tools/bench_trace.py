@@ -4,7 +4,8 @@ On the virtual bench's timeline, with the jig's CPU time on the M7 modelled as i
 tools/bench_bridge.py (``JIG_CPU_MODEL``: instruction counts from `make test-qemu`,
 400 MHz, one instruction per cycle assumed), the drive's turnaround 100 µs:
 
-1. the trace's rate and the jitter of its sample instants on the jig's clock, at
+1. the trace's rate (samples over the time from the first to the last, on the
+   jig's clock) and the jitter of its sample instants on the jig's clock, at
    115 200 and 921 600 baud (goals: >= 150 Hz and >= 1 000 Hz): the highest rate
    (period 100 µs: the sampler goes back to back, one request per round trip), and
    the goal's period with the bus to itself and with a PC that meanwhile moves the
@@ -135,14 +136,14 @@ def trace_run(baud, period_us, duration_us, pc_traffic=False, cpu_model=JIG_CPU_
     else:
         b.run_for(float(duration_us))
     st = _stop(b)
-    elapsed = b.clock.now - t_begin
     s, frm = _read(b, frm)
     samples += s
     ticks = [x[0] for x in samples]
     offs = [((t - t0) & MASK) % period_us for t in ticks[1:]]  # (the first waits for StartTrace's reply)
     gaps = [(b_ - a) & MASK for a, b_ in zip(ticks, ticks[1:])]
     mean_gap = sum(gaps) / len(gaps) if gaps else 0.0
-    return dict(baud=baud, period=period_us, rate=len(samples) / (elapsed / 1e6), n=len(samples),
+    span = (ticks[-1] - ticks[0]) & MASK if len(ticks) > 1 else 0
+    return dict(baud=baud, period=period_us, rate=(len(samples) - 1) / (span / 1e6) if span else 0.0, n=len(samples),
                 taken=st["taken"], skipped=st["skipped"], failed=st["failed"], lost=st["lost"],
                 off_mean=sum(offs) / len(offs) if offs else 0.0, off_p95=_pct(offs, 0.95), off_max=max(offs or [0]),
                 gap_mean=mean_gap, gap_min=min(gaps or [0]), gap_max=max(gaps or [0]),
