@@ -99,7 +99,7 @@ def test_start_traffic_stop_and_the_file_has_both_buses(bench, tmp_path):
     assert cap.recording and bench.sim.app.capture.on
     with pytest.raises(UserError) as exc:
         cap.start()
-    assert str(exc.value) == "already recording: press Stop first"
+    assert str(exc.value) == "already recording: press STOP RECORDING first"
     with serial.serial_for_url(bench.tcp_url, timeout=0.05) as pc:
         replies = [ask(pc, 2, F.GET_COMMAND_POS), ask(pc, 3, F.GET_AXIS_STATUS), ask(pc, 1, F.GET_SLAVE_INFO)]
         assert ask(pc, 9, F.GET_COMMAND_POS) == b""  # an absent id: a request without a reply

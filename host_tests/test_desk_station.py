@@ -266,7 +266,11 @@ def test_plans_and_the_serial_are_checked_before_the_port_is_taken(desk):
     b.wait_for(lambda: b.text("conn-state").startswith("connected: "), 10, "the Desk has its port back")
     b.type("serial", "SN WITH SPACES")
     b.click("btn-test-start")
-    b.wait_for(lambda: "printable characters without spaces" in b.driver.page_source, 5, "the serial refused")
+    b.wait_for(lambda: "printable ASCII characters without spaces" in b.driver.page_source, 5, "the serial refused")
+    b.type("serial", "ÄÖÜ-1")  # printable, but not ASCII: the sentence says which characters are meant
+    b.click("btn-test-start")
+    b.wait_for(lambda: "'ÄÖÜ-1': 1..64 printable ASCII characters without spaces" in b.driver.page_source, 5,
+               "the non-ASCII serial refused")
     assert b.text("conn-state").startswith("connected: ")
     bad = desk.tmp / "broken.toml"
     bad.write_text(textwrap.dedent("""\

@@ -81,7 +81,7 @@ class DeskCapture:
             raise UserError("recording is not available: %s" % self.unavailable)
         with self._lock:
             if self.state in ("recording", "starting"):
-                raise UserError("already recording: press Stop first")
+                raise UserError("already recording: press STOP RECORDING first")
             self.state = "starting"
         # The last recording may still be closing its port (a Stop, or one that ended by
         # itself): its X would stop the jig recording for this new start.
@@ -232,7 +232,7 @@ class DeskCapture:
         if self.unavailable:
             raise UserError("recording is not available: %s" % self.unavailable)
         if self.buses is None:
-            raise UserError("nothing recorded yet: press Start, let the bus work, then Stop")
+            raise UserError("nothing recorded yet: press Start recording, let the bus work, then STOP RECORDING")
         with self._lock:
             finished = self.state == "stopped"
             generation = self._generation
