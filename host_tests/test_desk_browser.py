@@ -77,10 +77,11 @@ def test_scan_finds_the_jig_and_both_drivers(desk):
     b.wait_for(lambda: b.text("scan-progress").startswith("scanning id "), 5, "scan progress")
     b.wait_for(lambda: b.text("scan-progress") == "3 slave(s): ids 1, 2, 3", 20, "scan result")
     rows = [r for r in b.text("slave-table").splitlines()[1:]]
-    assert rows[0].startswith("1 200 MotorJig bridge") and rows[0].endswith("jig (slave 1)")
-    assert rows[1].startswith("2 20 Ezi-STEP Plus-R ST") and rows[1].endswith("driver")
+    assert rows[0].startswith("1 200 MotorJig bridge") and rows[0].endswith("Ver6 jig (slave 1)")
+    assert rows[1].startswith("2 20 Ezi-STEP Plus-R ST") and rows[1].endswith("Ver6 driver")
     assert rows[2].startswith("3 20 Ezi-STEP") and len(rows) == 3
-    assert b.text("axis-select").endswith("2 Ezi-STEP Plus-R ST")  # the first driver is picked, in the header
+    # the first driver is picked, in the header with its detected variant
+    assert b.text("axis-select").endswith("2 Ezi-STEP Plus-R ST (Ver6)")
 
 
 def test_servo_on_then_move_inc_10000_reaches_10000_and_is_plotted(desk):
@@ -251,7 +252,7 @@ def test_a_second_tab_shares_the_connection(desk):
     try:
         b.open(desk.url)
         assert b.wait_for(lambda: "connected: " in b.text("conn-state"), 10, "connected")
-        assert b.text("axis-select").endswith("2 Ezi-STEP Plus-R ST")
+        assert b.text("axis-select").endswith("2 Ezi-STEP Plus-R ST (Ver6)")
         b.tab("tab-axis")
         pos = int(b.wait_for(lambda: b.text("cmd-pos").lstrip("-").isdigit() and b.text("cmd-pos"), 5, "pos"))
         b.type("move-target", "-2000")

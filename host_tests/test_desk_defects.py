@@ -1,8 +1,9 @@
 """Defects found on MotorJig Desk, each with the browser test that showed it (headless Chromium).
 
 One bench (drivers 2 and 3), one Desk and one browser for the module; the tests run
-in file order, the last one kills the bench (a lost connection in the middle of a
-motion test). Every wait is bounded and polls the page; no fixed sleeps.
+in file order, test_3 kills the bench (a lost connection in the middle of a motion
+test); the tests after it start a bench and a Desk of their own (a mixed Ver6/Ver8
+bus, a read-only Desk). Every wait is bounded and polls the page; no fixed sleeps.
 """
 
 import csv
@@ -151,7 +152,7 @@ def test_5_after_an_emergency_stop_the_page_says_what_brings_the_axis_back(desk)
     b.wait_for(lambda: "err" in lamp(b, "emergency_stop"), 5, "emergency_stop lamp")
     hint = b.wait_for(lambda: b.find("estop-hint") is not None and b.el("estop-hint").is_displayed()
                       and b.text("estop-hint"), 5, "the recovery hint")
-    assert "Servo OFF, then Servo ON" in hint and "ALARM RESET and STOP do not clear it" in hint
+    assert "Servo OFF, then Servo ON" in hint and "ALARM RESET and STOP AXIS do not clear it" in hint
     b.type("move-target", "1000")
     b.type("move-speed", "20000")
     b.click("btn-move-inc")  # refused by the drive: the message says what to do
@@ -253,16 +254,16 @@ def test_7_the_header_shows_the_axis_as_a_control_and_the_protocol(desk):
     b = desk.b
     b.tab("tab-axis")
     b.wait_for(lambda: "2 Ezi-STEP" in b.text("axis-select"), 5, "axis 2 in the header")
-    assert b.text("protocol") == "Ver6"
+    assert b.text("protocol") == "auto: Ver6"  # each slave's variant detected; the axis talks Ver6
     b.el("axis-select").click()
-    b.wait_for(lambda: b.js("return document.querySelectorAll('.q-menu .q-item').length") >= 3, 5, "the choices")
+    b.wait_for(lambda: b.js("return document.querySelectorAll('.q-menu .q-item').length") >= 2, 5, "the choices")
     b.js("""Array.from(document.querySelectorAll('.q-menu .q-item'))
             .find(e => e.innerText.startsWith('3 ')).click();""")
     b.wait_for(lambda: "3 Ezi-STEP" in b.text("axis-select"), 5, "axis 3 chosen in the header")
     b.open(desk.url)  # the choice is the session's, not only this tab's
     b.wait_for(lambda: "3 Ezi-STEP" in b.text("axis-select"), 5, "axis 3 after a reload")
     b.el("axis-select").click()
-    b.wait_for(lambda: b.js("return document.querySelectorAll('.q-menu .q-item').length") >= 3, 5, "the choices")
+    b.wait_for(lambda: b.js("return document.querySelectorAll('.q-menu .q-item').length") >= 2, 5, "the choices")
     b.js("""Array.from(document.querySelectorAll('.q-menu .q-item'))
             .find(e => e.innerText.startsWith('2 ')).click();""")
     b.wait_for(lambda: "2 Ezi-STEP" in b.text("axis-select"), 5, "axis 2 again")
@@ -282,12 +283,38 @@ def test_7_a_silent_port_message_names_the_ver6_ver8_setting(desk):
         b.click("btn-connect")
         b.wait_for(lambda: "silent port" in b.driver.page_source, 10, "the silent-port message")
         src = b.driver.page_source
-        assert "the Ver6/Ver8 setting (now Ver6" in src
+        assert "the Ver6/Ver8 setting (now auto, each slave's variant detected" in src
     finally:
         server.close()
         for conn, _ in held:
             conn.close()
     b.connect(desk.bench_url, "back on the bench")
+
+
+def enter_hint(b):
+    """The move button marked ⏎ (what Enter in a move field repeats)."""
+    return [t for t in ("btn-move-abs", "btn-move-inc", "btn-move-dec")
+            if "enter-hint" in b.el(t).get_attribute("class").split()]
+
+
+def settled(b):
+    """The command position once the axis stands still."""
+    b.wait_for(lambda: "on" not in lamp(b, "motioning"), 10, "standstill")
+    return int(b.text("cmd-pos"))
+
+
+def test_8_every_stop_button_names_what_it_stops(desk):
+    """Issue: three buttons read STOP (the axis, the recording, the motion test)."""
+    b = desk.b
+    b.tab("tab-axis")
+    assert b.text("btn-stop") == "STOP AXIS"
+    b.tab("tab-test")
+    assert b.text("btn-mt-stop") == "STOP TEST"
+    b.tab("tab-raw")
+    assert b.text("btn-capture-stop").split("\n")[-1] == "STOP RECORDING"  # after its icon's name
+    buttons = b.js("""return Array.from(document.querySelectorAll('button'))
+                      .map(e => e.innerText.trim().split('\\n').pop()).filter(t => /^stop$/i.test(t));""")
+    assert buttons == []
 
 
 def test_3_a_motion_test_ends_at_the_first_lost_connection(desk):
@@ -308,3 +335,111 @@ def test_3_a_motion_test_ends_at_the_first_lost_connection(desk):
     assert summary == "FAIL: 0 of 1 moves passed (connection lost)", summary
     assert rows == 1
     assert b.text("conn-state") == "CONNECTION LOST"
+
+
+# --- defects that need a bench or a Desk of their own ------------------------------------------------------
+def header_choices(b):
+    b.el("axis-select").click()
+    b.wait_for(lambda: b.js("return document.querySelectorAll('.q-menu .q-item').length") > 0, 5, "the choices")
+    items = b.js("return Array.from(document.querySelectorAll('.q-menu .q-item')).map(e => e.innerText.trim());")
+    esc_closes = b.js("return document.querySelectorAll('.q-menu').length")
+    if esc_closes:
+        esc(b)  # a dropdown takes Esc for itself
+        b.wait_for(lambda: b.js("return document.querySelectorAll('.q-menu').length") == 0, 5, "closed")
+    return items
+
+
+def slave_rows(b):
+    return b.js("""return Array.from(document.querySelectorAll('[data-testid="slave-table"] tbody tr'))
+                   .map(tr => Array.from(tr.children).map(td => td.innerText.trim()));""")
+
+
+def test_9_a_mixed_bus_is_scanned_per_slave_variant_and_the_jig_is_never_an_axis(desk):
+    """Issue: on a Ver8 jig with drive 2 Ver6 and drive 3 Ver8 the Desk listed the jig and drive 3
+    as "answered with an error", picked slave 1 as the axis and failed every call."""
+    b = desk.b
+    bench = page_proc = None
+    try:
+        bench, url = B.start_bench("2,3:v8", "--jig-protocol", "8")
+        page_proc, page = B.start_desk("--port", url, "--timeout", "300")
+        b.open(page)
+        b.wait_for(lambda: b.text("conn-state") == "connected: %s @ 115200" % url, 10, "connected")
+        b.tab("tab-connect")
+        b.click("btn-scan")
+        b.wait_for(lambda: b.text("scan-progress") == "3 slave(s): ids 1, 2, 3", 20, "scan result")
+        rows = {r[0]: r for r in slave_rows(b)}
+        assert rows["1"][2] == "MotorJig bridge" and rows["1"][4] == "Ver8" and rows["1"][5].startswith("jig")
+        assert rows["2"][2] == "Ezi-STEP Plus-R ST" and rows["2"][4] == "Ver6" and rows["2"][5] == "driver"
+        assert rows["3"][2] == "Ezi-STEP Plus-R ST" and rows["3"][4] == "Ver8" and rows["3"][5] == "driver"
+        assert "answered with an error" not in b.driver.page_source
+        b.wait_for(lambda: b.text("axis-select").endswith("2 Ezi-STEP Plus-R ST (Ver6)"), 5, "axis 2")
+        assert b.text("protocol") == "auto: Ver6"
+        choices = header_choices(b)
+        assert choices == ["2 Ezi-STEP Plus-R ST (Ver6)", "3 Ezi-STEP Plus-R ST (Ver8)"], choices
+        assert "1" not in b.text("axis-pick")  # the jig is not offered on Connect & bus either
+        for axis, ver in ((3, 8), (2, 6)):
+            b.choose("axis-select", "%d Ezi-STEP Plus-R ST (Ver%d)" % (axis, ver))
+            b.wait_for(lambda: b.text("protocol") == "auto: Ver%d" % ver, 5, "the axis's variant in the header")
+            b.tab("tab-axis")
+            servo_on(b)
+            start = settled(b)
+            b.type("move-target", "1000")
+            b.type("move-speed", "40000")
+            b.click("btn-move-inc")
+            b.wait_for(lambda: b.text("cmd-pos") == str(start + 1000), 10, "slave %d moved" % axis)
+            b.tab("tab-connect")
+    finally:
+        B.stop(page_proc)
+        B.stop(bench)
+
+
+@pytest.fixture(scope="module")
+def read_only(desk):
+    """A read-only Desk of its own on a bench with a fixed TCP port (so it can come back on it)."""
+    port = B.free_port()
+    ro = type("ReadOnly", (), {"port": port, "bench": None, "proc": None})
+    try:
+        ro.bench, ro.bench_url = B.start_bench("2,3", "--tcp-port", str(port))
+        ro.proc, ro.url = B.start_desk("--port", ro.bench_url, "--timeout", "300", "--read-only")
+        yield ro
+    finally:
+        B.stop(ro.proc)
+        B.stop(ro.bench)
+
+
+def test_9_read_only_lets_the_operator_choose_the_axis_to_watch(desk, read_only):
+    """Issue: choosing the axis to watch was refused in read-only."""
+    b = desk.b
+    b.open(read_only.url)
+    assert b.text("read-only") == "READ-ONLY"
+    b.wait_for(lambda: b.text("axis-select").startswith("2 Ezi-STEP"), 10, "axis 2")
+    b.el("axis-select").click()
+    b.wait_for(lambda: b.js("return document.querySelectorAll('.q-menu .q-item').length") >= 2, 5, "the choices")
+    b.js("""Array.from(document.querySelectorAll('.q-menu .q-item'))
+            .find(e => e.innerText.startsWith('3 ')).click();""")
+    b.wait_for(lambda: b.text("axis-select").startswith("3 Ezi-STEP"), 5, "axis 3 chosen")
+    b.tab("tab-axis")
+    b.wait_for(lambda: b.text("cmd-pos").lstrip("-").isdigit(), 5, "slave 3's status")
+    assert "refused" not in b.driver.page_source
+    b.open(read_only.url)  # the session's choice, not only this tab's
+    b.wait_for(lambda: b.text("axis-select").startswith("3 Ezi-STEP"), 5, "axis 3 after a reload")
+
+
+def test_9_read_only_reconnects_on_request_and_by_itself(desk, read_only):
+    """Issue: a read-only Desk refused Reconnect after a lost connection ("this Desk is read-only"),
+    and nothing reconnected by itself."""
+    b = desk.b
+    b.open(read_only.url)
+    b.tab("tab-axis")
+    b.wait_for(lambda: b.text("cmd-pos").lstrip("-").isdigit(), 10, "the live status")
+    B.stop(read_only.bench)
+    b.wait_for(lambda: b.visible("lost-banner"), 10, "the lost banner")
+    b.click("btn-reconnect")  # the bench is down: the sentence says so, not "read-only"
+    b.wait_for(lambda: "connection refused" in b.driver.page_source or "read-only" in b.driver.page_source
+               .replace(">READ-ONLY<", ""), 5, "the reconnect's answer")
+    assert "this Desk is read-only" not in b.driver.page_source
+    read_only.bench, url = B.start_bench("2,3", "--tcp-port", str(read_only.port))
+    assert url == read_only.bench_url
+    b.wait_for(lambda: b.text("conn-state") == "connected: %s @ 115200" % url and not b.visible("lost-banner"),
+               15, "connected again by itself")
+    b.wait_for(lambda: b.text("cmd-pos").lstrip("-").isdigit(), 5, "the status again")

@@ -129,7 +129,8 @@ def test_scan_finds_the_jig_and_both_drivers_and_picks_the_first_driver(s):
     assert not s.slaves[2]["jig"] and s.slaves[2]["type_name"] == "Ezi-STEP Plus-R ST"
     assert s.axis == 2 and s.jig_id() == 1
     assert s.scan_progress is None
-    assert "scan: 3 slave(s) found: 1 MotorJig bridge, 2 Ezi-STEP Plus-R ST, 3 Ezi-STEP Plus-R ST" in s.log_text()
+    assert ("scan: 3 slave(s) found: 1 MotorJig bridge (Ver6), 2 Ezi-STEP Plus-R ST (Ver6), 3 Ezi-STEP Plus-R ST "
+            "(Ver6)") in s.log_text()
 
 
 def test_scan_via_jig(s):
@@ -182,12 +183,37 @@ def test_bad_input_sends_nothing(s):
 
 
 def test_the_jig_is_not_an_axis(s):
-    s.select_axis(1)
-    with pytest.raises(UserError, match="slave 1 is the jig, not a motor driver"):
-        s.move("inc", "10", "100")
-    assert s.param_table()[0] == "jig"
     s.select_axis(2)
-    assert s.param_table()[0] == "drive"
+    with pytest.raises(UserError, match="slave 1 is the jig, not a motor driver"):
+        s.select_axis(1)
+    assert s.axis == 2 and [r["id"] for r in s.drivers()] == [2, 3]
+    assert s.param_table(1)[0] == "jig" and s.param_table()[0] == "drive"
+
+
+def test_a_mixed_bus_is_scanned_in_each_slaves_variant():
+    """A Ver8 jig, drive 2 Ver6, drive 3 Ver8 (`python -m motorjig.sim --drivers 2,3:v8 --jig-protocol 8`):
+    detected per slave as `jigctl scan` does; the jig is never the axis; both drives answer."""
+    with Bench(driver_ids=(2, 3), baud=115200, pty=False, jig_ver8=True, ver8_drivers=(3,)) as b:
+        s = BusSession(timeout=TIMEOUT)
+        try:
+            s.connect(b.tcp_url)
+            rows = {r["id"]: r for r in s.scan(1, 3)}
+            assert [(i, r["type_name"], r["variant"], r["jig"]) for i, r in sorted(rows.items())] == [
+                (1, "MotorJig bridge", 8, True), (2, "Ezi-STEP Plus-R ST", 6, False),
+                (3, "Ezi-STEP Plus-R ST", 8, False)]
+            assert s.axis == 2 and s.variant_of(3) == 8
+            for axis in (3, 2):
+                s.select_axis(axis)
+                s.servo(True)
+                s.clear_position()
+                s.move("inc", "1000", "40000")
+                poll_until(s, lambda st: st.command_pos == 1000)
+            assert s.send_raw(3, "40") == "sent; 1 frame(s) received"  # framed in slave 3's Ver8
+            assert s.counters()  # the Ver8 jig answers too
+            s.connect(b.tcp_url, ver8=True)  # forced Ver8: only the Ver8 slaves answer
+            assert sorted(r["id"] for r in s.scan(1, 3)) == [1, 3] and s.axis == 3
+        finally:
+            s.stop()
 
 
 def test_emergency_stop_ends_a_running_motion_test(s):
@@ -402,7 +428,7 @@ def test_a_read_only_session_polls_and_refuses_everything_else(s):
     try:
         assert s.poll_once()
         for what, fn in (("Move", lambda: s.move("inc", 100, 1000)), ("Servo on/off", lambda: s.servo(True)),
-                         ("EMERGENCY STOP", s.emergency_stop), ("STOP", s.stop_axis),
+                         ("EMERGENCY STOP", s.emergency_stop), ("STOP AXIS", s.stop_axis),
                          ("Sending a raw frame", lambda: s.send_raw("2", "40")),
                          ("Writing a parameter", lambda: s.write_param(2, 3, 100)),
                          ("The motion test", lambda: s.run_motion_test(1, 100, 1000)),
@@ -413,8 +439,58 @@ def test_a_read_only_session_polls_and_refuses_everything_else(s):
             s.lend_port("a test run", lambda: None)
         with pytest.raises(UserError, match="read-only"):  # the bus itself refuses too
             s._bus(lambda m: m.servo_enable(2, True))
+        assert s.select_axis(3) == 3 and s.poll_once() and s.status_view() is not None  # watching another axis
+        assert s.reconnect().startswith("connected to ") and s.connected  # opening the port sends no move
+        assert s.axis == 3 and s.poll_once()
     finally:
         s.read_only = False
+
+
+def test_a_read_only_session_reconnects_by_itself():
+    from desk_browser import free_port
+
+    port = free_port()
+    b = Bench(driver_ids=(2,), baud=115200, pty=False, tcp_port=port).start()
+    s = BusSession(timeout=TIMEOUT, poll_interval=0.02)
+    try:
+        s.connect(b.tcp_url)
+        s.scan(1, 2)
+        s.read_only = True
+        s.viewers = 1
+        s.start()
+        b.stop()
+        end = time.monotonic() + 5
+        while s.state != "lost" and time.monotonic() < end:
+            time.sleep(0.05)
+        assert s.state == "lost"
+        b = Bench(driver_ids=(2,), baud=115200, pty=False, tcp_port=port).start()
+        end = time.monotonic() + 10
+        while not (s.connected and s.status is not None) and time.monotonic() < end:
+            time.sleep(0.05)
+        assert s.connected and s.status is not None and s.axis == 2
+    finally:
+        s.stop()
+        b.stop()
+
+
+def test_a_read_only_desk_whose_port_did_not_open_connects_once_it_does():
+    from desk_browser import free_port
+
+    port = free_port()
+    s = BusSession(timeout=TIMEOUT, poll_interval=0.02)
+    s.read_only = True
+    s.watch("socket://127.0.0.1:%d" % port, 115200, None, "connection refused")
+    assert s.state == "lost"
+    s.viewers = 1
+    s.start()
+    try:
+        with Bench(driver_ids=(2, 3), baud=115200, pty=False, tcp_port=port):
+            end = time.monotonic() + 15
+            while not (s.connected and s.status is not None) and time.monotonic() < end:
+                time.sleep(0.05)
+            assert s.connected and sorted(s.slaves) == [1, 2, 3] and s.axis == 2  # scanned once, as at start
+    finally:
+        s.stop()
 
 
 def test_lending_the_port_pauses_everything_and_stop_aborts_the_borrower(s, bench):

@@ -430,6 +430,29 @@ def test_mixed_bus_variants_detected_per_slave():
             assert not mm.wait_motion_done(s, timeout=5).motioning
 
 
+def test_jig_trace_and_transaction_times(bench, m):
+    """The jig samples the drive itself (0xF5-0xF8) while the PC moves it; the jig's clock
+    dates the forwarded transactions (0xF9)."""
+    import time
+
+    assert m.trace_start(DRIVE, 5000) == 4096
+    m.move_inc(DRIVE, 2000, FAST)
+    time.sleep(0.3)
+    samples = m.trace_read()
+    st = m.trace_status()
+    assert st["state"] == "running" and st["slave"] == DRIVE and st["period_us"] == 5000
+    final = m.trace_stop()
+    samples += m.trace_read()
+    assert final["state"] == "off" and final["failed"] == 0 and len(samples) == final["taken"] >= 40
+    t = [s.t_us for s in samples]
+    gaps = sorted(b - a for a, b in zip(t, t[1:]))
+    assert gaps[len(gaps) // 2] == 5000  # the jig's period, whatever this host's load
+    assert samples[-1].command_pos == 2000 and not samples[-1].axis.motioning
+    m.get_axis_status(OTHER)
+    rows = m.transaction_times()
+    assert rows[-1].slave == OTHER and rows[-1].b1 == F.GET_AXIS_STATUS and 0 < rows[-1].round_trip_us < 50000
+
+
 def test_every_public_method_is_exercised():
     src = open(os.path.abspath(__file__)).read()
     called = set(re.findall(r"\bmm?\.(\w+)\(", src))

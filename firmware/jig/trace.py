@@ -227,6 +227,8 @@ class Trace:
             return
         app = self.app
         if ts[T_WAITING]:
+            if self.bridge.held_n:
+                return  # (its release would relay a reply onto the PC bus we are writing)
             k = app._down_any()
             if k:
                 k = app._down_read(app.down_rx, k if k < _RX_CHUNK else _RX_CHUNK)

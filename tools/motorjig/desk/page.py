@@ -24,7 +24,7 @@ from motorjig import names as N
 from motorjig.master import BAUD_RATES
 
 from motorjig.desk import forms
-from motorjig.desk.session import ESTOP_RECOVERY, UserError, stamp
+from motorjig.desk.session import ESTOP_RECOVERY, UserError, protocol_name, stamp
 
 CSS = """
 .lamp {display:inline-block; padding:1px 7px; margin:2px; border-radius:9px; font-size:11px;
@@ -55,6 +55,14 @@ window.addEventListener('keydown', (e) => {
 """
 
 PLOT_WINDOWS = {10: "10 s", 30: "30 s", 60: "60 s", 120: "120 s"}
+
+#: the Ver6/Ver8 choice on Connect & bus -> Master's ver8 (None: each slave's variant detected)
+PROTOCOLS = {"auto": "auto (detect each slave)", "6": "Ver6 only", "8": "Ver8 only"}
+PROTOCOL_VER8 = {"auto": None, "6": False, "8": True}
+
+
+def protocol_key(ver8):
+    return "auto" if ver8 is None else "8" if ver8 else "6"
 
 
 def tid(element, name):
@@ -155,13 +163,15 @@ class DeskPage:
             self.conn_label = tid(ui.label(""), "conn-state").classes("q-ml-md")
             self.axis_select = tid(ui.select({}, label="axis", on_change=self._pick_axis), "axis-select") \
                 .props("dense borderless options-dense").classes("q-ml-md header-axis")
-            self.protocol_chip = tid(ui.label(""), "protocol").classes("chip").tooltip(
-                "the framing the Desk talks: Ver6, or Ver8 with sync numbers (the Ver8 switch on Connect & bus)")
+            self.protocol_chip = tid(ui.label(""), "protocol").classes("chip")
+            with self.protocol_chip:
+                self.protocol_tip = ui.tooltip("")
             if s.read_only:
                 tid(ui.label("READ-ONLY"), "read-only").classes("chip ro").tooltip(
                     "started with --read-only: the page shows the status and the runs and sends nothing")
             ui.space()
-            tid(ui.button("STOP", on_click=lambda: self.act(s.stop_axis)), "btn-stop").props("color=orange")
+            tid(ui.button("STOP AXIS", on_click=lambda: self.act(s.stop_axis)), "btn-stop").props("color=orange") \
+                .tooltip("decelerating stop of the selected axis (also ends a motion test or a scan)")
             tid(ui.button("EMERGENCY STOP (Esc)", on_click=lambda: self.act(s.emergency_stop)),
                 "btn-estop").props("color=red size=lg").classes("estop")
         ui.add_body_html(ESC_SCRIPT)
@@ -231,7 +241,10 @@ class DeskPage:
                 .classes("w-56")
             ui.button(icon="refresh", on_click=self._refresh_ports).props("flat").tooltip("refresh the port list")
             self.baud = tid(ui.select(list(BAUD_RATES), value=s.baud, label="baud"), "baud").classes("w-32")
-            self.ver8 = tid(ui.switch("Ver8 framing", value=s.ver8), "ver8")
+            self.protocol = tid(ui.select(PROTOCOLS, value=protocol_key(s.ver8), label="Ver6/Ver8"),
+                                "protocol-pick").classes("w-52").tooltip(
+                "auto: each slave's variant is detected, as jigctl scan does (a bus may carry both); "
+                "Ver6 only / Ver8 only: one framing for every slave")
             tid(ui.button("Connect", on_click=self._connect), "btn-connect")
             tid(ui.button("Disconnect", on_click=lambda: self.act(s.disconnect)), "btn-disconnect").props("outline")
         self._refresh_ports()
@@ -246,6 +259,7 @@ class DeskPage:
                 {"name": "type", "label": "slave type", "field": "type", "align": "left"},
                 {"name": "type_name", "label": "name", "field": "type_name", "align": "left"},
                 {"name": "version", "label": "version", "field": "version", "align": "left"},
+                {"name": "protocol", "label": "protocol", "field": "protocol", "align": "left"},
                 {"name": "role", "label": "role", "field": "role", "align": "left"}]
         self.slave_table = tid(ui.table(columns=cols, rows=[], row_key="id"), "slave-table").classes("w-full").props("dense")
         with ui.row().classes("items-center"):
@@ -263,7 +277,8 @@ class DeskPage:
             self.port.value = e.value
 
     async def _connect(self):
-        await self.act(self.s.connect, self.port.value, self.baud.value, self.ver8.value)
+        await self.act(self.s.connect, self.port.value, self.baud.value,
+                       PROTOCOL_VER8.get(self.protocol.value or "auto"))
 
     async def _scan(self):
         rows = await self.act(self.s.scan, quiet=True)
@@ -420,7 +435,8 @@ class DeskPage:
             self.mt_dist = tid(ui.input("distance (pulses)", value="10000"), "mt-distance")
             self.mt_speed = tid(ui.input("speed (pps)", value="20000"), "mt-speed")
             tid(ui.button("Start motion test", on_click=self._motion_test), "btn-mt-start")
-            ui.button("Stop", on_click=lambda: self.act(s.stop_axis)).props("outline color=orange")
+            tid(ui.button("STOP TEST", on_click=lambda: self.act(s.stop_axis)), "btn-mt-stop") \
+                .props("outline color=orange").tooltip("ends the motion test: the axis stops (decelerating)")
         ui.label("Each cycle moves +distance then -distance; a move passes when the command position changed "
                  "by exactly the distance and no error flag is set (the checks of jigctl motion-test).") \
             .classes("text-caption text-grey-7")
@@ -625,7 +641,7 @@ class DeskPage:
         with ui.row().classes("items-center"):
             self.cap_start = tid(ui.button("Start recording", icon="fiber_manual_record",
                                            on_click=self._capture_start), "btn-capture-start").props("outline")
-            self.cap_stop = tid(ui.button("Stop", icon="stop", on_click=self._capture_stop),
+            self.cap_stop = tid(ui.button("STOP RECORDING", icon="stop", on_click=self._capture_stop),
                                 "btn-capture-stop").props("outline")
             self.cap_download = tid(ui.button("Download pcapng", icon="download", on_click=self._capture_download),
                                     "btn-capture-download").props("outline")
@@ -707,16 +723,19 @@ class DeskPage:
         if ch("lost", (state, s.lost_reason)):
             self.lost_banner.set_visibility(state == "lost")
             self.lost_text.text = s.lost_message() if state == "lost" else ""
-        options = {r["id"]: "%d %s" % (r["id"], "jig" if r["jig"] else r["type_name"]) for r in s.slaves.values()}
+        options = {r["id"]: self._axis_label(r) for r in s.drivers()}  # never the jig
         if s.axis is not None and s.axis not in options:
             options[s.axis] = "%d" % s.axis
         if ch("axis_select", (tuple(options.items()), s.axis)):
             self.axis_select.set_options(options, value=s.axis)
-        proto = "Ver8" if s.ver8 else "Ver6"
-        if ch("protocol", proto):
+        proto, tip = self._protocol_text()
+        if ch("protocol", (proto, tip)):
             self.protocol_chip.text = proto
+            self.protocol_tip.text = tip
         prog = s.scan_progress
-        rows = [dict(r, role="jig (slave %d)" % r["id"] if r["jig"] else "driver") for r in s.slaves.values()]
+        rows = [dict(r, role="jig (slave %d)" % r["id"] if r["jig"] else "jig's id (not an axis)"
+                     if s.is_jig(r["id"]) else "driver",
+                     protocol="Ver%d" % r["variant"] if r.get("variant") else "?") for r in s.slaves.values()]
         if prog is not None:
             scan_text = "scanning id %d of %d ..." % prog
         elif rows:
@@ -731,8 +750,8 @@ class DeskPage:
         if ch("slaves", repr(rows)):
             self.slave_table.rows = rows
             self.slave_table.update()
-            self.axis_pick.set_options({r["id"]: "%d %s" % (r["id"], "jig" if r["jig"] else r["type_name"])
-                                        for r in rows}, value=s.axis if s.axis in s.slaves else None)
+            self.axis_pick.set_options({r["id"]: self._axis_label(r) for r in s.drivers()},
+                                       value=s.axis if s.axis in s.slaves else None)
         if ch("axis_pick", s.axis) and s.axis in s.slaves:
             self.axis_pick.value = s.axis
         self._refresh_axis()
@@ -748,6 +767,23 @@ class DeskPage:
             self.log_view.push("%s  %-5s %s" % (stamp(e.t), e.kind.upper(), e.text))
         if new:
             self.log_seq = new[-1].seq
+
+    def _axis_label(self, row):
+        v = self.s.variant_of(row["id"])
+        return "%d %s%s" % (row["id"], row["type_name"], " (Ver%d)" % v if v else "")
+
+    def _protocol_text(self):
+        """The header's protocol chip and its tooltip: the forced framing, or auto with the axis's
+        detected variant."""
+        s = self.s
+        if s.ver8 is not None:
+            return protocol_name(s.ver8), ("the framing the Desk talks to every slave: %s (forced on Connect & "
+                                           "bus; auto detects each slave's)" % protocol_name(s.ver8))
+        found = ", ".join("%d Ver%d" % (r["id"], r["variant"]) for r in s.slaves.values() if r.get("variant"))
+        v = s.variant_of(s.axis) if s.axis is not None else None
+        text = "auto: Ver%d" % v if v else "auto"
+        return text, ("each slave's Ver6/Ver8 variant is detected, as jigctl scan does%s" % (
+            " (%s)" % found if found else "") + ("; the axis, slave %d, talks Ver%d" % (s.axis, v) if v else ""))
 
     def _refresh_axis(self):
         s, ch = self.s, self.changed

@@ -152,7 +152,10 @@ def build_parser():
         description="MotorJig Desk: the jig's PC program as a local web page (the same as `jigctl gui`).")
     p.add_argument("--port", "-p", help="serial port or pyserial URL to connect to at start")
     p.add_argument("--baud", "-b", type=baud, default=115200, help="baud rate (default 115200)")
-    p.add_argument("--ver8", action="store_true", help="Ver8 framing (sync number)")
+    v = p.add_mutually_exclusive_group()
+    v.add_argument("--ver8", action="store_true", help="Ver8 framing (sync number) for every slave")
+    v.add_argument("--ver6", action="store_true", help="Ver6 framing for every slave (default: each slave's "
+                                                      "variant detected, as jigctl scan does)")
     p.add_argument("--timeout", "-t", type=int, default=100, help="reply timeout in ms (default 100)")
     add_gui_arguments(p)
     return p
@@ -259,9 +262,10 @@ def serve(args, out=None):
             out.write("  wired as %s says: jig relays and inputs to drive %s\n" % (wiring.source, wiring.slave))
 
     session = BusSession(timeout=max(1, args.timeout) / 1000.0).start()
+    ver8 = True if getattr(args, "ver8", False) else False if getattr(args, "ver6", False) else None
     if port:
         try:
-            msg = session.connect(port, args.baud, args.ver8)
+            msg = session.connect(port, args.baud, ver8)
             if bench is not None or read_only:  # a read-only page cannot scan: it opens ready
                 rows = session.scan(1, max(args.drivers) if bench is not None else 15)
                 msg = "connected to %s; found %s; working with slave %s" % (
@@ -269,7 +273,11 @@ def serve(args, out=None):
                     session.axis)
             out.write(msg + "\n")
         except UserError as exc:
-            out.write("could not connect yet: %s (the page offers Connect)\n" % exc)
+            if read_only:  # it cannot press Connect: it keeps trying by itself
+                session.watch(port, args.baud, ver8, str(exc))
+                out.write("could not connect yet: %s (read-only: it tries again every few seconds)\n" % exc)
+            else:
+                out.write("could not connect yet: %s (the page offers Connect)\n" % exc)
     session.read_only = read_only
     # The station's engine (OpenHTF) sets a signal handler when imported: that works in this thread only.
     store = open_results(getattr(args, "db", None), out)

@@ -16,7 +16,12 @@ A test-plan run (the Test tab) needs the port for itself: ``lend_port`` closes t
 Master (the poller and every command then wait with a sentence, state ``lent``) and
 ``take_port_back`` opens it again, so one program part owns the port at a time.
 With ``read_only`` every method that would send something to the bus is refused;
-only the poller reads.
+only the poller reads, and a lost connection is opened again (Reconnect, or by
+itself every few seconds): watching is not moving.
+
+Ver6 or Ver8 is detected per slave as ``jigctl scan`` does it (``Master(ver8=None)``)
+unless the operator forces one framing; the scan rows carry each slave's variant.
+The jig (slave 1, or the id that answered as the jig) is never an axis.
 """
 
 import collections
@@ -61,10 +66,21 @@ class Aborted(JigError):
 
 #: what the page says brings an axis back after EMERGENCY STOP (the drive latches it)
 ESTOP_RECOVERY = ("EMERGENCY STOP is latched in the drive: it refuses every move (0x85) until the servo is "
-                  "switched off and on again (Servo OFF, then Servo ON). ALARM RESET and STOP do not clear it.")
+                  "switched off and on again (Servo OFF, then Servo ON). ALARM RESET and STOP AXIS do not clear it.")
 
 #: the move fields' values before the operator has typed any (those of the seed program)
 MOVE_DEFAULTS = {"target": "300000", "speed": "50000", "acc": "1000", "dec": "10"}
+
+#: the move buttons (kind, sign): ABS, INC and DEC (INC of the field's distance the other way)
+MOVES = {("abs", 1): "Move ABS", ("inc", 1): "Move INC", ("inc", -1): "Move DEC"}
+
+#: how often a read-only Desk tries to open a lost connection again by itself (seconds)
+RECONNECT_EVERY = 2.0
+
+
+def protocol_name(ver8):
+    """The Ver6/Ver8 setting in words: None detects each slave's variant."""
+    return "auto" if ver8 is None else "Ver8" if ver8 else "Ver6"
 
 
 def command(what):
@@ -181,8 +197,12 @@ class BusSession:
         return self.state == "connected"
 
     @command("Connect")
-    def connect(self, url, baud=115200, ver8=False):
-        """Open the port and look for the jig; returns a sentence saying what answered."""
+    def connect(self, url, baud=115200, ver8=None):
+        """Open the port and look for the jig; returns a sentence saying what answered.
+        ver8: None detects each slave's variant (as jigctl does), True/False force one."""
+        return self._open(url, baud, ver8)
+
+    def _open(self, url, baud=115200, ver8=None):
         self._not_lent()
         url = str(url or "").strip()
         if not url:
@@ -194,16 +214,17 @@ class BusSession:
         self._close(quiet=True)
         with self._lock:
             try:
-                m = self.master_factory(url, baud=baud, ver8=bool(ver8), trace=self._trace, timeout=self.timeout)
+                m = self.master_factory(url, baud=baud, ver8=ver8, trace=self._trace, timeout=self.timeout)
             except PortError as exc:
                 raise UserError(str(exc)) from None
-            self.master, self.url, self.baud, self.ver8 = m, url, baud, bool(ver8)
+            self.master, self.url, self.baud, self.ver8 = m, url, baud, ver8
             self._seen_errors = {name: getattr(m.parser, name, 0) for name, _ in LINE_ERRORS}
             self.state = "connected"
             self.lost_reason = ""
             self.status = None
             self.history.clear()
-            self.log("info", "connected to %s at %d baud (%s)" % (url, baud, "Ver8" if ver8 else "Ver6"))
+            self.log("info", "connected to %s at %d baud (%s)" % (
+                url, baud, "Ver6/Ver8 detected per slave" if ver8 is None else protocol_name(ver8)))
             try:
                 alive = any(m.is_slave_exist(i) for i in (1, 2, 3))
             except PortError as exc:
@@ -211,8 +232,9 @@ class BusSession:
                 raise UserError(self.lost_message()) from None
         if not alive:
             msg = ("connected to %s, but nothing answers on the bus (silent port: check the baud rate, the "
-                   "Ver6/Ver8 setting (now %s: the Ver8 framing switch), the wiring and that the jig is "
-                   "powered); press Scan to look again" % (url, "Ver8" if ver8 else "Ver6"))
+                   "Ver6/Ver8 setting (now %s: the protocol choice beside the baud rate), the wiring and that "
+                   "the jig is powered); press Scan to look again" % (
+                       url, "auto, each slave's variant detected" if ver8 is None else protocol_name(ver8)))
             self.log("error", msg)
             return msg
         return "connected to %s; press Scan to find the slaves" % url
@@ -235,11 +257,34 @@ class BusSession:
             self.status = None
         self._abort.clear()
 
-    @command("Reconnect")
     def reconnect(self):
+        """Open the last connection again (allowed read-only too: it sends nothing that moves)."""
         if not self.url:
             raise UserError("nothing to reconnect to: connect first")
-        return self.connect(self.url, self.baud, self.ver8)
+        msg = self._open(self.url, self.baud, self.ver8)
+        if self.read_only and not self.slaves and self.connected:  # it never got to its first scan
+            self._scan(1, F.MAX_SLAVE_ID)
+        return msg
+
+    def watch(self, url, baud=115200, ver8=None, why=""):
+        """A read-only Desk whose port did not open at start: remember it as lost, so it
+        connects by itself once the port answers."""
+        self.url, self.baud, self.ver8 = str(url), baud, ver8
+        self.state, self.lost_reason = "lost", str(why) or "the port did not open"
+
+    def _auto_reconnect(self):
+        """Read-only: a lost connection is tried again every RECONNECT_EVERY seconds."""
+        if not self.read_only or self.state != "lost" or not self.url:
+            return
+        now = time.monotonic()
+        if now < self._next_reconnect:
+            return
+        self._next_reconnect = now + RECONNECT_EVERY
+        try:
+            self.reconnect()
+        except UserError:
+            if self.state != "connected":
+                self.state = "lost"  # still lost; the banner keeps the first reason
 
     def _lose(self, exc):
         self.state = "lost"
@@ -310,9 +355,10 @@ class BusSession:
             self.log("info", "port %s back from %s" % (self.url, who))
             return "connected to %s again" % self.url
 
-    def _bus(self, fn, *args, polling=False):
-        """Run fn(master, *args) with the bus to ourselves; failures become UserError."""
-        if self.read_only and not polling:
+    def _bus(self, fn, *args, polling=False, watch=False):
+        """Run fn(master, *args) with the bus to ourselves; failures become UserError.
+        Read-only, only the poller's reads and a scan (watch: the caller checked) pass."""
+        if self.read_only and not (polling or watch):
             raise UserError("refused: this Desk is read-only (--read-only)")
         with self._lock:
             self._not_lent()
@@ -339,15 +385,27 @@ class BusSession:
 
     # --- bus scan ------------------------------------------------------------------------
     @staticmethod
-    def _row(i, info):
+    def _row(i, info, variant=None):
+        """A scan row; variant: 6 or 8 (detected, or the forced framing), None when unknown."""
         if info is None:
-            return {"id": i, "type": None, "type_name": "answered with an error", "version": "", "jig": False}
+            return {"id": i, "type": None, "type_name": "answered with an error", "version": "", "jig": False,
+                    "variant": variant}
         return {"id": i, "type": info.type, "type_name": info.type_name, "version": info.version,
-                "jig": info.type == D.SLAVE_TYPE}
+                "jig": info.type == D.SLAVE_TYPE, "variant": variant}
+
+    def _variant(self, m, slave):
+        """slave's variant as the Master knows it (6 or 8), or None."""
+        if m.ver8 is not None:
+            return 8 if m.ver8 else 6
+        return m.variants.get(slave)
 
     @command("Scan")
     def scan(self, first=0, last=F.MAX_SLAVE_ID):
-        """GetSlaveInfo to every id (one request per lock hold); returns the rows found."""
+        """GetSlaveInfo to every id (one request per lock hold), each slave in its own
+        variant (detected, as `jigctl scan`); returns the rows found."""
+        return self._scan(first, last)
+
+    def _scan(self, first=0, last=F.MAX_SLAVE_ID):
         first, last = forms.slave_id(first, "first id"), forms.slave_id(last, "last id")
         found = {}
         self._abort.clear()
@@ -356,18 +414,17 @@ class BusSession:
                 if self._abort.is_set():
                     raise UserError("scan stopped at id %d" % i)
                 self.scan_progress = (i, last)
-                res = self._bus(lambda m, i=i: m.scan(ids=(i,)))
-                for sid, info in res.items():
-                    found[sid] = self._row(sid, info)
+                res = self._bus(lambda m, i=i: {sid: (info, self._variant(m, sid))
+                                                for sid, info in m.scan(ids=(i,)).items()}, watch=True)
+                for sid, (info, variant) in res.items():
+                    found[sid] = self._row(sid, info, variant)
         finally:
             self.scan_progress = None
         self.slaves = found
         self.log("info", "scan: %d slave(s) found: %s" % (len(found), ", ".join(
-            "%d %s" % (r["id"], r["type_name"]) for r in found.values()) or "none"))
-        if self.axis is None or self.axis not in found:
-            drivers = [r["id"] for r in found.values() if not r["jig"]]
-            self.axis = drivers[0] if drivers else None
-            self.history.clear()
+            "%d %s%s" % (r["id"], r["type_name"], " (Ver%d)" % r["variant"] if r["variant"] else "")
+            for r in found.values()) or "none"))
+        self._pick_driver()
         return list(found.values())
 
     @command("Scan via jig")
@@ -375,16 +432,18 @@ class BusSession:
         """The jig's own bus scan (0xF2/0xF3), then GetSlaveInfo to what it found."""
         jig = self.jig_id()
         res = self._bus(lambda m: m.jig_bus_scan(jig, timeout=5.0))
-        found = {jig: self._row(jig, self._bus(lambda m: m.get_slave_info(jig)))}
+
+        def info(sid):
+            return self._bus(lambda m: (m.get_slave_info(sid), self._variant(m, sid)))
+
+        found = {jig: self._row(jig, *info(jig))}
         for sid in sorted(res.types):
             if sid != jig:
-                found[sid] = self._row(sid, self._bus(lambda m, s=sid: m.get_slave_info(s)))
+                found[sid] = self._row(sid, *info(sid))
         self.slaves = found
         self.log("info", "scan via jig: ids %s answered on the driver bus" % (
             ", ".join(map(str, sorted(res.types))) or "none"))
-        if self.axis is None or self.axis not in found:
-            drivers = [r["id"] for r in found.values() if not r["jig"]]
-            self.axis = drivers[0] if drivers else None
+        self._pick_driver()
         return list(found.values())
 
     def jig_id(self):
@@ -393,9 +452,41 @@ class BusSession:
                 return r["id"]
         return 1
 
-    @command("Choosing the axis")
+    def is_jig(self, slave):
+        """The jig: slave 1 (its id on every bench and board) or the id that answered as the jig."""
+        row = self.slaves.get(slave)
+        return slave == 1 or slave == self.jig_id() or bool(row and row["jig"])
+
+    def drivers(self):
+        """The scan rows that may be an axis (never the jig), in id order."""
+        return [r for r in self.slaves.values() if not self.is_jig(r["id"])]
+
+    def _pick_driver(self):
+        """Keep the axis if it is still a driver on the bus, else the first driver that told its type."""
+        ids = [r["id"] for r in self.drivers()]
+        if self.axis not in ids:
+            typed = [r["id"] for r in self.drivers() if r["type"] is not None]
+            self.axis = (typed or ids or [None])[0]
+            self.status = None
+            self.history.clear()
+
+    def variant_of(self, slave):
+        """6 or 8 for a slave whose variant is known (scan, or the forced framing), else None."""
+        if self.ver8 is not None:
+            return 8 if self.ver8 else 6
+        row = self.slaves.get(slave)
+        if row and row.get("variant"):
+            return row["variant"]
+        m = self.master
+        return m.variants.get(slave) if m is not None else None
+
     def select_axis(self, slave):
+        """Choose the axis to show and work with (read-only too: watching is not moving);
+        the jig is refused."""
         slave = forms.slave_id(slave)
+        if self.is_jig(slave):
+            raise UserError("slave %d is the jig, not a motor driver: pick a driver (the jig's parameters "
+                            "and I/O: type its id in those tabs)" % slave)
         if slave != self.axis:
             self.axis = slave
             self.status = None
@@ -403,8 +494,7 @@ class BusSession:
         return slave
 
     def axis_is_jig(self):
-        row = self.slaves.get(self.axis)
-        return bool(row and row["jig"]) or (self.axis == 1 and not self.slaves)
+        return self.axis is not None and self.is_jig(self.axis)
 
     def axis_is_servo(self):
         row = self.slaves.get(self.axis)
@@ -440,6 +530,7 @@ class BusSession:
 
     def _poll_loop(self):
         while not self._stop.wait(self.poll_interval):
+            self._auto_reconnect()
             self.poll_once()
 
     def poll_once(self):
@@ -531,7 +622,7 @@ class BusSession:
         self._bus(lambda m: m.alarm_reset(a, servo=servo))
         return "slave %d: alarm reset sent" % a
 
-    @command("STOP")
+    @command("STOP AXIS")
     def stop_axis(self):
         """Decelerating stop of the selected axis; also ends a running job (a test run: Abort)."""
         if self._abort_lent():
@@ -539,7 +630,7 @@ class BusSession:
         self._abort.set()
         a = self._need_driver()
         self._bus(lambda m: m.move_stop(a))
-        self.log("info", "STOP sent to slave %d" % a)
+        self.log("info", "STOP AXIS sent to slave %d" % a)
         return "slave %d: stop" % a
 
     def _abort_lent(self):
@@ -661,8 +752,7 @@ class BusSession:
     # --- parameters ---------------------------------------------------------------------------------
     def param_table(self, slave=None):
         slave = self.axis if slave is None else slave
-        row = self.slaves.get(slave)
-        if (row and row["jig"]) or (row is None and slave == 1):
+        if slave is not None and self.is_jig(slave):
             return "jig", N.jig_params()
         return "drive", N.STEP_PARAMS
 
@@ -779,8 +869,18 @@ class BusSession:
 
         def exchange(m):
             nonlocal wire
-            if want is not None:
-                wire = F.encode(slave, ftype, data, m.next_sync(slave) if m.ver8 else -1)
+            if want is not None:  # in the slave's own variant as known (no probe of ours on the line)
+                known = m.variants
+                if m.ver8 is not None:
+                    v8 = bool(m.ver8)
+                elif slave == F.BROADCAST_ID:
+                    v8 = 8 in known.values()
+                else:
+                    v8 = known.get(slave) == 8
+                    if slave not in known:
+                        self.log("info", "slave %d's Ver6/Ver8 variant is not known yet (Scan detects it): "
+                                         "framed as Ver6" % slave)
+                wire = F.encode(slave, ftype, data, m.next_sync(slave) if v8 else -1)
             if corrupt:
                 wire = forms.corrupt_crc(wire)
             fr, why = wire_frame(wire)
