@@ -406,3 +406,50 @@ def test_store_and_forward_with_hardware_de(fast):
     st = status(b)
     assert st["failed"] == 0 and len(samples) >= st["taken"] - 2 and st["taken"] >= 40
     assert b.down_bus.collisions == 0
+
+
+def test_master_trace_start_makes_the_jig_see_the_drive_first():
+    """A variant known from before the jig's reset: StartTrace is refused (0x81), the
+    Master asks the drive once through the jig and starts again."""
+    from motorjig import errors as E
+
+    m = Master("loop://", open=False)
+    m.variant = lambda slave: 6
+    calls = []
+
+    class Fr:
+        def __init__(self, data):
+            self.data = data
+
+    def fake(slave, ftype, data=b"", **kw):
+        calls.append((slave, ftype))
+        if ftype == D.START_TRACE and len(calls) == 1:
+            raise E.status_error(0x81, 1, ftype, "StartTrace")
+        if ftype == D.START_TRACE:
+            return Fr(b"\x00" + struct.pack("<HI", 4096, 5))
+        return Fr(b"\x00\x00\x00\x00\x00")
+
+    m.request = fake
+    assert m.trace_start(2, 1000) == 4096
+    assert calls == [(1, D.START_TRACE), (2, F.GET_AXIS_STATUS), (1, D.START_TRACE)]
+
+
+def test_master_trace_read_skips_a_late_reply_to_an_earlier_read():
+    m = Master("loop://", open=False)
+    m.variant = lambda slave: 6
+    replies = [b"\x00" + struct.pack("<HI", 4096, 0)]
+
+    class Fr:
+        def __init__(self, data):
+            self.data = data
+
+    def chunk(frm, n):
+        return b"\x00\x01" + struct.pack("<HB", frm + n, n) + b"".join(
+            struct.pack("<Iiiii", 1000 * (frm + k), frm + k, 0, 0, 0) for k in range(n))
+
+    m.request = lambda *a, **k: Fr(replies.pop(0))
+    m.trace_start(2, 1000)
+    # the reply to the read from 0, then a late copy of it (answering the read from 12)
+    replies += [chunk(0, 12), chunk(0, 12), chunk(12, 3)]
+    got = m.trace_read()
+    assert [s.command_pos for s in got] == list(range(15))

@@ -899,7 +899,16 @@ class Master:
         _check_slave(slave)
         v8 = self.variant(slave) == 8 if ver8 is None else bool(ver8)
         framing = 2 if v8 else 1
-        fr = self.request(jig, D.START_TRACE, pack(("u8", slave), ("u32", period_us), ("u8", framing)))
+        data = pack(("u8", slave), ("u32", period_us), ("u8", framing))
+        try:
+            fr = self.request(jig, D.START_TRACE, data)
+        except StatusError as exc:
+            if exc.status != F.STATUS_DATA_ERROR or slave == jig:
+                raise
+            # The jig may not have seen this drive answer since it started (a variant known
+            # from before its reset): one request through it, then once more.
+            self.request(slave, F.GET_AXIS_STATUS, ver8=v8)
+            fr = self.request(jig, D.START_TRACE, data)
         try:
             size, t0 = D.decode_trace_start(fr.data)
         except ValueError as exc:
@@ -918,6 +927,7 @@ class Master:
             jig = tr["jig"]
         out = []
         reads = 0
+        stale = 0
         while max_chunks is None or reads < max_chunks:
             fr = self.request(jig, D.READ_TRACE, pack(("u16", tr["next"]), ("u8", 0)))
             reads += 1
@@ -925,6 +935,14 @@ class Master:
                 _state, nxt, samples = D.decode_trace_chunk(fr.data)
             except ValueError as exc:
                 raise BadReplyError("slave %d sent a bad ReadTrace reply (%s)" % (jig, exc), jig, D.READ_TRACE) from None
+            if (nxt - len(samples)) & 0xFFFF != tr["next"]:
+                # A late reply to an earlier read (one that timed out here and was sent
+                # again): Ver6 frames carry no sequence number, the from-index tells.
+                stale += 1
+                if stale > 5:
+                    raise BadReplyError("slave %d keeps answering ReadTrace for another index" % jig, jig,
+                                        D.READ_TRACE)
+                continue
             for raw, cmd, act, vel, flags in samples:
                 d = (raw - tr["raw"]) & 0x3FFFFFFF  # 30-bit ticks; samples are < 2**29 µs apart
                 if d >= 0x20000000:

@@ -126,9 +126,10 @@ class BusSession:
         self.move_fields = dict(MOVE_DEFAULTS)  # the last values moved with, for new tabs
         self.url = ""
         self.baud = 115200
-        self.ver8 = False
+        self.ver8 = None  # None: each slave's Ver6/Ver8 detected; True/False: one framing forced
         self.lost_reason = ""
-        self.slaves = {}  # id -> {"id", "type", "type_name", "version", "jig"}
+        self._next_reconnect = 0.0
+        self.slaves = {}  # id -> {"id", "type", "type_name", "version", "jig", "variant"}
         self.scan_progress = None  # (id being probed, last id) while a scan runs
         self.axis = None
         self.status = None  # last AllStatus of the axis, or None
