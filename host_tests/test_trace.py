@@ -453,3 +453,29 @@ def test_master_trace_read_skips_a_late_reply_to_an_earlier_read():
     replies += [chunk(0, 12), chunk(0, 12), chunk(12, 3)]
     got = m.trace_read()
     assert [s.command_pos for s in got] == list(range(15))
+
+
+def test_stop_leaves_no_wake_behind(fast):
+    """A slot that waits for the PC sets the bridge's wake flag; StopTrace clears it, so
+    the forwarded transactions after a trace ask for no extra slow pass."""
+    from jig.bridge import AWAIT_PC, B_STATE, B_WAKE, IDLE
+
+    b = SimBench(driver_ids=(2,), baud=921600, servo_on=True, fastpath=fast)
+    known(b, 2)
+    started(b, 2, 1000)
+    b.run_for(20000.0)
+    tr = b.app.trace
+    b.clock.run_while(lambda: tr.ts[T.T_WAITING], 5000.0)
+    bs = b.app.bridge.bs
+    bs[B_STATE] = AWAIT_PC  # the PC's request is out when the slot falls due
+    now = b.hal.ticks_us()
+    tr.ts[T.T_NEXT] = now
+    tr.poll(now)
+    assert bs[B_WAKE] == 1 and not tr.ts[T.T_WAITING]
+    # StopTrace ends the PC's wait (a new PC frame aborts it): no relay's end clears the flag
+    assert b.request(1, D.STOP_TRACE)[1][0] == 0
+    assert bs[B_STATE] == IDLE and bs[B_WAKE] == 0
+    polls = b.hal.wdt_feeds
+    for _ in range(10):
+        assert b.request(2, F.GET_AXIS_STATUS)[1][0] == 0
+    assert b.hal.wdt_feeds - polls <= 2  # no slow pass per transaction

@@ -517,6 +517,8 @@ class Bridge:
         flags = self._event(ev)
         if flags & F_ABORT:
             self._abort()
+            if bs[B_WAKE] and ev == E_PC_LOCAL:
+                self.due[0] = t_in  # the PC's wait is over: the driver bus is free (jig.trace)
         if flags & F_LOCAL:
             self._local(p, t_in)
         elif flags & (F_FORWARD | F_BROADCAST):
@@ -596,7 +598,9 @@ class Bridge:
             flags = self._event(E_PC_BROADCAST if body[0] == _BROADCAST_ID else E_PC_FORWARD)
             if flags & F_ABORT:
                 self._abort()
-            self._route_whole(flags, body, n, self.held_t)
+            # Its turnaround counts from the release: the wait behind the jig's own request is the
+            # driver bus being busy (at most one sample's transaction), not the jig's handling.
+            self._route_whole(flags, body, n, self._ticks())
 
     def _send(self, rs, body, blen, t_in):
         """Stuff body[0:blen] onto rs (re-stuffing a parsed body gives its received

@@ -402,6 +402,8 @@ def pump(ctx, passes: int) -> int:
                     bs[_B_STATE] = nxt[k]
                     if flg[k] & _F_ABORT:
                         v[_C_ABORTS] += 1  # (the PC's own wait: a local frame has no abort in AWAIT_INT)
+                        if bs[_B_WAKE] != 0:
+                            due[0] = now  # the driver bus is free (jig.trace waits for it)
                     v[_C_LOCAL] += 1
                     rec = cs[_CS_ON]
                     if rec != 0:

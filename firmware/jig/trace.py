@@ -166,6 +166,7 @@ class Trace:
     def stop(self, p, d, o, out):
         """0xF6 StopTrace: -> St, the status block (the samples stay readable)."""
         self.ts[T_ON] = OFF
+        self.bridge.bs[B_WAKE] = 0  # (else every relay's end would still ask for a slow pass)
         return self.status(p, d, o, out)
 
     def status(self, p, d, o, out):
