@@ -235,6 +235,11 @@ class Browser:
         self.click("btn-connect")
         self.wait_for(lambda: self.text("conn-state") == "connected: %s @ 115200" % url, 5, what)
 
+    def live(self):
+        """The page's websocket is connected and past NiceGUI's handshake (a tab brought back to the
+        front may first reconnect, or reload itself: keys pressed before that are lost)."""
+        return bool(self.js("return !!(window.did_handshake && window.socket && window.socket.connected)"))
+
     def wait_for(self, predicate, timeout=10.0, what="condition"):
         end = time.monotonic() + timeout
         last = None

@@ -303,6 +303,70 @@ def settled(b):
     return int(b.text("cmd-pos"))
 
 
+def test_8_after_a_reload_move_dec_keeps_its_distance_sign_and_enter(desk):
+    """Issue: after MOVE DEC 5000 a reload showed -5000 with ⏎ on MOVE ABS; MOVE DEC then moved +5000."""
+    from selenium.webdriver.common.keys import Keys
+
+    b = desk.b
+    b.tab("tab-axis")
+    servo_on(b)
+    start = settled(b)
+    b.type("move-target", "5000")
+    b.type("move-speed", "40000")
+    b.type("move-acc", "")
+    b.type("move-dec", "")
+    b.click("btn-move-dec")
+    b.wait_for(lambda: b.text("cmd-pos") == str(start - 5000), 10, "MOVE DEC 5000")
+    settled(b)
+    b.open(desk.url)
+    b.tab("tab-axis")
+    assert value(b, "move-target") == "5000"  # the distance as typed; the button says which way
+    assert enter_hint(b) == ["btn-move-dec"]
+    b.click("btn-move-dec")
+    b.wait_for(lambda: b.text("cmd-pos") == str(start - 10000), 10, "MOVE DEC again: the same way")
+    settled(b)
+    press(b, "move-target", Keys.ENTER)
+    b.wait_for(lambda: b.text("cmd-pos") == str(start - 15000), 10, "Enter: MOVE DEC once more")
+    settled(b)
+    assert value(b, "move-target") == "5000" and enter_hint(b) == ["btn-move-dec"]
+
+
+def test_8_a_second_tab_takes_the_values_of_a_move_sent_from_another(desk):
+    """Issue: a second tab kept its stale move fields, and Enter there repeated its old values."""
+    from selenium.webdriver.common.keys import Keys
+
+    b = desk.b
+    first = b.driver.current_window_handle
+    b.driver.switch_to.new_window("tab")
+    second = b.driver.current_window_handle
+    try:
+        b.open(desk.url)
+        b.tab("tab-axis")
+        b.driver.switch_to.window(first)
+        b.tab("tab-axis")
+        servo_on(b)
+        start = settled(b)
+        b.type("move-target", "1500")
+        b.type("move-speed", "30000")
+        b.type("move-acc", "200")
+        b.type("move-dec", "")
+        b.click("btn-move-inc")
+        b.wait_for(lambda: b.text("cmd-pos") == str(start + 1500), 10, "MOVE INC 1500 in the first tab")
+        settled(b)
+        b.driver.switch_to.window(second)
+        b.wait_for(lambda: b.live() and b.text("cmd-pos") == str(start + 1500) and
+                   [value(b, t) for t in ("move-target", "move-speed", "move-acc", "move-dec")] ==
+                   ["1500", "30000", "200", ""], 10, "the second tab, live, showing the move sent")
+        assert enter_hint(b) == ["btn-move-inc"]
+        press(b, "move-speed", Keys.ENTER)  # repeats the move sent, not this tab's old one
+        b.wait_for(lambda: b.text("cmd-pos") == str(start + 3000), 10, "Enter in the second tab: INC 1500")
+        settled(b)
+    finally:
+        b.driver.switch_to.window(second)
+        b.driver.close()
+        b.driver.switch_to.window(first)
+
+
 def test_8_every_stop_button_names_what_it_stops(desk):
     """Issue: three buttons read STOP (the axis, the recording, the motion test)."""
     b = desk.b

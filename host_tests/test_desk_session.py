@@ -216,6 +216,21 @@ def test_a_mixed_bus_is_scanned_in_each_slaves_variant():
             s.stop()
 
 
+def test_move_dec_keeps_the_distance_as_typed_and_its_button(s):
+    """What every tab and a reload show is the field, sign and Enter button of the move sent."""
+    s.select_axis(2)
+    s.servo(True)
+    s.clear_position()
+    seq = s.move_seq
+    assert s.move("inc", "5000", "40000", sign=-1) == "slave 2: move inc -5000 at 40000 pps"
+    poll_until(s, lambda st: st.command_pos == -5000)
+    assert s.move_fields == {"target": "5000", "speed": "40000", "acc": "", "dec": ""}
+    assert s.last_move == ("inc", -1) and s.move_seq == seq + 1
+    with pytest.raises(forms.InputError):  # refused before anything is sent: the last move stays
+        s.move("abs", "1", "0")
+    assert s.last_move == ("inc", -1) and s.move_seq == seq + 1
+
+
 def test_emergency_stop_ends_a_running_motion_test(s):
     s.select_axis(2)
     s.servo(True)

@@ -24,7 +24,7 @@ from motorjig import names as N
 from motorjig.master import BAUD_RATES
 
 from motorjig.desk import forms
-from motorjig.desk.session import ESTOP_RECOVERY, UserError, protocol_name, stamp
+from motorjig.desk.session import ESTOP_RECOVERY, MOVES, UserError, protocol_name, stamp
 
 CSS = """
 .lamp {display:inline-block; padding:1px 7px; margin:2px; border-radius:9px; font-size:11px;
@@ -125,7 +125,7 @@ class DeskPage:
             capture = DeskCapture()
         self.capture = capture
         self.test_panel = None
-        self.last_move = ("abs", 1)  # what Enter in a move field repeats
+        self.last_move = session.last_move  # what Enter in a move field repeats (the session's, every tab)
         self.changed = Changed()
         self.log_seq = 0
         self.lamps = {}
@@ -346,11 +346,11 @@ class DeskPage:
                                    "move-dec").classes("w-24")
                 for box in (self.target, self.speed, self.acc, self.dec):
                     box.on("keydown.enter", lambda: self._move(*self.last_move))
+                self.changed("move_seq", s.move_seq)  # the fields above are this move's already
                 self.move_buttons = {}
                 with ui.row():
-                    for key, text, testid in ((("abs", 1), "Move ABS", "btn-move-abs"),
-                                              (("inc", 1), "Move INC", "btn-move-inc"),
-                                              (("inc", -1), "Move DEC", "btn-move-dec")):
+                    for key, text in MOVES.items():
+                        testid = "btn-" + text.lower().replace(" ", "-")  # btn-move-abs, -inc, -dec
                         self.move_buttons[key] = tid(ui.button(text, on_click=lambda k=key: self._move(*k)), testid)
                 self._mark_enter()
                 with ui.row().classes("items-center"):
@@ -403,14 +403,23 @@ class DeskPage:
         if (kind, sign) != self.last_move:
             self.last_move = (kind, sign)
             self._mark_enter()
-        target = self.target.value
-        if sign < 0:  # Move DEC: the same distance the other way
-            try:
-                target = -forms.position(target, "distance")
-            except forms.InputError as exc:
-                ui.notify(str(exc), type="negative")
-                return None
-        return self.act(self.s.move, kind, target, self.speed.value, self.acc.value, self.dec.value)
+        # Move DEC sends the field's distance the other way; the field keeps it as typed
+        return self.act(self.s.move, kind, self.target.value, self.speed.value, self.acc.value, self.dec.value,
+                        sign)
+
+    def _take_move_fields(self):
+        """Another tab (or this one) sent a move: show its values and its Enter button here, so
+        Enter in this tab repeats that move and not what this tab showed before."""
+        s = self.s
+        if not self.changed("move_seq", s.move_seq):
+            return
+        fields, last = dict(s.move_fields), s.last_move
+        for box, key in ((self.target, "target"), (self.speed, "speed"), (self.acc, "acc"), (self.dec, "dec")):
+            if box.value != fields[key]:
+                box.value = fields[key]
+        if last != self.last_move:
+            self.last_move = last
+            self._mark_enter()
 
     async def _jog_press(self, direction):
         self.jogging = True
@@ -754,6 +763,7 @@ class DeskPage:
                                        value=s.axis if s.axis in s.slaves else None)
         if ch("axis_pick", s.axis) and s.axis in s.slaves:
             self.axis_pick.value = s.axis
+        self._take_move_fields()
         self._refresh_axis()
         self._refresh_test()
         if self.test_panel is not None:

@@ -123,7 +123,9 @@ class BusSession:
         self.state = "disconnected"  # connected, lost, lent (to a test run)
         self.lent_to = ""  # who has the port while lent
         self._lent_abort = None  # called by STOP / EMERGENCY STOP while lent
-        self.move_fields = dict(MOVE_DEFAULTS)  # the last values moved with, for new tabs
+        self.move_fields = dict(MOVE_DEFAULTS)  # the last values moved with (as typed), for every tab
+        self.last_move = ("abs", 1)  # the last move button used: what Enter repeats, in every tab
+        self.move_seq = 0  # bumped by every move sent, so every tab takes its fields again
         self.url = ""
         self.baud = 115200
         self.ver8 = None  # None: each slave's Ver6/Ver8 detected; True/False: one framing forced
@@ -660,14 +662,24 @@ class BusSession:
         return "EMERGENCY STOP sent"
 
     @command("Move")
-    def move(self, kind, target, speed, accel="", decel=""):
-        """Move absolute ('abs') or incremental ('inc'); acc/dec times use the EX frames."""
+    def move(self, kind, target, speed, accel="", decel="", sign=1):
+        """Move absolute ('abs') or incremental ('inc'); acc/dec times use the EX frames.
+        sign -1 is Move DEC: the incremental distance as typed, sent the other way. The
+        fields are kept as typed with the button used, so every tab (and a reload) shows
+        the very field, sign and Enter button of the move that was sent."""
         a = self._need_driver()
+        if (kind, 1 if sign >= 0 else -1) not in MOVES:
+            raise UserError("unknown move %r" % kind)
+        sign = 1 if sign >= 0 else -1
         fields = {"target": str(target), "speed": str(speed), "acc": str(accel or ""), "dec": str(decel or "")}
         target = forms.position(target, "position" if kind == "abs" else "distance")
+        if sign < 0:
+            target = forms.position(-target, "distance")
         speed = forms.speed(speed)
         acc, dec = forms.accel(accel, "acceleration time"), forms.accel(decel, "deceleration time")
-        self.move_fields = fields
+        with self._log_lock:
+            self.move_fields, self.last_move = fields, (kind, sign)
+            self.move_seq += 1
         self._abort.clear()
         if kind == "abs":
             fn = (lambda m: m.move_abs_ex(a, target, speed, acc, dec)) if acc or dec else \
