@@ -134,19 +134,18 @@ def test_every_range_message_reads_as_a_sentence(capsys, tmp_path, key, value, w
 
 def test_every_bounded_key_of_the_schema_has_a_readable_range_message(tmp_path):
     """Each key with a lower or upper bound, given a value just outside it, says 'must be ..., not V'."""
-    for table, keys in (("plan", schema.PLAN_KEYS), ("drive", schema.DRIVE_KEYS)):
-        for k in keys:
-            assert k.lo is None and k.hi is None or table == "drive"
+    tables = [("plan", schema.PLAN_KEYS), ("drive", schema.DRIVE_KEYS)]
+    tables += [("steps", schema.COMMON_STEP_KEYS + kind.keys) for kind in schema.STEP_KINDS]
     checked = 0
-    for kind in schema.STEP_KINDS:
-        for k in schema.COMMON_STEP_KEYS + kind.keys:
+    for table, keys in tables:
+        for k in keys:
             if k.type not in ("int", "num") or (k.lo is None and k.hi is None):
                 continue
             bad = k.lo - 1 if k.lo is not None else k.hi + 1
             ck = P._Checker("p.toml", None)
             ck.error = lambda keypath, message: P.PlanError("p.toml", None, P.dotted(keypath), message)
             with pytest.raises(P.PlanError) as e:
-                ck.value(bad, k, ("steps", 0, k.name))
+                ck.value(bad, k, (table, 0, k.name) if table == "steps" else (table, k.name))
             assert e.value.message == "must be %s, not %r" % (P.bounds_text(k.lo, k.hi), bad)
             checked += 1
     assert checked > 20

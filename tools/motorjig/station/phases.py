@@ -6,13 +6,13 @@ here), the phase gets the ``MotorJigPlug`` as ``bus``, and ``run_<kind>`` does t
 bus work and sets the values. ``ctx`` is the run's ``RunContext`` (progress lines,
 the operator's confirmation, the wiring).
 
-The trace of a move is sampled with GetAllStatus as fast as the bus allows (one
-round trip: at 115 200 baud about 5 ms through the jig, so >= 100 Hz), timed with the
-station's monotonic clock from just before the move command; durations are known to
-one sampling period. A sample is dated at the middle of its round trip, which is when
-the drive read its position to within half a round trip; dated at the reply's arrival,
-every position would be late by the reply's whole way back (at 20 000 pps a 6 ms round
-trip is 60 pulses an overshoot measurement would wrongly add).
+The axis is sampled during a moving step by ``station.sampling``: by the jig itself
+(GetAllStatus at a fixed period, every sample and the step's own commands dated by
+the jig's clock) when its firmware has the sampler, else by the station (GetAllStatus
+as fast as the bus allows, dated on this PC's clock at the middle of each round trip).
+A step whose samples cannot judge the drive (a gap, a rate below the plan's floor, a
+command the jig did not date) ends ERROR with the reason, never FAIL
+(``sampling.UntrustedMeasurement``).
 """
 
 import json
@@ -22,7 +22,9 @@ import time
 import openhtf as htf
 from openhtf.util import threads, units
 
+from jig import frame as F
 from motorjig.station.plug import MotorJigPlug
+from motorjig.station.sampling import UntrustedMeasurement, new_trace
 
 PULSE = units.UnitDescriptor("pulse", "pulse", "pulse")
 S = units.SECOND
@@ -82,46 +84,11 @@ def _skip(test, name):
         cached["outcome"] = "SKIPPED"
 
 
-# --- sampling a move ------------------------------------------------------------------
-class Trace:
-    """Samples (t, command, actual, velocity) of one axis, with the flags of the last one."""
-
-    def __init__(self, t0, ctx=None, step=None):
-        self.t0 = t0
-        self.ctx, self.step = ctx, step
-        self.rows = []
-        self.last = None
-        self.peak_error = 0
-
-    def sample(self, m, s):
-        sent = time.monotonic()
-        st = m.get_all_status(s)
-        t = (sent + time.monotonic()) / 2.0 - self.t0
-        row = [round(t, 4), st.command_pos, st.actual_pos, st.actual_vel]
-        self.rows.append(row)
-        if self.ctx is not None:
-            self.ctx.sample(self.step, row)
-        self.peak_error = max(self.peak_error, abs(st.pos_error))
-        self.last = st
-        return st
-
-    def until_stopped(self, m, s, timeout_s, settle_s=0.05):
-        """Sample until the axis stops (or stops with an alarm); False on timeout. A standstill
-        counts once motion was seen, or after settle_s (a drive may flag a start a cycle late)."""
-        end = time.monotonic() + timeout_s
-        moved = False
-        while True:
-            st = self.sample(m, s)
-            moved = moved or st.axis.motioning
-            if not st.axis.motioning and (moved or self.rows[-1][0] >= settle_s):
-                return True
-            if time.monotonic() > end:
-                return False
-
-    def attachment(self, target=None):
-        return json.dumps({"columns": ["t", "command", "actual", "velocity"],
-                           "units": {"t": "s", "command": "pulse", "actual": "pulse", "velocity": "pps"},
-                           "rows": self.rows, "target": target})
+def _attachment(trace, target=None):
+    return json.dumps({"columns": ["t", "command", "actual", "velocity"],
+                       "units": {"t": "s", "command": "pulse", "actual": "pulse", "velocity": "pps"},
+                       "rows": trace.rows, "target": target, "sampled_by": trace.source,
+                       "marks": trace.marks})
 
 
 def _alarm_code(m, s):
@@ -229,11 +196,8 @@ def measures_move(step, plan):
         _m("sample_rate", units.HERTZ, "status samples per second")]
 
 
-def run_move(test, bus, step, ctx):
-    m, s, a = bus.master, bus.slave, step.args
-    start, target, acc, dec = _move_plan(m, s, a)
-    expected = trapezoid_time(target - start, a["speed"], acc, dec)
-    trace = Trace(time.monotonic(), ctx, step)
+def _send_move(m, s, a, target, acc, dec):
+    """The step's move command: the Ex frame when the step sets its own accel/decel times."""
     custom = a["accel_ms"] is not None or a["decel_ms"] is not None
     if a["mode"] == "abs":
         if custom:
@@ -244,16 +208,37 @@ def run_move(test, bus, step, ctx):
         m.move_inc_ex(s, a["distance"], a["speed"], accel_ms=acc, decel_ms=dec)
     else:
         m.move_inc(s, a["distance"], a["speed"])
-    done = trace.until_stopped(m, s, a["timeout_s"])
-    t_end = trace.rows[-1][0]
-    if not done:
-        m.move_stop(s)
-        m.wait_motion_done(s, timeout=5.0)
+
+
+# the frame type each kind of move goes out as (the jig dates the command by it)
+_MOVE_FTYPES = {("abs", False): F.MOVE_ABS_POS, ("abs", True): F.MOVE_ABS_POS_EX,
+                ("inc", False): F.MOVE_INC_POS, ("inc", True): F.MOVE_INC_POS_EX}
+
+
+def run_move(test, bus, step, ctx):
+    m, s, a = bus.master, bus.slave, step.args
+    start, target, acc, dec = _move_plan(m, s, a)
+    expected = trapezoid_time(target - start, a["speed"], acc, dec)
+    trace = new_trace(bus, ctx, step)
+    trace.begin(m, s)
+    try:
+        trace.mark("move", _MOVE_FTYPES[(a["mode"], a["accel_ms"] is not None or a["decel_ms"] is not None)])
+        _send_move(m, s, a, target, acc, dec)
+        trace.sent(m, s, "move")
+        done = trace.until_stopped(m, s, a["timeout_s"])
+        if not done:
+            m.move_stop(s)
+            m.wait_motion_done(s, timeout=5.0)
+    finally:
+        trace.end(m)
     last = trace.last
-    test.measurements["duration"] = round(t_end, 4)
+    t_move, t_end = trace.time_of("move"), trace.rows[-1][0]
+    duration = t_end - t_move
+    n, rate, _ = trace.stats(t_move, t_end)
+    test.measurements["duration"] = round(duration, 4)
     if a["duration_s"] is None:
         if expected > 0:
-            test.measurements["duration_ratio"] = round(t_end / expected, 4)
+            test.measurements["duration_ratio"] = round(duration / expected, 4)
         else:  # an abs move to where the axis already is: no profile to compare with, nothing to judge
             _skip(test, "duration_ratio")
     test.measurements["expected_duration"] = round(expected, 4)
@@ -261,9 +246,11 @@ def run_move(test, bus, step, ctx):
     test.measurements["following_error"] = trace.peak_error
     test.measurements["in_position"] = bool(done and last.command_pos == target and not last.axis.error_all)
     test.measurements["alarm"] = _alarm_code(m, s)
-    test.measurements["samples"] = len(trace.rows)
-    test.measurements["sample_rate"] = round(len(trace.rows) / t_end, 1) if t_end > 0 else 0.0
-    test.attach("trace", trace.attachment(target), "application/json")
+    test.measurements["samples"] = n
+    test.measurements["sample_rate"] = round(rate, 1)
+    test.attach("trace", _attachment(trace, target), "application/json")
+    if done:  # a drive that never stopped is judged (duration, in_position) whatever the samples
+        trace.check(t_move, t_end, ctx.plan.sample_rate_min)
 
 
 def measures_home(step, plan):
@@ -275,16 +262,25 @@ def measures_home(step, plan):
 
 def run_home(test, bus, step, ctx):
     m, s = bus.master, bus.slave
-    trace = Trace(time.monotonic(), ctx, step)
-    m.move_origin(s)
-    done = trace.until_stopped(m, s, step.args["timeout_s"])
-    if not done:
-        m.move_stop(s)
-        m.wait_motion_done(s, timeout=5.0)
-    test.measurements["duration"] = round(trace.rows[-1][0], 4)
+    trace = new_trace(bus, ctx, step)
+    trace.begin(m, s)
+    try:
+        trace.mark("home", F.MOVE_ORIGIN)
+        m.move_origin(s)
+        trace.sent(m, s, "home")
+        done = trace.until_stopped(m, s, step.args["timeout_s"])
+        if not done:
+            m.move_stop(s)
+            m.wait_motion_done(s, timeout=5.0)
+    finally:
+        trace.end(m)
+    t_home, t_end = trace.time_of("home"), trace.rows[-1][0]
+    test.measurements["duration"] = round(t_end - t_home, 4)
     test.measurements["origin_ok"] = bool(done and m.get_axis_status(s).origin_ok)
     test.measurements["alarm"] = _alarm_code(m, s)
-    test.attach("trace", trace.attachment(), "application/json")
+    test.attach("trace", _attachment(trace), "application/json")
+    if done:
+        trace.check(t_home, t_end, ctx.plan.sample_rate_min, "the origin search")
 
 
 def _io_entries(step, wiring):
@@ -358,25 +354,33 @@ def run_limit_sensor(test, bus, step, ctx):
     m, s, jig, a = bus.master, bus.slave, bus.jig_id, step.args
     relay, drive_input, _ = ctx.plan.wiring.find("relay", a["relay"])  # the loader checked it is wired
     direction = DIR_PLUS if drive_input == 0 else DIR_MINUS
-    trace = Trace(time.monotonic(), ctx, step)
-    m.move_velocity(s, a["speed"], direction)
+    trace = new_trace(bus, ctx, step)
+    trace.begin(m, s)
+    stopped = False
     try:
-        while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
-            trace.sample(m, s)
-        sent = time.monotonic()
+        trace.mark("move", F.MOVE_VELOCITY)
+        m.move_velocity(s, a["speed"], direction)
+        trace.sent(m, s, "move")
+        trace.sample_until(m, s, a["after_ms"] / 1000.0)
+        trace.mark("relay", F.SET_IO_OUTPUT)
         m.set_io_output(jig, set_mask=1 << relay)
-        t_relay = (sent + time.monotonic()) / 2.0 - trace.t0  # dated as the samples are
+        trace.sent_local("relay")
         stopped = trace.until_stopped(m, s, a["timeout_s"])
-        flags = trace.last.axis
+        limit = "hw_limit_plus" if direction == DIR_PLUS else "hw_limit_minus"
         test.measurements["stopped"] = stopped
-        test.measurements["limit_flag"] = bool(flags.hw_limit_plus if direction == DIR_PLUS
-                                               else flags.hw_limit_minus)
-        test.measurements["stop_time"] = round(trace.rows[-1][0] - t_relay, 4)
+        test.measurements["limit_flag"] = bool(getattr(trace.last.axis, limit))
     finally:
         m.set_io_output(jig, clear_mask=1 << relay)
         if trace.last is None or trace.last.axis.motioning:
             m.move_stop(s)
-    test.attach("trace", trace.attachment(), "application/json")
+        trace.end(m)
+    if trace.source == "jig":  # the relay's instant, to within half a sample period: when the drive saw it
+        trace.date_by_flag("relay", limit, trace.time_of("move"))
+    t_relay, t_end = trace.time_of("relay"), trace.rows[-1][0]
+    test.measurements["stop_time"] = round(t_end - t_relay, 4)
+    test.attach("trace", _attachment(trace), "application/json")
+    if stopped:
+        trace.check(t_relay, t_end, ctx.plan.sample_rate_min, "the stop at the limit")
 
 
 def measures_stop_response(step, plan):
@@ -388,29 +392,37 @@ def measures_stop_response(step, plan):
 
 def run_stop_response(test, bus, step, ctx):
     m, s, a = bus.master, bus.slave, step.args
-    trace = Trace(time.monotonic(), ctx, step)
-    m.move_velocity(s, a["speed"], DIR_PLUS)
+    trace = new_trace(bus, ctx, step)
+    trace.begin(m, s)
+    stopped = False
+    stop_ftype = F.EMERGENCY_STOP if a["stop"] == "emergency-stop" else F.MOVE_STOP
     try:
-        while not trace.rows or trace.rows[-1][0] < a["after_ms"] / 1000.0:
-            trace.sample(m, s)
-        t_stop = time.monotonic() - trace.t0
-        t, pos, _, vel = trace.rows[-1]
-        pos_at_stop = pos + vel * (t_stop - t)  # the last sample carried forward to the stop command
+        trace.mark("move", F.MOVE_VELOCITY)
+        m.move_velocity(s, a["speed"], DIR_PLUS)
+        trace.sent(m, s, "move")
+        trace.sample_until(m, s, a["after_ms"] / 1000.0)
+        trace.mark("stop", stop_ftype)
         if a["stop"] == "emergency-stop":
             m.emergency_stop(s)
         else:
             m.move_stop(s)
+        trace.sent(m, s, "stop")
         stopped = trace.until_stopped(m, s, 10.0)
     finally:  # a velocity move runs until stopped: never leave it running
         if trace.last is None or trace.last.axis.motioning:
             m.emergency_stop(s)
+        trace.end(m)
+    t_stop, t_end = trace.time_of("stop"), trace.rows[-1][0]
     test.measurements["stopped"] = stopped
-    test.measurements["stop_time"] = round(trace.rows[-1][0] - t_stop, 4)
-    test.measurements["overshoot"] = int(round(abs(trace.rows[-1][1] - pos_at_stop)))
-    test.attach("trace", trace.attachment(), "application/json")
+    test.measurements["stop_time"] = round(t_end - t_stop, 4)
+    # the command position when the stop went out (between the samples around it) to where it ended
+    test.measurements["overshoot"] = int(round(abs(trace.rows[-1][1] - trace.position_at(t_stop))))
+    test.attach("trace", _attachment(trace), "application/json")
     if a["stop"] == "emergency-stop" and a["recover"]:
         m.servo_enable(s, False)
         m.servo_enable(s, True)
+    if stopped:
+        trace.check(t_stop - 0.02, t_end, ctx.plan.sample_rate_min, "the stop")
 
 
 BUS_SUMS = {
@@ -426,7 +438,9 @@ def measures_bus_health(step, plan):
     out = [_at_most(name, a[name + "_max"], doc="sum of the jig's " + " + ".join(parts))
            for name, parts in BUS_SUMS.items()]
     out += [_at_most("turnaround_max", a["turnaround_max_us"], US, "the jig's longest handling time"),
-            _at_most("roundtrip_max", a["roundtrip_max_ms"], MS, "longest request/reply round trip seen here"),
+            _at_most("roundtrip_max", a["roundtrip_max_ms"], MS, "longest request/reply round trip seen here")
+            if a["roundtrip_max_ms"] is not None else
+            _m("roundtrip_max", MS, "longest request/reply round trip seen here (reported, not judged: this PC's)"),
             _m("roundtrip_avg", MS, "mean round trip"), _m("roundtrip_min", MS, "shortest round trip")]
     return out
 

@@ -58,6 +58,8 @@ class Plan:
         self.stop_on_fail = settings["stop_on_fail"]
         self.on_end = settings["on_end"]
         self.reset_jig_counters = settings["reset_jig_counters"]
+        self.sampling = settings["sampling"]
+        self.sample_rate_min = settings["sample_rate_min"]
         self.drive = drive
         self.wiring = wiring
         self.steps = steps

@@ -178,6 +178,7 @@ class MotorJigPlug(plugs.BasePlug):
         self.failed = False
         self.aborted = False
         self.safety = None  # the SafetyNet while armed (arm_safety_net)
+        self.trace_period_us = None  # the jig samples the moving steps at this period (None: this PC does)
 
     def note_failure(self):
         self.failed = True

@@ -208,9 +208,30 @@ def _preflight(plan, serial, ctx):
         if plan.reset_jig_counters:
             bus.master.reset_counters(bus.jig_id)
         _arm_safety_net(test, bus, ctx)
+        _choose_sampling(test, bus, plan)
         bus.master.roundtrips.clear()
 
     return preflight
+
+
+def _choose_sampling(test, bus, plan):
+    """Who samples the axis in the moving steps (plan.sampling): the jig, when its firmware has the
+    sampler, at the period its driver bus allows (``sampling.trace_period_us``); else this PC."""
+    from motorjig.station import sampling
+
+    bus.trace_period_us = None
+    if plan.sampling != "pc":
+        if sampling.jig_can_trace(bus.master, bus.jig_id):
+            bus.trace_period_us = sampling.trace_period_us(bus.master.get_parameter(bus.jig_id, P_DOWN_BAUD))
+        elif plan.sampling == "jig":
+            raise PreflightError("the plan has the jig sample the axis (sampling = \"jig\"), but the jig's firmware "
+                                 "has no sampler: update the jig or set sampling = \"pc\"; nothing was moved")
+    test.test_record.metadata["sampling"] = (
+        {"by": "jig", "period_us": bus.trace_period_us} if bus.trace_period_us else
+        {"by": "pc", "why": "the plan says so" if plan.sampling == "pc" else "the jig's firmware has no sampler"})
+
+
+P_DOWN_BAUD = 2  # the jig's parameter 2, down_baud: the driver bus the jig samples on
 
 
 def _arm_safety_net(test, bus, ctx):
