@@ -232,7 +232,7 @@ def run_move(test, bus, step, ctx):
     finally:
         trace.end(m)
     last = trace.last
-    t_move, t_end = trace.time_of("move"), trace.rows[-1][0]
+    t_move, t_end = trace.time_of("move"), trace.t_stop
     duration = t_end - t_move
     n, rate, _ = trace.stats(t_move, t_end)
     test.measurements["duration"] = round(duration, 4)
@@ -274,7 +274,7 @@ def run_home(test, bus, step, ctx):
             m.wait_motion_done(s, timeout=5.0)
     finally:
         trace.end(m)
-    t_home, t_end = trace.time_of("home"), trace.rows[-1][0]
+    t_home, t_end = trace.time_of("home"), trace.t_stop
     test.measurements["duration"] = round(t_end - t_home, 4)
     test.measurements["origin_ok"] = bool(done and m.get_axis_status(s).origin_ok)
     test.measurements["alarm"] = _alarm_code(m, s)
@@ -376,7 +376,7 @@ def run_limit_sensor(test, bus, step, ctx):
         trace.end(m)
     if trace.source == "jig":  # the relay's instant, to within half a sample period: when the drive saw it
         trace.date_by_flag("relay", limit, trace.time_of("move"))
-    t_relay, t_end = trace.time_of("relay"), trace.rows[-1][0]
+    t_relay, t_end = trace.time_of("relay"), trace.t_stop
     test.measurements["stop_time"] = round(t_end - t_relay, 4)
     test.attach("trace", _attachment(trace), "application/json")
     if stopped:
@@ -412,7 +412,7 @@ def run_stop_response(test, bus, step, ctx):
         if trace.last is None or trace.last.axis.motioning:
             m.emergency_stop(s)
         trace.end(m)
-    t_stop, t_end = trace.time_of("stop"), trace.rows[-1][0]
+    t_stop, t_end = trace.time_of("stop"), trace.t_stop
     test.measurements["stopped"] = stopped
     test.measurements["stop_time"] = round(t_end - t_stop, 4)
     # the command position when the stop went out (between the samples around it) to where it ended

@@ -62,6 +62,7 @@ class _Trace:
         self.last = None
         self.peak_error = 0
         self.marks = {}  # name -> t (s, on the rows' time base)
+        self.t_stop = None  # until_stopped: the first sample at standstill
 
     def _add(self, t, smp):
         row = [round(t, 4), smp.command_pos, smp.actual_pos, smp.actual_vel]
@@ -75,15 +76,18 @@ class _Trace:
     def until_stopped(self, m, s, timeout_s, settle_s=0.05):
         """Sample until the axis stops (or stops with an alarm); False on timeout. A standstill
         counts once motion was seen, or ``settle_s`` after the last command (a drive may flag a
-        start a cycle late)."""
+        start a cycle late). ``t_stop``: the first sample at standstill (the last one on a
+        timeout) -- a chunk read from the jig may hold samples after it."""
         end = time.monotonic() + timeout_s
         moved = False
         while True:
             for t, smp in self.more(m, s):
                 moved = moved or smp.axis.motioning
                 if not smp.axis.motioning and (moved or t - self.t_last_command() >= settle_s):
+                    self.t_stop = t
                     return True
             if time.monotonic() > end:
+                self.t_stop = self.rows[-1][0] if self.rows else 0.0
                 return False
 
     def sample_until(self, m, s, t_from_command):
