@@ -305,28 +305,29 @@ def test_master_methods_unfold_the_clock():
 
 
 def test_master_on_the_real_time_bench():
+    import time
+
     from motorjig.sim import Bench
 
     with Bench(driver_ids=(2,), baud=115200) as bench:
-        with Master(bench.tcp_url, timeout=0.5) as m:
+        # (generous: on a loaded host the real-time bench falls behind the wall clock)
+        with Master(bench.tcp_url, timeout=2.0) as m:
             m.servo_enable(2, True)
-            assert m.trace_start(2, 5000) == T.RING
+            assert m.trace_start(2, 10000) == T.RING
             m.move_inc(2, 5000, 20000)
-            import time
-
-            time.sleep(0.5)
+            time.sleep(0.4)
             s1 = m.trace_read()
-            time.sleep(0.3)
+            time.sleep(0.2)
             s2 = m.trace_read()
             st = m.trace_stop()
             s3 = m.trace_read()
     samples = s1 + s2 + s3
     assert st["state"] == "off" and st["failed"] == 0
-    assert len(samples) == st["taken"] >= 100
+    assert len(samples) == st["taken"] >= 40
     t = [s.t_us for s in samples]
     assert t == sorted(t)
     gaps = [b_ - a for a, b_ in zip(t, t[1:])]
-    assert sorted(gaps)[len(gaps) // 2] == 5000  # the jig's period, whatever the host's load
+    assert sorted(gaps)[len(gaps) // 2] == 10000  # the jig's period, whatever the host's load
 
 
 def test_probe_under_cpython():

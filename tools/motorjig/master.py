@@ -938,8 +938,8 @@ class Master:
             if (nxt - len(samples)) & 0xFFFF != tr["next"]:
                 # A late reply to an earlier read (one that timed out here and was sent
                 # again): Ver6 frames carry no sequence number, the from-index tells.
-                stale += 1
-                if stale > 5:
+                stale += 1  # (the next request drops what is queued: this converges)
+                if stale > 50:
                     raise BadReplyError("slave %d keeps answering ReadTrace for another index" % jig, jig,
                                         D.READ_TRACE)
                 continue
