@@ -107,3 +107,37 @@ def test_without_user_the_operator_is_the_login_name_or_unknown(monkeypatch):
     assert default_operator() == "unknown"
     monkeypatch.setenv("USER", "anna")
     assert default_operator() == "anna"
+
+
+def test_a_pc_that_stalls_past_the_safety_window_makes_the_step_an_error_not_a_fail(tmp_path, monkeypatch):
+    """This PC hangs for 1 s inside a request mid-move (the heartbeat waits behind it): the jig's
+    safety stop rightly stops the axis, and the step that was measuring ends ERROR, naming the
+    stop, instead of failing a good drive on a move the PC cut short."""
+    from motorjig.station import plug
+
+    plan = tmp_path / "long.toml"
+    plan.write_text('[plan]\nname = "long"\nversion = "1"\n[drive]\nslave = 2\n'
+                    '[[steps]]\nkind = "servo"\n[[steps]]\nkind = "move"\nname = "long_move"\n'
+                    'distance = 20000\nspeed = 5000\nposition_error_max = 0\n')
+    calls = {"n": 0}
+    request = plug.TimedMaster.request
+
+    def stalling(self, slave, ftype, *a, **kw):
+        if slave == DRIVE or ftype == 0xF7:
+            calls["n"] += 1
+            if calls["n"] == 40:
+                with self.lock:
+                    import time
+                    time.sleep(1.0)
+        return request(self, slave, ftype, *a, **kw)
+
+    monkeypatch.setattr(plug.TimedMaster, "request", stalling)
+    with Bench(driver_ids=(DRIVE,), baud=115200, pty=False) as b:
+        ctx = run_plan(load_plan(str(plan)), b.tcp_url, out_dir=str(tmp_path), out=None, timeout_ms=300,
+                       confirm=lambda m: True, safety_window_ms=300)
+        assert b.sim.counters["safety_stops"] >= 1
+    rec = ctx.record
+    assert rec["outcome"] == "ERROR", [(p["name"], p["outcome"]) for p in rec["phases"]]
+    last = rec["phases"][-1]
+    assert last["name"] == "long_move" and last["outcome"] == "ERROR"
+    assert "the jig's safety stop fired during the step" in json.dumps(rec)

@@ -527,6 +527,12 @@ def build_phase(step, plan, ctx):
             raise
         results = _results(test, measures)
         failed = _failed_lines(results)
+        if failed and bus.safety is not None and bus.safety.fired():
+            bus.note_failure()
+            why = ("the jig's safety stop fired during the step: this PC was silent for more than %d ms and the "
+                   "jig stopped the axis; the drive was not judged" % bus.safety.window_ms)
+            ctx.finished(step, "ERROR", [why], sum(bus.master.roundtrips[n0:]), results)
+            raise UntrustedMeasurement(why)
         if failed:
             bus.note_failure()
             # the report's banner says why the run failed: the first failing step's measurements

@@ -132,6 +132,7 @@ class SafetyNet:
             self.action = SAFETY_EMERGENCY_STOP
             m.set_parameter(j, P_SAFETY_ACTION, self.action)
         self.saved = saved  # from here on disarm() has something to put back
+        self.stops_before = self.stops()
         m.set_parameter(j, P_SAFETY_TIMEOUT_MS, self.window_ms)
         self._stop.clear()
         self._thread = threading.Thread(target=self._beat, name="motorjig-heartbeat", daemon=True)
@@ -147,6 +148,18 @@ class SafetyNet:
                 self.beats += 1
             except Exception as exc:  # a lost connection: the jig's stop will act, which is the point
                 self.problem = str(exc)
+
+    def stops(self):
+        """The jig's safety_stops counter (it counts every time the silence stop fired)."""
+        return self.m.read_counters(self.jig_id).get("safety_stops", 0)
+
+    def fired(self):
+        """True when the jig's safety stop has fired since the net was armed: this PC was silent
+        for the window, and the jig stopped the axis in the middle of whatever was measured."""
+        try:
+            return self.stops() != self.stops_before
+        except JigError:
+            return False
 
     def stop_heartbeat(self):
         self._stop.set()

@@ -135,7 +135,7 @@ def operator_name(value):
 EXPECTED_EXCEPTIONS = frozenset((
     "motorjig.station.runner.PreflightError", "motorjig.station.phases.RunAborted",
     "openhtf.util.threads.ThreadTerminationError", "KeyboardInterrupt", "motorjig.tomlsource.SourceError",
-    "motorjig.station.store.StoreError"))
+    "motorjig.station.store.StoreError", "motorjig.station.sampling.UntrustedMeasurement"))
 ABORT_EXCEPTIONS = frozenset(("motorjig.station.phases.RunAborted", "openhtf.util.threads.ThreadTerminationError",
                               "KeyboardInterrupt"))
 
