@@ -62,7 +62,7 @@ def _mline(m):
     text = "%s %s = %s%s" % (mark, m["name"], "unset" if m.get("value") is None else fmt_value(m["value"]), unit)
     if m.get("limits"):
         text += "   (%s)" % m["limits"]
-    return text, m.get("outcome") not in ("PASS", None)
+    return text, m.get("outcome") not in ("PASS", "SKIPPED", None)  # SKIPPED: left out, nothing to judge
 
 
 class TestPanel:
@@ -293,7 +293,7 @@ class TestPanel:
         row["lines"].clear()
         with row["lines"]:
             judged = [m for m in step["measurements"] if m.get("limits") or m.get("outcome") == "FAIL"]
-            bad = [m for m in judged if m.get("outcome") not in ("PASS", None)]
+            bad = [m for m in judged if m.get("outcome") not in ("PASS", "SKIPPED", None)]
             # A long list (a parameter set) is summed up: its failures in full, the rest counted.
             shown = judged if len(judged) <= MAX_LINES else bad[:MAX_LINES]
             for m in shown:

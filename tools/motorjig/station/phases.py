@@ -23,6 +23,7 @@ import openhtf as htf
 from openhtf.util import threads, units
 
 from jig import frame as F
+from motorjig.errors import JigError
 from motorjig.station.plug import MotorJigPlug
 from motorjig.station.sampling import UntrustedMeasurement, new_trace
 
@@ -442,6 +443,9 @@ def measures_bus_health(step, plan):
             if a["roundtrip_max_ms"] is not None else
             _m("roundtrip_max", MS, "longest request/reply round trip seen here (reported, not judged: this PC's)"),
             _m("roundtrip_avg", MS, "mean round trip"), _m("roundtrip_min", MS, "shortest round trip")]
+    doc = "the drive's longest GetAllStatus response on the jig's clock (request's end to reply's end)"
+    out.append(_at_most("drive_response_max", a["drive_response_max_us"], US, doc)
+               if a["drive_response_max_us"] is not None else _m("drive_response_max", US, doc))
     return out
 
 
@@ -456,6 +460,23 @@ def run_bus_health(test, bus, step, ctx):
     test.measurements["roundtrip_avg"] = round(sum(rt) / len(rt) * 1000, 3)
     test.measurements["roundtrip_min"] = round(min(rt) * 1000, 3)
     test.attach("bus_counters", json.dumps(counters), "application/json")
+    responses = _drive_responses(m, bus.slave, bus.jig_id)
+    if responses:
+        test.measurements["drive_response_max"] = max(responses)
+    else:  # a jig that does not date the requests it forwards: nothing to judge the drive's response by
+        _skip(test, "drive_response_max")
+
+
+def _drive_responses(m, s, jig, n=8):
+    """The drive's response times (µs) to n GetAllStatus requests, as the jig timed them; [] when the
+    jig's firmware keeps no transaction times."""
+    for _ in range(n):
+        m.get_all_status(s)
+    try:
+        times = m.transaction_times(jig)
+    except JigError:
+        return []
+    return [t.round_trip_us for t in times if t.slave == s and t.round_trip_us is not None]
 
 
 def measures_prompt(step, plan):

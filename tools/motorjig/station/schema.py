@@ -146,7 +146,8 @@ STEP_KINDS = (
             "deceleration ramp counts: v * td / 2, 1 000 at 20 000 pps and 100 ms (see *Choosing the limits*)", lo=0),
         key("recover", "bool", True, "after an emergency stop: servo off and on again, so later steps can move"),
     ), ("stopped", "stop_time", "overshoot")),
-    Kind("bus-health", "The jig's own counters over the run and the round trips seen by the station.", (
+    Kind("bus-health", "The jig's own counters over the run, the drive's response times on the jig's clock and "
+         "the round trips seen by the station.", (
         key("crc_errors_max", "int", 0, "CRC errors on either bus", lo=0),
         key("stuffing_errors_max", "int", 0, "stuffing errors on either bus", lo=0),
         key("timeouts_max", "int", 0, "forwarded requests that got no reply", lo=0),
@@ -156,8 +157,12 @@ STEP_KINDS = (
         key("roundtrip_max_ms", "num", None, "the longest request/reply round trip through the jig as this PC "
             "saw it, ms: reported always, judged only when the plan sets this (a busy PC, not the drive, makes "
             "it long; see *Choosing the limits*)", lo=0),
+        key("drive_response_max_us", "int", None, "the drive's longest response on the jig's clock: from a "
+            "GetAllStatus request's last stop bit on the driver bus to its reply's last byte, the drive's "
+            "turnaround plus the reply's wire time (3.6 ms at 115 200 baud), us; the step asks 8 times. Reported "
+            "when the jig dates the requests it forwards, judged when set", lo=0),
     ), ("crc_errors", "stuffing_errors", "timeouts", "overflows", "turnaround_max", "roundtrip_max",
-        "roundtrip_avg", "roundtrip_min")),
+        "roundtrip_avg", "roundtrip_min", "drive_response_max")),
     Kind("prompt", "An operator instruction, confirmed on the console or in the Desk (`--yes` confirms "
          "unattended).", (
         key("message", "str", REQUIRED, "what the operator must do"),
