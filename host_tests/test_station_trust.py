@@ -141,3 +141,23 @@ def test_a_pc_that_stalls_past_the_safety_window_makes_the_step_an_error_not_a_f
     last = rec["phases"][-1]
     assert last["name"] == "long_move" and last["outcome"] == "ERROR"
     assert "the jig's safety stop fired during the step" in json.dumps(rec)
+
+
+@pytest.mark.parametrize("late_us,verdict", [(0, "PASS"), (4000, "FAIL")])
+def test_bus_health_judges_the_drives_response_on_the_jigs_clock(tmp_path, late_us, verdict):
+    """A drive that answers 4 ms late fails drive_response_max (the jig timed it, request's end to
+    reply's end); a healthy one passes, and this PC's round trip is only reported."""
+    plan = tmp_path / "bus.toml"
+    plan.write_text('[plan]\nname = "bus"\nversion = "1"\n[drive]\nslave = 2\n'
+                    '[[steps]]\nkind = "bus-health"\nturnaround_max_us = 100000\ndrive_response_max_us = 6000\n')
+    with Bench(driver_ids=(DRIVE,), baud=115200, pty=False) as b:
+        if late_us:
+            b.sim.drivers[DRIVE].set_fault("late", late_us)
+        ctx = run_plan(load_plan(str(plan)), b.tcp_url, out_dir=str(tmp_path), out=None, timeout_ms=300,
+                       confirm=lambda m: True)
+    rec = ctx.record
+    assert rec["outcome"] == verdict, rec["outcome_details"]
+    ms = rec["phases"][-1]["measurements"]
+    response = ms["drive_response_max"]["measured_value"]
+    assert 3600 < response < 4500 + late_us  # the reply's 3.6 ms on the wire + the drive's turnaround (+ late)
+    assert ms["roundtrip_max"]["outcome"] == "PASS" and not ms["roundtrip_max"].get("validators")
