@@ -158,6 +158,22 @@ def test_status_codes_map_to_exception_classes():
         assert N.status_name(code) != "status_0x%02X" % code
 
 
+def test_the_jigs_own_frames_are_named():
+    """Every frame of the jig's own (jig.diag, 0xF0-0xF9) has its name: an error about a
+    trace read says ReadTrace, not Frame0xF7."""
+    from jig import diag as D
+
+    assert {t: N.frame_name(t) for t in range(0xF5, 0xFA)} == {
+        D.START_TRACE: "StartTrace", D.STOP_TRACE: "StopTrace", D.READ_TRACE: "ReadTrace",
+        D.GET_TRACE_STATUS: "GetTraceStatus", D.READ_TRANSACTION_TIMES: "ReadTransactionTimes"}
+    for t in range(0xF0, 0xFA):
+        assert not N.frame_name(t).startswith("Frame0x"), hex(t)
+    m, _sent = loop_master(retries=0)
+    with pytest.raises(E.NoReplyError) as ei:
+        m.trace_status(1)
+    assert "GetTraceStatus" in str(ei.value)
+
+
 def test_names_cover_the_tables():
     assert N.frame_name(0x43) == "GetAllStatus" and N.frame_name(0xF0) == "ReadCounters"
     assert [p.number for p in N.STEP_PARAMS] == list(range(29))

@@ -43,11 +43,13 @@ FRAME_NAMES = _frame_types()
 
 
 def _jig_frames():
-    """Frame types the jig adds (0xF0..0xF4), from the firmware's jig.diag."""
+    """Frame types the jig adds (0xF0..0xF9), from the firmware's jig.diag."""
     from jig import diag as D
 
     return {getattr(D, n): _camel(n) for n in ("READ_COUNTERS", "RESET_COUNTERS", "START_BUS_SCAN",
-                                               "GET_BUS_SCAN_RESULT", "READ_CRASH_LOG")}
+                                               "GET_BUS_SCAN_RESULT", "READ_CRASH_LOG", "START_TRACE",
+                                               "STOP_TRACE", "READ_TRACE", "GET_TRACE_STATUS",
+                                               "READ_TRANSACTION_TIMES")}
 
 
 FRAME_NAMES.update(_jig_frames())

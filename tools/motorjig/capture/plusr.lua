@@ -109,6 +109,11 @@ G.FRAME_NAMES = {
   [0xF2] = "StartBusScan",
   [0xF3] = "GetBusScanResult",
   [0xF4] = "ReadCrashLog",
+  [0xF5] = "StartTrace",
+  [0xF6] = "StopTrace",
+  [0xF7] = "ReadTrace",
+  [0xF8] = "GetTraceStatus",
+  [0xF9] = "ReadTransactionTimes",
 }
 G.STATUS_NAMES = {
   [0x00] = "ok",
@@ -330,7 +335,7 @@ G.JIG_PARAMS = {
   [7] = {"de_post_us", "us"},
   [8] = {"protocol", "0=Ver6 1=Ver8"},
   [9] = {"safety_timeout_ms", "ms, 0=off"},
-  [10] = {"safety_action", "0=MoveStop 1=EmergencyStop"},
+  [10] = {"safety_action", "0=MoveStop 1=EmergencyStop 2=EmergencyStop+servo off"},
   [11] = {"scan_timeout_ms", "ms"},
   [12] = {"forward_mode", "0=cut-through 1=store-and-forward"},
   [13] = {"capture", "0=off 1=record both buses"},
@@ -400,6 +405,11 @@ G.REQUEST_LEN = {
   [0xF2] = {0},
   [0xF3] = {0},
   [0xF4] = {0},
+  [0xF5] = {6},
+  [0xF6] = {0},
+  [0xF7] = {3},
+  [0xF8] = {0},
+  [0xF9] = {0},
 }
 G.REQUEST_LEN_VER8 = {
   [0x01] = {0},
@@ -466,6 +476,11 @@ G.REQUEST_LEN_VER8 = {
   [0xF2] = {0},
   [0xF3] = {0},
   [0xF4] = {0},
+  [0xF5] = {6},
+  [0xF6] = {0},
+  [0xF7] = {3},
+  [0xF8] = {0},
+  [0xF9] = {0},
 }
 G.REPLY_LEN = {
   [0x01] = {-1},
@@ -524,6 +539,11 @@ G.REPLY_LEN = {
   [0xF2] = {0},
   [0xF3] = {19},
   [0xF4] = {-1},
+  [0xF5] = {6},
+  [0xF6] = {26},
+  [0xF7] = {-1},
+  [0xF8] = {26},
+  [0xF9] = {-1},
 }
 G.REPLY_LEN_VER8 = {
   [0x01] = {-1},
@@ -582,6 +602,11 @@ G.REPLY_LEN_VER8 = {
   [0xF2] = {0},
   [0xF3] = {19},
   [0xF4] = {-1},
+  [0xF5] = {6},
+  [0xF6] = {26},
+  [0xF7] = {-1},
+  [0xF8] = {26},
+  [0xF9] = {-1},
 }
 G.JIG = {
   READ_COUNTERS = 240,
