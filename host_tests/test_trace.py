@@ -335,6 +335,8 @@ def test_probe_under_cpython():
     assert ok
     used, ok = trace_probe.read_alloc(10)
     assert ok
+    used, ok = trace_probe.times_alloc(10)
+    assert ok
 
 
 def test_zero_heap_bytes_per_sample_on_micropython():
@@ -343,7 +345,8 @@ def test_zero_heap_bytes_per_sample_on_micropython():
     if shutil.which("node") is None or not os.path.isdir(pkg):
         pytest.skip("node or the MicroPython WebAssembly package is missing (tools/setup.sh)")
     code = ("import sys\nsys.path.append('/data')\nimport trace_probe as t\n"
-            "print(t.sample_alloc(300))\nprint(t.read_alloc(50))\nprint(sys.implementation.name)\n")
+            "print(t.sample_alloc(300))\nprint(t.read_alloc(50))\nprint(sys.implementation.name)\n"
+            "print(t.times_alloc(50))\n")
     r = subprocess.run(["node", run_vm, "--file", "bridge_probe.py=" + os.path.join(HERE, "bridge_probe.py"),
                         "--file", "trace_probe.py=" + os.path.join(HERE, "trace_probe.py"), code],
                        capture_output=True, text=True, timeout=300)
@@ -351,6 +354,7 @@ def test_zero_heap_bytes_per_sample_on_micropython():
     lines = r.stdout.split("\n")
     assert lines[2] == "micropython"
     assert lines[0] == "(0, True)" and lines[1] == "(0, True)", r.stdout
+    assert lines[3] == "(0, True)", r.stdout  # a long local reply sent in pieces while the trace runs
 
 
 @pytest.mark.parametrize("mode", [0, 1])
@@ -480,3 +484,39 @@ def test_stop_leaves_no_wake_behind(fast):
     for _ in range(10):
         assert b.request(2, F.GET_AXIS_STATUS)[1][0] == 0
     assert b.hal.wdt_feeds - polls <= 2  # no slow pass per transaction
+
+
+def test_long_local_replies_leave_no_sample_unanswered(fast):
+    """A long local reply written whole (ReadTransactionTimes: 162 data bytes, 15 ms at
+    115 200 baud; ReadCounters, GetSlaveInfo) left the driver bus unread meanwhile: the
+    rest of a sample's reply, read after it, looked to the parser like a silence longer
+    than the inter-byte timeout, and a good reply was dropped (down_timeouts,
+    down_noise), the sample unanswered, a gap of the sample's timeout in the trace (the
+    station read 25-45 ms gaps). While the sampler runs, such replies go out in pieces
+    with the driver bus read between them, as ReadTrace's does."""
+    import random
+
+    from jig import handlers as H
+
+    assert H._T_WAITING == T.T_WAITING and T.T_ON == 0
+    b = SimBench(driver_ids=(2,), baud=115200, servo_on=True, fastpath=fast)
+    known(b, 2)
+    for _ in range(4):
+        assert b.request(2, F.GET_AXIS_STATUS)[1][0] == 0  # (ReadTransactionTimes: 16 rows)
+    started(b, 2, 4750)
+    assert b.request(2, F.MOVE_VELOCITY, struct.pack("<IB", 20000, 1))[1] == b"\x00"
+    rng = random.Random(7)
+    frm = 0
+    long_replies = (D.READ_TRANSACTION_TIMES, D.READ_COUNTERS, F.GET_SLAVE_INFO, D.GET_TRACE_STATUS)
+    for i in range(120):
+        b.run_for(rng.random() * 4750.0)
+        _w, d = b.request(1, long_replies[i % 4])
+        assert d is not None and d[0] == 0, i
+        if i % 10 == 9:
+            _s, frm = read_all(b, frm)
+    assert b.request(2, F.MOVE_STOP)[1] == b"\x00"
+    st = status(b)
+    c = b.counters
+    assert c["down_timeouts"] == 0 and c["down_noise"] == 0 and c["int_timeouts"] == 0, c
+    assert st["failed"] == 0, st
+    assert b.down_bus.collisions == 0 and b.up_bus.collisions == 0

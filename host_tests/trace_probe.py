@@ -103,3 +103,28 @@ def read_alloc(n=100):
     if has_mem:
         gc.enable()
     return used, r.hal.up.writes - w0 == n
+
+
+def times_alloc(n=100):
+    """Heap bytes allocated over n ReadTransactionTimes requests answered while the trace
+    runs (a long local reply: written in pieces, the sampler's slots between them), and
+    whether every reply went out."""
+    r = TraceRig()
+    for _ in range(5):
+        r.sample_once()
+    req = bytearray(frame.encode(1, 0xF9))
+    v = r.app.counters.v
+    for _ in range(10):
+        r.local_once(req)
+    out0 = v[1]  # C_UP_OUT
+    gc.collect()
+    has_mem = hasattr(gc, "mem_alloc")
+    if has_mem:
+        gc.disable()
+        a0 = gc.mem_alloc()
+    for _ in range(n):
+        r.local_once(req)
+    used = gc.mem_alloc() - a0 if has_mem else -1
+    if has_mem:
+        gc.enable()
+    return used, v[1] - out0 == n

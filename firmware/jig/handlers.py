@@ -38,11 +38,16 @@ bridging steady state.
 
 from jig import diag, frame, mem
 from jig import params as P
+from jig.compat import const
 from jig.frame import get_u16, put_u16, put_u32
 from jig.parser import S_HEAD, S_N
 
 LEN_ANY = -1
 DEFERRED = -1  # handle(): no reply now; the handler sends it later (Bridge.local_reply)
+# While the sampler runs (or its request is out), a reply with more data bytes than this goes
+# out in pieces with the sampler's slots between them (jig.trace.Trace.reply), not whole.
+PACED_MIN = const(8)
+_T_WAITING = const(10)  # jig.trace.T_WAITING (T_ON is 0; a host test checks they agree)
 
 
 class SlaveIdCheck:
@@ -101,6 +106,7 @@ class Handlers:
         self.counter_values = [0] * diag.N_WIRE
         self.pending_change = -1
         self.id_check = SlaveIdCheck(app)
+        self._trace_ts = bytearray(16)  # jig.trace's state array (Trace binds it; none running until then)
         # frame type -> (handler, required request data length or LEN_ANY), as a list
         # indexed by frame type (a subscript is cheaper than a dict's get on the board)
         by_type = {
@@ -151,7 +157,12 @@ class Handlers:
         if need != LEN_ANY and n != need:
             out[0] = frame.STATUS_FRAME_ERROR
             return 1
-        return fn(p, body, head, out)
+        n = fn(p, body, head, out)
+        if n > PACED_MIN:
+            ts = self._trace_ts
+            if ts[0] or ts[_T_WAITING]:  # (T_ON) the sampler runs, or its request is out
+                return self.app.trace.reply(p, head, out, n)  # in pieces: DEFERRED
+        return n
 
     def after_reply(self, p):
         """Run changes that must wait until the reply has gone (new slave id etc.)."""

@@ -117,6 +117,7 @@ class Trace:
         self._ticks = app.hal.ticks_us
         self.up_st = app.up_parser.st  # a PC frame arriving goes first
         self.byte_us = 10000000 // app.up_baud + 1
+        app.handlers._trace_ts = self.ts  # (long local replies are paced while we run: Handlers.handle)
 
     # --- the frames (handlers.Handlers calls these) --------------------------------
     def start(self, p, d, o, out):
@@ -213,6 +214,17 @@ class Trace:
         for i in range(n):
             mem.copy(out, k, ring, ((frm + i) & _RING_MASK) * SAMPLE, SAMPLE)
             k += SAMPLE
+        return self.reply(p, o, out, k)
+
+    def reply(self, p, o, out, k):
+        """Send the jig's reply out[0:k] to request p (its type at body[o - 1]) in pieces,
+        the sampler's slots kept between them (``between``); returns handlers.DEFERRED
+        (-1): the reply has gone. ReadTrace's reply goes this way, and while the sampler
+        runs or its request is out, every other long local reply (``handlers``): one
+        written whole (ReadTransactionTimes: 15 ms at 115 200 baud) left the driver bus
+        unread meanwhile, and the rest of a sample's reply, read after it, looked like
+        a silence longer than the inter-byte timeout to the parser: a good reply dropped
+        (down_timeouts, down_noise), the sample unanswered and a gap of its timeout."""
         body = p.body
         sync = body[1] if o == 3 else -1
         b = self.bridge
@@ -224,12 +236,11 @@ class Trace:
         """Called between the pieces of a reply to the PC: the driver bus's bytes are
         read (our sample's reply among them) and a slot due goes out now."""
         ts = self.ts
-        if not ts[T_ON]:
-            return
-        app = self.app
         if ts[T_WAITING]:
+            # (also after a StopTrace: the reply still coming must be read as it comes)
             if self.bridge.held_n:
                 return  # (its release would relay a reply onto the PC bus we are writing)
+            app = self.app
             k = app._down_any()
             if k:
                 k = app._down_read(app.down_rx, k if k < _RX_CHUNK else _RX_CHUNK)
@@ -237,6 +248,8 @@ class Trace:
                     app._down_bytes(app.down_parser, app.down_rx, k, self._ticks())
             if ts[T_WAITING]:
                 return
+        if not ts[T_ON]:
+            return
         now = self._ticks()
         if ticks_diff(now, ts[T_NEXT]) >= 0:
             self.poll(now)
