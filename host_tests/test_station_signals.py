@@ -186,6 +186,8 @@ def test_sigkill_mid_move_the_jig_stops_the_axis_within_the_window(tmp_path, on_
         assert bool(offs) == servo_off, d.received[-6:]
         assert d.servo_on != servo_off
         assert b.sim.counters["safety_stops"] == 1
+        moving, servo_on, vel = drive_state(b.tcp_url)  # a second connection, now that talking is harmless
+        assert not moving and vel == 0 and servo_on != servo_off
     assert not glob.glob(str(tmp_path / "long_*.json"))  # SIGKILL: no record, as the docs say
 
 
