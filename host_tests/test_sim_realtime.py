@@ -122,6 +122,27 @@ def test_paced_clock_runs_stalled_events_at_their_own_times():
     assert clock.now == t0 + 70000.0 and clock.wall() >= clock.now  # never ahead of the wall clock
 
 
+def test_paced_clock_reports_how_far_it_lags_the_wall_clock():
+    """A simulation that falls behind the wall clock (a loaded host) delays every request
+    from outside by the lag: its bytes reach the bus at their wall time. A PC whose timeout
+    is shorter reads that as a deaf jig (a ReadTrace with 300 ms, the sim 300 ms late);
+    the clock says how late it is, now and at worst, so the two can be told apart."""
+    import time
+
+    from motorjig.sim.clock import PacedClock
+
+    clock = PacedClock()
+    t0 = clock.now
+    clock.run_until(t0 + 2000.0)
+    assert clock.max_lag_us < 20000.0
+    clock.at(t0 + 3000.0, lambda: time.sleep(0.08))  # the host stalls 80 ms in an event
+    clock.at(t0 + 3100.0, lambda: None)
+    clock.run_until(t0 + 3100.0)
+    assert clock.lag_us >= 70000.0 and clock.max_lag_us >= 70000.0
+    clock.run_until(clock.wall() + 2000.0)  # caught up: no lag now, the worst one kept
+    assert clock.lag_us < 20000.0 and clock.max_lag_us >= 70000.0
+
+
 def test_a_host_stall_during_a_drive_turnaround_is_no_jig_timeout(bench, monkeypatch):
     """The bench thread frozen for 80 ms (> the jig's 50 ms reply timeout) right when a
     drive answers: on the bench's timeline nothing happened, the reply is relayed."""

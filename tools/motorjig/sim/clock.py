@@ -80,6 +80,13 @@ class PacedClock(VirtualClock):
         super().__init__(start_us)
         self._t0 = time.monotonic() - start_us / 1e6
         self.pump = None
+        # How far the simulation has fallen behind the wall clock (µs), now and at worst: a
+        # loaded host (the bench needs about half a core at 115 200 baud with a trace
+        # running) makes it lag, and every request from outside then waits that long
+        # in addition, since its bytes reach the bus at their wall time. A PC timeout
+        # shorter than the lag reads as a deaf jig: tell the two apart with these.
+        self.lag_us = 0.0
+        self.max_lag_us = 0.0
 
     def wall(self):
         return (time.monotonic() - self._t0) * 1e6
@@ -91,6 +98,10 @@ class PacedClock(VirtualClock):
             wall = self.wall()
             # Everything due up to t, but never ahead of the wall clock.
             VirtualClock.run_until(self, t if t < wall else wall)
+            lag = self.wall() - self.now  # (after the events: one may have stalled the host)
+            self.lag_us = lag if lag > 0.0 else 0.0
+            if lag > self.max_lag_us:
+                self.max_lag_us = lag
             if wall >= t:
                 return
             nxt = self.next_time()
