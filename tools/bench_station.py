@@ -203,7 +203,9 @@ def main(argv=None):
                 plan, ctx, wall = one_run(ver8, out)
                 rec = ctx.record
                 if rec["outcome"] != "PASS":
-                    print("  Ver%d: the run did not pass (%s): no figures" % (8 if ver8 else 6, rec["outcome"]))
+                    print("  Ver%d: the run did not pass (%s: %s): no figures" % (
+                        8 if ver8 else 6, rec["outcome"],
+                        "; ".join(d.get("description", "") for d in rec.get("outcome_details", []))[:120]))
                     continue
                 in_steps = sum(t for _, t, _ in ctx.timings)
                 bus = sum(b for _, _, b in ctx.timings)
