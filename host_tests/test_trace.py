@@ -488,7 +488,7 @@ def test_stop_leaves_no_wake_behind(fast):
 
 def test_long_local_replies_leave_no_sample_unanswered(fast):
     """A long local reply written whole (ReadTransactionTimes: 162 data bytes, 15 ms at
-    115 200 baud; ReadCounters, GetSlaveInfo) left the driver bus unread meanwhile: the
+    115 200 baud; ReadCounters) left the driver bus unread meanwhile: the
     rest of a sample's reply, read after it, looked to the parser like a silence longer
     than the inter-byte timeout, and a good reply was dropped (down_timeouts,
     down_noise), the sample unanswered, a gap of the sample's timeout in the trace (the
@@ -508,6 +508,7 @@ def test_long_local_replies_leave_no_sample_unanswered(fast):
     rng = random.Random(7)
     frm = 0
     long_replies = (D.READ_TRANSACTION_TIMES, D.READ_COUNTERS, F.GET_SLAVE_INFO, D.GET_TRACE_STATUS)
+    assert H.PACED_MIN < 2 + 16 * 10 and H.PACED_MIN < 2 + 4 * D.N_WIRE  # these two go in pieces
     for i in range(120):
         b.run_for(rng.random() * 4750.0)
         _w, d = b.request(1, long_replies[i % 4])

@@ -117,7 +117,6 @@ class Trace:
         self._ticks = app.hal.ticks_us
         self.up_st = app.up_parser.st  # a PC frame arriving goes first
         self.byte_us = 10000000 // app.up_baud + 1
-        app.handlers._trace_ts = self.ts  # (long local replies are paced while we run: Handlers.handle)
 
     # --- the frames (handlers.Handlers calls these) --------------------------------
     def start(self, p, d, o, out):
@@ -220,7 +219,7 @@ class Trace:
         """Send the jig's reply out[0:k] to request p (its type at body[o - 1]) in pieces,
         the sampler's slots kept between them (``between``); returns handlers.DEFERRED
         (-1): the reply has gone. ReadTrace's reply goes this way, and while the sampler
-        runs or its request is out, every other long local reply (``handlers``): one
+        runs or its request is out, every other long local reply (``Handlers._long``): one
         written whole (ReadTransactionTimes: 15 ms at 115 200 baud) left the driver bus
         unread meanwhile, and the rest of a sample's reply, read after it, looked like
         a silence longer than the inter-byte timeout to the parser: a good reply dropped
