@@ -261,3 +261,47 @@ class Browser:
             self.js("document.querySelectorAll('.q-notification').forEach(n => n.remove());")
         if not self.driver.save_screenshot(path):
             raise OSError("could not write the screenshot %s" % path)
+
+
+# A plan with one slow move (400 000 pulses at 20 000 pps: 20 s), something to abort or stop.
+LONG_MOVE_PLAN = """\
+[plan]
+name = "long-move"
+version = "1.0"
+description = "one slow move of 400 000 pulses (20 s): something to abort"
+
+[drive]
+slave = 2
+protocol = [6, 8]
+slave_type = 20
+
+[[steps]]
+kind = "servo"
+name = "servo_on"
+on = true
+
+[[steps]]
+kind = "move"
+name = "long"
+mode = "inc"
+distance = 400000
+speed = 20000
+position_error_max = 0
+"""
+
+
+def close_dialog(b):
+    b.js("""document.querySelectorAll('.q-dialog .q-btn')
+            .forEach(x => { if (x.innerText.trim() === 'CLOSE') x.click(); });""")
+    b.wait_for(lambda: not b.js("return document.querySelectorAll('.q-dialog__inner').length"), 5, "closed")
+
+
+def upload_plan(b, path, expect):
+    """Upload the plan file at path on the Test tab; ``expect`` is the page's confirmation
+    ("long-move.toml uploaded: plan long-move 1.0, 2 steps")."""
+    b.tab("tab-plan")
+    b.click("btn-plan-upload")
+    box = b.wait_for(lambda: b.find("plan-upload", 'input[type="file"]'), 5, "the upload field")
+    box.send_keys(str(path))
+    b.wait_for(lambda: expect in b.driver.page_source, 10, "uploaded")
+    close_dialog(b)

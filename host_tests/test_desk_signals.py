@@ -22,28 +22,6 @@ WHY_NOT = B.browser_missing()
 if WHY_NOT and os.environ.get("CI") != "true":
     pytestmark = pytest.mark.skip(reason="browser tests need Chromium here: " + WHY_NOT)
 
-PLAN = """\
-[plan]
-name = "long-move"
-version = "1.0"
-
-[drive]
-slave = 2
-protocol = [6, 8]
-slave_type = 20
-
-[[steps]]
-kind = "servo"
-name = "servo_on"
-on = true
-
-[[steps]]
-kind = "move"
-name = "long"
-mode = "inc"
-distance = 400000
-speed = 20000
-"""
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
@@ -58,14 +36,8 @@ def test_a_signal_to_the_desk_mid_run_stops_the_axis_and_writes_the_records(tmp_
         browser = b = B.Browser()
         b.open(page)
         plan = tmp_path / "long-move.toml"
-        plan.write_text(PLAN)
-        b.tab("tab-plan")
-        b.click("btn-plan-upload")
-        box = b.wait_for(lambda: b.find("plan-upload", 'input[type="file"]'), 5, "the upload field")
-        box.send_keys(str(plan))
-        b.wait_for(lambda: "long-move.toml uploaded" in b.driver.page_source, 10, "uploaded")
-        b.js("""document.querySelectorAll('.q-dialog .q-btn')
-                .forEach(x => { if (x.innerText.trim() === 'CLOSE') x.click(); });""")
+        plan.write_text(B.LONG_MOVE_PLAN)
+        B.upload_plan(b, plan, "long-move.toml uploaded")
         b.wait_for(lambda: "long-move 1.0 (uploaded)" in b.text("plan-select"), 5, "the uploaded plan chosen")
         b.type("serial", "SN-SIG-1")
         b.click("btn-test-start")

@@ -27,30 +27,7 @@ if WHY_NOT and os.environ.get("CI") != "true":
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WIRING = os.path.join(ROOT, "plans", "ezi-step-eol.toml")
 
-LONG_PLAN = """\
-[plan]
-name = "long-move"
-version = "1.0"
-description = "one slow move of 400 000 pulses (20 s): something to abort"
-
-[drive]
-slave = 2
-protocol = [6, 8]
-slave_type = 20
-
-[[steps]]
-kind = "servo"
-name = "servo_on"
-on = true
-
-[[steps]]
-kind = "move"
-name = "long"
-mode = "inc"
-distance = 400000
-speed = 20000
-position_error_max = 0
-"""
+LONG_PLAN = B.LONG_MOVE_PLAN
 
 
 @pytest.fixture(scope="module")
@@ -87,10 +64,7 @@ def field(b, testid):
     return box if box.tag_name in ("input", "textarea") else b.el(testid, "input")
 
 
-def close_dialog(b):
-    b.js("""document.querySelectorAll('.q-dialog .q-btn')
-            .forEach(x => { if (x.innerText.trim() === 'CLOSE') x.click(); });""")
-    b.wait_for(lambda: not b.js("return document.querySelectorAll('.q-dialog__inner').length"), 5, "closed")
+close_dialog = B.close_dialog
 
 
 def step_state(b, name):
@@ -167,12 +141,7 @@ def test_abort_during_a_move_stops_the_axis_and_switches_the_servo_off(desk):
     first = b.driver.current_window_handle
     plan = desk.tmp / "long-move.toml"
     plan.write_text(LONG_PLAN)
-    b.tab("tab-plan")
-    b.click("btn-plan-upload")
-    box = b.wait_for(lambda: b.find("plan-upload", 'input[type="file"]'), 5, "the upload field")
-    box.send_keys(str(plan))
-    b.wait_for(lambda: "long-move.toml uploaded: plan long-move 1.0, 2 steps" in b.driver.page_source, 10, "uploaded")
-    close_dialog(b)
+    B.upload_plan(b, plan, "long-move.toml uploaded: plan long-move 1.0, 2 steps")
     b.wait_for(lambda: "long-move 1.0 (uploaded)" in b.text("plan-select"), 5, "the uploaded plan chosen")
     b.type("serial", "SN-DESK-0002")
     b.click("btn-test-start")
