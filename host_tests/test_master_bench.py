@@ -393,6 +393,8 @@ def test_ver8_framing_through_the_jig():
         mm.move_inc(DRIVE, 500, FAST)
         mm.wait_motion_done(DRIVE, timeout=5)
         assert mm.get_command_pos(DRIVE) == 500
+        # the jig names a Ver8 request by the sync number it went out with
+        assert mm.transaction_times(JIG)[-1][:2] == (DRIVE, mm.last_sync(DRIVE))
     with Bench(driver_ids=(DRIVE,), baud=115200) as b, Master(b.tcp_url, ver8=True, retries=0) as mm:
         with pytest.raises(E.NoReplyError):  # a Ver6 bus ignores Ver8 frames
             mm.get_slave_info(DRIVE)
@@ -451,6 +453,11 @@ def test_jig_trace_and_transaction_times(bench, m):
     m.get_axis_status(OTHER)
     rows = m.transaction_times()
     assert rows[-1].slave == OTHER and rows[-1].b1 == F.GET_AXIS_STATUS and 0 < rows[-1].round_trip_us < 50000
+    # the move command, dated by the jig on the samples' time base: after the first sample, before motion shows
+    move = [r for r in rows if r.slave == DRIVE and r.b1 == F.MOVE_INC_POS][-1]
+    t_move = m.trace_time_us(move.request_end)
+    first_moving = next(s.t_us for s in samples if s.axis.motioning)
+    assert samples[0].t_us <= t_move < first_moving <= t_move + 2 * 5000
 
 
 def test_every_public_method_is_exercised():

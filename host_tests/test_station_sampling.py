@@ -50,6 +50,9 @@ class FakeJigMaster:
     def variant(self, slave):
         return 6
 
+    def trace_time_us(self, tick):
+        return self._trace["t"] + (tick - self._trace["raw"])  # (no tick wrap in these traces)
+
     def transaction_times(self, jig=1):
         return [TransactionTime(2, 0x35, self.move_tick, self.move_tick + 900, 900)]
 

@@ -41,6 +41,7 @@ import serial
 
 from jig import diag as D
 from jig import frame as F
+from jig.compat import ticks_diff
 from jig.parser import FrameParser
 
 from motorjig import names as N
@@ -349,6 +350,11 @@ class Master:
         if self._serial is None:
             raise PortError("port %s is not open" % self.url)
         return self._serial
+
+    def last_sync(self, slave):
+        """The sync number of the last Ver8 request sent to slave (None: none yet); the jig's
+        ReadTransactionTimes names a Ver8 request by it."""
+        return self._sync.get(slave)
 
     def next_sync(self, slave):
         """The sync number for the next Ver8 request to slave (one counter per slave)."""
@@ -944,16 +950,21 @@ class Master:
                                         D.READ_TRACE)
                 continue
             for raw, cmd, act, vel, flags in samples:
-                d = (raw - tr["raw"]) & 0x3FFFFFFF  # 30-bit ticks; samples are < 2**29 µs apart
-                if d >= 0x20000000:
-                    d -= 0x40000000
-                tr["t"] += d
+                tr["t"] = self.trace_time_us(raw)
                 tr["raw"] = raw
                 out.append(TraceSample(tr["t"], cmd, act, vel, AxisStatus(flags)))
             tr["next"] = nxt
             if len(samples) < D.TRACE_CHUNK:
                 break
         return out
+
+    def trace_time_us(self, tick):
+        """A jig tick (30-bit µs: a sample's, or ReadTransactionTimes') on the running trace's time
+        base, µs since trace_start: unfolded from the newest sample read, < 2**29 µs away."""
+        tr = self._trace
+        if tr is None:
+            raise JigError("trace_time_us before trace_start")
+        return tr["t"] + ticks_diff(tick, tr["raw"])
 
     def trace_status(self, jig=1):
         """The jig's sampler: {state, slave, period_us, taken, skipped, lost, failed, first, next}."""

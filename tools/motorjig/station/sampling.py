@@ -99,6 +99,8 @@ class _Trace:
         return max(self.marks.values()) if self.marks else 0.0
 
     def time_of(self, name):
+        if name not in self.marks:
+            raise UntrustedMeasurement("the %s did not date %s: the step's times cannot be dated" % (self.source, name))
         return self.marks[name]
 
     def date_by_flag(self, name, flag, after=0.0):
@@ -223,21 +225,16 @@ class JigTrace(_Trace):
     def sent(self, m, s, name):
         """The command ``name`` (the frame type given to ``mark``) has been answered: its instant
         on the jig's clock."""
-        b1 = self._ftype if m.variant(s) == 6 else m._sync.get(s)  # Ver8: the sync number it went out with
+        b1 = self._ftype if m.variant(s) == 6 else m.last_sync(s)  # Ver8: the sync number it went out with
         for tt in reversed(m.transaction_times(self.jig)):
             if tt.slave == s and tt.b1 == b1:
-                self.marks[name] = _trace_time_us(m, tt.request_end) / 1e6
+                self.marks[name] = m.trace_time_us(tt.request_end) / 1e6
                 return
         raise UntrustedMeasurement("the jig has no record of %s going out to slave %d: the step's times cannot "
                                    "be dated" % (name, s))
 
     def sent_local(self, name):
         pass  # the jig records only what it forwards: the step dates it by the drive's flags (date_by_flag)
-
-    def time_of(self, name):
-        if name not in self.marks:
-            raise UntrustedMeasurement("the jig did not date %s: the step's times cannot be dated" % name)
-        return self.marks[name]
 
     def end(self, m):
         try:
@@ -247,16 +244,6 @@ class JigTrace(_Trace):
         if self.status and self.status.get("lost"):
             raise UntrustedMeasurement("the jig lost %d samples (its buffer was full: this PC read too late): the "
                                        "drive was not judged" % self.status["lost"])
-
-
-def _trace_time_us(m, tick):
-    """A jig tick (30-bit µs) on the time base of the trace the Master reads (µs since StartTrace),
-    unfolded from the newest sample's tick: the two are less than 2**29 µs apart."""
-    tr = m._trace
-    d = (tick - tr["raw"]) & 0x3FFFFFFF
-    if d >= 0x20000000:
-        d -= 0x40000000
-    return tr["t"] + d
 
 
 def jig_can_trace(m, jig):
