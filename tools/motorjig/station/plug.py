@@ -42,6 +42,8 @@ import time
 from openhtf import plugs
 from openhtf.util import configuration
 
+from jig.params import P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
+from jig.safety import ACTION_EMERGENCY_STOP, ACTION_EMERGENCY_STOP_SERVO_OFF
 from motorjig.errors import JigError
 from motorjig.master import Master
 
@@ -60,13 +62,6 @@ for _name, _doc, _default in (
          1000)):
     if _name not in CONF._declarations:  # a re-import (tests) must not declare twice
         CONF.declare(_name, _doc, default_value=_default)
-
-
-# The jig's safety-stop parameters (firmware/jig/params.py) and safety_action's values.
-P_SAFETY_TIMEOUT_MS = 9
-P_SAFETY_ACTION = 10
-SAFETY_EMERGENCY_STOP = 1
-SAFETY_EMERGENCY_STOP_SERVO_OFF = 2
 
 
 class TimedMaster(Master):
@@ -111,16 +106,10 @@ class SafetyNet:
         self.m = master
         self.jig_id = jig_id
         self.window_ms = int(window_ms)
-        self.action = SAFETY_EMERGENCY_STOP_SERVO_OFF if servo_off else SAFETY_EMERGENCY_STOP
+        self.action = ACTION_EMERGENCY_STOP_SERVO_OFF if servo_off else ACTION_EMERGENCY_STOP
         self.saved = None
         self._stop = threading.Event()
         self._thread = None
-        self.beats = 0
-        self.problem = None  # the last heartbeat that went unanswered, as a text
-
-    @property
-    def armed(self):
-        return self.saved is not None
 
     def arm(self):
         m, j = self.m, self.jig_id
@@ -129,7 +118,7 @@ class SafetyNet:
             m.set_parameter(j, P_SAFETY_ACTION, self.action)
         except JigError:
             # A jig from before "servo off" (action 2): EmergencyStop alone still stops the axis.
-            self.action = SAFETY_EMERGENCY_STOP
+            self.action = ACTION_EMERGENCY_STOP
             m.set_parameter(j, P_SAFETY_ACTION, self.action)
         self.saved = saved  # from here on disarm() has something to put back
         self.stops_before = self.stops()
@@ -145,9 +134,8 @@ class SafetyNet:
                 continue  # the phases keep the jig's window open themselves
             try:
                 self.m.get_parameter(self.jig_id, P_SAFETY_TIMEOUT_MS)
-                self.beats += 1
-            except Exception as exc:  # a lost connection: the jig's stop will act, which is the point
-                self.problem = str(exc)
+            except Exception:  # a lost connection: the jig's stop will act, which is the point
+                pass
 
     def stops(self):
         """The jig's safety_stops counter (it counts every time the silence stop fired)."""

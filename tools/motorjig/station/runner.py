@@ -26,6 +26,7 @@ import openhtf as htf
 from openhtf.output.callbacks import json_factory
 from openhtf.util import configuration, console_output, threads
 
+from jig.params import P_DOWN_BAUD
 from motorjig import names as N
 from motorjig.errors import JigError
 from motorjig.station import junit, report
@@ -229,9 +230,6 @@ def _choose_sampling(test, bus, plan):
     test.test_record.metadata["sampling"] = (
         {"by": "jig", "period_us": bus.trace_period_us} if bus.trace_period_us else
         {"by": "pc", "why": "the plan says so" if plan.sampling == "pc" else "the jig's firmware has no sampler"})
-
-
-P_DOWN_BAUD = 2  # the jig's parameter 2, down_baud: the driver bus the jig samples on
 
 
 def _arm_safety_net(test, bus, ctx):
