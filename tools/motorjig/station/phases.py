@@ -197,9 +197,8 @@ def measures_move(step, plan):
         _m("sample_rate", units.HERTZ, "status samples per second")]
 
 
-def _send_move(m, s, a, target, acc, dec):
-    """The step's move command: the Ex frame when the step sets its own accel/decel times."""
-    custom = a["accel_ms"] is not None or a["decel_ms"] is not None
+def _send_move(m, s, a, target, acc, dec, custom):
+    """The step's move command: the Ex frame when the step sets its own accel/decel times (custom)."""
     if a["mode"] == "abs":
         if custom:
             m.move_abs_ex(s, target, a["speed"], accel_ms=acc, decel_ms=dec)
@@ -223,8 +222,9 @@ def run_move(test, bus, step, ctx):
     trace = new_trace(bus, ctx, step)
     trace.begin(m, s)
     try:
-        trace.mark("move", _MOVE_FTYPES[(a["mode"], a["accel_ms"] is not None or a["decel_ms"] is not None)])
-        _send_move(m, s, a, target, acc, dec)
+        custom = a["accel_ms"] is not None or a["decel_ms"] is not None
+        trace.mark("move", _MOVE_FTYPES[(a["mode"], custom)])
+        _send_move(m, s, a, target, acc, dec, custom)
         trace.sent(m, s, "move")
         done = trace.until_stopped(m, s, a["timeout_s"])
         if not done:
@@ -344,6 +344,14 @@ def run_io(test, bus, step, ctx):
         m.set_io_output(s, clear_mask=output_mask)
 
 
+def _run_for(trace, m, s, a, direction):
+    """A velocity move at the step's speed, sampled for its after_ms (limit-sensor, stop-response)."""
+    trace.mark("move", F.MOVE_VELOCITY)
+    m.move_velocity(s, a["speed"], direction)
+    trace.sent(m, s, "move")
+    trace.sample_until(m, s, a["after_ms"] / 1000.0)
+
+
 def measures_limit_sensor(step, plan):
     lo, hi = step.args["stop_time_s"]
     return [_equals("stopped", True, doc="the axis stopped after the limit input"),
@@ -359,10 +367,7 @@ def run_limit_sensor(test, bus, step, ctx):
     trace.begin(m, s)
     stopped = False
     try:
-        trace.mark("move", F.MOVE_VELOCITY)
-        m.move_velocity(s, a["speed"], direction)
-        trace.sent(m, s, "move")
-        trace.sample_until(m, s, a["after_ms"] / 1000.0)
+        _run_for(trace, m, s, a, direction)
         trace.mark("relay", F.SET_IO_OUTPUT)
         m.set_io_output(jig, set_mask=1 << relay)
         trace.sent_local("relay")
@@ -398,10 +403,7 @@ def run_stop_response(test, bus, step, ctx):
     stopped = False
     stop_ftype = F.EMERGENCY_STOP if a["stop"] == "emergency-stop" else F.MOVE_STOP
     try:
-        trace.mark("move", F.MOVE_VELOCITY)
-        m.move_velocity(s, a["speed"], DIR_PLUS)
-        trace.sent(m, s, "move")
-        trace.sample_until(m, s, a["after_ms"] / 1000.0)
+        _run_for(trace, m, s, a, DIR_PLUS)
         trace.mark("stop", stop_ftype)
         if a["stop"] == "emergency-stop":
             m.emergency_stop(s)
