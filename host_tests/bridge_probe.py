@@ -224,15 +224,26 @@ def scan_all_absent():
     r = Rig()
     r.local_once(bytearray(frame.encode(1, 0xF2)))
     hal = r.hal
+
+    def pass_30ms():
+        hal.t = (hal.t + 30000) & MASK
+        r.app.poll()
+
+    used = heap_used(pass_30ms, 40)
+    return r.app.counters.v[C_INT_REQUESTS], r.app.scanner.state, used
+
+
+def heap_used(fn, n):
+    """Heap bytes allocated by n calls of fn, the collector off meanwhile (gc.mem_alloc:
+    MicroPython only; -1 on CPython, where fn still runs n times)."""
     gc.collect()
     has_mem = hasattr(gc, "mem_alloc")
     if has_mem:
         gc.disable()
         a0 = gc.mem_alloc()
-    for _ in range(40):
-        hal.t = (hal.t + 30000) & MASK
-        r.app.poll()
+    for _ in range(n):
+        fn()
     used = gc.mem_alloc() - a0 if has_mem else -1
     if has_mem:
         gc.enable()
-    return r.app.counters.v[C_INT_REQUESTS], r.app.scanner.state, used
+    return used

@@ -54,6 +54,13 @@ def drive_state(url):
         return st.axis.motioning, st.axis.servo_on, st.actual_vel
 
 
+def on_its_own_terminal():
+    """preexec_fn: the child leads a session of its own, with the pty on its stdin as its terminal
+    (closing that terminal then sends it SIGHUP, as closing a terminal window does)."""
+    os.setsid()
+    fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+
 def records(tmp_path):
     found = {ext: glob.glob(str(tmp_path / ("long_*." + ext))) for ext in ("json", "xml", "html")}
     assert all(len(v) == 1 for v in found.values()), found
@@ -139,12 +146,8 @@ def test_a_closed_terminal_ends_the_run_like_sighup(tmp_path):
     and EIO on every later write): the run ends as after SIGHUP, nothing hangs."""
     master, slave = os.openpty()
 
-    def own_terminal():
-        os.setsid()
-        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
-
     with bench() as b:
-        p, db = start(b, tmp_path, stdin=slave, stdout=slave, stderr=slave, preexec_fn=own_terminal)
+        p, db = start(b, tmp_path, stdin=slave, stdout=slave, stderr=slave, preexec_fn=on_its_own_terminal)
         os.close(slave)
         try:
             wait_until_moving(b, p)
@@ -198,14 +201,10 @@ def test_ctrl_c_at_an_operator_prompt_ends_the_run_at_once(tmp_path):
                              '[[steps]]\nkind = "prompt"\nmessage = "fit the motor"\n[[steps]]\nkind = "servo"\n', 1)
     master, slave = os.openpty()
 
-    def own_terminal():
-        os.setsid()
-        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
-
     with bench() as b:
         db = str(tmp_path / "results.sqlite")
         p = subprocess.Popen([JIGCTL, "test", long_plan(tmp_path, plan), "--port", b.tcp_url, "--out", str(tmp_path),
-                              "--db", db], stdin=slave, stdout=slave, stderr=slave, preexec_fn=own_terminal)
+                              "--db", db], stdin=slave, stdout=slave, stderr=slave, preexec_fn=on_its_own_terminal)
         os.close(slave)
         seen = b""
         deadline = time.monotonic() + 60

@@ -7,7 +7,6 @@ to the slot, a pass sends the GetAllStatus request, the drive's reply comes in, 
 pass stores the sample.
 """
 
-import gc
 
 from jig import frame
 from jig.trace import T_NEXT
@@ -70,16 +69,7 @@ def sample_alloc(n=200):
     r = TraceRig()
     for _ in range(20):
         r.sample_once()
-    gc.collect()
-    has_mem = hasattr(gc, "mem_alloc")
-    if has_mem:
-        gc.disable()
-        a0 = gc.mem_alloc()
-    for _ in range(n):
-        r.sample_once()
-    used = gc.mem_alloc() - a0 if has_mem else -1
-    if has_mem:
-        gc.enable()
+    used = bridge_probe.heap_used(r.sample_once, n)
     return used, r.trace.ts[6] == n + 20  # T_TAKEN
 
 
@@ -92,16 +82,7 @@ def read_alloc(n=100):
     for _ in range(10):
         r.read_once()
     w0 = r.hal.up.writes
-    gc.collect()
-    has_mem = hasattr(gc, "mem_alloc")
-    if has_mem:
-        gc.disable()
-        a0 = gc.mem_alloc()
-    for _ in range(n):
-        r.read_once()
-    used = gc.mem_alloc() - a0 if has_mem else -1
-    if has_mem:
-        gc.enable()
+    used = bridge_probe.heap_used(r.read_once, n)
     return used, r.hal.up.writes - w0 == n
 
 
@@ -117,14 +98,5 @@ def times_alloc(n=100):
     for _ in range(10):
         r.local_once(req)
     out0 = v[1]  # C_UP_OUT
-    gc.collect()
-    has_mem = hasattr(gc, "mem_alloc")
-    if has_mem:
-        gc.disable()
-        a0 = gc.mem_alloc()
-    for _ in range(n):
-        r.local_once(req)
-    used = gc.mem_alloc() - a0 if has_mem else -1
-    if has_mem:
-        gc.enable()
+    used = bridge_probe.heap_used(lambda: r.local_once(req), n)
     return used, v[1] - out0 == n
