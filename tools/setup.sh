@@ -35,7 +35,7 @@ stamp=.venv/.motorjig-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     say "installing the project and its test/bench/board/gui/station extras into .venv"
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e '.[test,bench,board,gui,station]'
+    .venv/bin/python -m pip install -q -e '.[test,bench,board,gui,station,can]'
     touch "$stamp"
 fi
 
