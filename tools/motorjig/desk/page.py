@@ -11,6 +11,9 @@ The raw-frames tab also records both buses through the jig (``capture.DeskCaptur
 one per server like the session): Start, Stop and Download pcapng, greyed out with
 the reason beside them when the Desk has no capture port.
 
+The CAN tab (``cantab``) opens the jig's SLCAN port itself, apart from the Plus-R
+connection: its ``canlink.CanLink`` is one per server too.
+
 Esc is EMERGENCY STOP wherever the focus is, except while a dialog or a dropdown
 is open: then Esc is theirs (it closes them) and stops nothing.
 """
@@ -83,18 +86,24 @@ class Changed:
         return True
 
 
-def build(session, station=None, capture=None):
-    """Register the page (and the run files' route) for one BusSession, its Station and its
-    DeskCapture (None: a Desk without a capture port)."""
+def build(session, station=None, capture=None, can_link=None):
+    """Register the page (and the run files' route) for one BusSession, its Station, its
+    DeskCapture (None: a Desk without a capture port) and its CAN tab's ``canlink.CanLink``
+    (None: one without a port chosen yet)."""
     from nicegui import app
     from fastapi import HTTPException
     from fastapi.responses import FileResponse
 
+    from motorjig.desk.cantab import make_link
     from motorjig.desk.testrun import FILE_KINDS
+
+    can_why = None
+    if can_link is None:
+        can_link, can_why = make_link(read_only=session.read_only)
 
     @ui.page("/")
     async def index():
-        DeskPage(session, station, capture).build()
+        DeskPage(session, station, capture, can_link, can_why).build()
 
     @app.get("/runs/{name}")
     def run_file(name: str):
@@ -116,8 +125,9 @@ def build(session, station=None, capture=None):
 class DeskPage:
     """One browser tab's widgets and the callbacks that feed them."""
 
-    def __init__(self, session, station=None, capture=None):
+    def __init__(self, session, station=None, capture=None, can_link=None, can_why=None):
         self.s = session
+        self.can_link = can_link  # the CAN tab's link (one per server), or None: can_why says why
         self.station = station
         if capture is None:
             from motorjig.desk.capture import DeskCapture
@@ -191,6 +201,7 @@ class DeskPage:
             t_io = tid(ui.tab("I/O"), "tab-io")
             t_diag = tid(ui.tab("Jig diagnostics"), "tab-diag")
             t_raw = tid(ui.tab("Raw frames & log"), "tab-raw")
+            t_can = tid(ui.tab("CAN"), "tab-can")
         self.tabs = tabs
         # Not animated: a sliding panel is half-way across the screen when the operator clicks in it.
         with ui.tab_panels(tabs, value=t_conn if not s.connected or s.axis is None else t_axis,
@@ -215,6 +226,10 @@ class DeskPage:
                 self._diag_panel()
             with ui.tab_panel(t_raw):
                 self._raw_panel()
+            with ui.tab_panel(t_can):
+                from motorjig.desk.cantab import CanTab
+
+                CanTab(self, self.can_link, self.can_why).build()
         ui.timer(0.1, self._refresh)
         ui.timer(0.25, self._refresh_plot)
 

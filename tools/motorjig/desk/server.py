@@ -2,12 +2,15 @@
 
     jigctl gui [--port PORT] [--baud B] [--http-port N] [--host 127.0.0.1] [--open]
                [--plans DIR] [--out DIR] [--operator NAME] [--station NAME] [--read-only]
-               [--capture-port PORT]
-    python -m motorjig.desk --bench [--drivers 2,3]     the virtual bench and the page on it (`make`)
+               [--capture-port PORT] [--can-port PORT] [--can-bitrate BPS]
+    python -m motorjig.desk --bench [--drivers 2,3] [--can-nodes 5,6]     the virtual bench and the page on it (`make`)
 
 ``--capture-port`` is the jig's capture port (its second USB port): the raw-frames
 tab then records both buses through the jig and offers the recording as pcapng
 (``capture``); with ``--bench`` the bench's own capture port is used.
+``--can-port`` is the jig's SLCAN port (its third USB port): the CAN tab offers
+to open it (``cantab``); with ``--bench --can-nodes 5,6`` the bench simulates
+CANopen nodes on the jig's CAN bus and the tab is pointed at the bench's SLCAN port.
 
 The page listens on 127.0.0.1 unless another address is asked for. Bound to any
 other address it needs a token: a random one is made at start and printed in the
@@ -81,6 +84,30 @@ def _ids(text):
     return ids
 
 
+def _can_ids(text):
+    try:
+        ids = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected comma-separated CANopen node ids, e.g. 5,6") from None
+    if not ids or any(not 1 <= i <= 127 for i in ids):
+        raise argparse.ArgumentTypeError("CANopen node ids must be 1..127")
+    return ids
+
+
+#: SLCAN's S0..S8 (canlink.BITRATES; here without importing python-can for the options)
+CAN_BITRATES = (10000, 20000, 50000, 100000, 125000, 250000, 500000, 750000, 1000000)
+
+
+def can_bitrate(text):
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("%r is not a CAN bitrate" % text) from None
+    if v not in CAN_BITRATES:
+        raise argparse.ArgumentTypeError("the CAN bitrate must be one of %s" % ", ".join(map(str, CAN_BITRATES)))
+    return v
+
+
 def _port_number(text, what):
     try:
         v = int(text)
@@ -144,6 +171,13 @@ def add_gui_arguments(p):
                    help="the jig's capture port (its second USB port, e.g. /dev/ttyACM1, or a pyserial URL): the "
                         "raw-frames tab records both buses through the jig and downloads them as pcapng (with "
                         "--bench: the bench's own)")
+    p.add_argument("--can-port", metavar="PORT_OR_URL",
+                   help="the jig's SLCAN port (its third USB port, e.g. /dev/ttyACM2, or a pyserial URL): the CAN "
+                        "tab offers to open it (with --bench --can-nodes: the bench's own)")
+    p.add_argument("--can-bitrate", type=can_bitrate, default=500000, metavar="BPS",
+                   help="the CAN tab's bitrate (default 500000); with --bench also the simulated CAN bus's")
+    p.add_argument("--can-nodes", type=_can_ids, default=(), metavar="IDS",
+                   help="with --bench: simulated CiA 402 nodes on the jig's CAN bus, e.g. 5,6 (default none)")
 
 
 def build_parser():
@@ -185,16 +219,21 @@ def _hangup_stops_the_desk():
         signal.signal(signal.SIGHUP, lambda signum, frame: os.kill(os.getpid(), signal.SIGTERM))
 
 
-def stop_desk(session, station=None, store=None, bench=None, timeout=10.0, capture=None):
+def stop_desk(session, station=None, store=None, bench=None, timeout=10.0, capture=None, can=None):
     """What the Desk does when it stops: a running test is aborted and waited for (its tearDown:
-    stop, emergency stop, servo off), then the recording (X), the bus session, the results
-    database and the bench are closed, in that order."""
+    stop, emergency stop, servo off), then the recording (X), the CAN tab's SLCAN port (C), the
+    bus session, the results database and the bench are closed, in that order."""
     try:
         if station is not None and not station.shutdown(timeout):
             session.log("error", "the test run did not end within %g s of the Desk stopping" % timeout)
     finally:
         if capture is not None:
             capture.close()
+        if can is not None and can.state != "closed":
+            try:
+                can.close()
+            except Exception:  # stopping: nothing to tell anyone
+                pass
         session.stop()
         if store is not None:
             store.close()
@@ -229,6 +268,7 @@ def serve(args, out=None):
     bench = None
     port = getattr(args, "port", None)
     capture_port = getattr(args, "capture_port", None)
+    can_port = getattr(args, "can_port", None)
     if args.bench:
         from motorjig.sim import Bench
 
@@ -244,7 +284,10 @@ def serve(args, out=None):
         except WiringError as exc:
             sys.stderr.write("jigctl gui: %s.\n" % str(exc).rstrip("."))
             return 2
-        bench = Bench(driver_ids=args.drivers, baud=args.baud, tcp_port=args.tcp_port, pty=True, wiring=wiring)
+        can_nodes = tuple(getattr(args, "can_nodes", ()) or ())
+        can_kw = {"can_nodes": can_nodes, "can_bitrate": args.can_bitrate} if can_nodes else {}
+        bench = Bench(driver_ids=args.drivers, baud=args.baud, tcp_port=args.tcp_port, pty=True, wiring=wiring,
+                      **can_kw)
         try:
             bench.start()
         except (OSError, ValueError) as exc:
@@ -260,6 +303,11 @@ def serve(args, out=None):
         out.write("  the jig's capture port: %s (the raw-frames tab records through it)\n" % bench.capture_url)
         if wiring is not None:
             out.write("  wired as %s says: jig relays and inputs to drive %s\n" % (wiring.source, wiring.slave))
+        if can_nodes and can_port is None:
+            can_port = getattr(bench, "slcan_url", None)
+        if can_nodes:
+            out.write("  the jig's SLCAN port: %s (CANopen nodes %s at %d kbit/s; the CAN tab opens it)\n" % (
+                getattr(bench, "slcan_url", None), ",".join(map(str, can_nodes)), args.can_bitrate // 1000))
 
     session = BusSession(timeout=max(1, args.timeout) / 1000.0).start()
     ver8 = True if getattr(args, "ver8", False) else False if getattr(args, "ver6", False) else None
@@ -286,14 +334,19 @@ def serve(args, out=None):
     if station.unavailable:
         out.write("Test tab: %s\n" % station.unavailable)
     capture = DeskCapture(capture_port)
-    page.build(session, station, capture)
+    from motorjig.desk.cantab import make_link
+
+    can_link, can_why = make_link(can_port or "", getattr(args, "can_bitrate", 500000), read_only)
+    if can_why:
+        out.write("CAN tab: %s\n" % can_why)
+    page.build(session, station, capture, can_link)
     token = None
     if not is_loopback(args.host):
         token = auth.new_token()
         app.add_middleware(auth.TokenGate, token=token, port=args.http_port)
     else:  # no token needed, but only under this computer's own names (no DNS rebinding)
         app.add_middleware(auth.HostGate, host=args.host, port=args.http_port)
-    app.on_shutdown(lambda: stop_desk(session, station, store, bench, capture=capture))
+    app.on_shutdown(lambda: stop_desk(session, station, store, bench, capture=capture, can=can_link))
     url = page_url(args.host, args.http_port, token)
     out.write("MotorJig Desk: %s  (Ctrl-C stops)%s\n" % (url, "  read-only" if read_only else ""))
     if args.host in ("0.0.0.0", "::"):
