@@ -242,6 +242,11 @@ def build_parser():
     from motorjig.capture.command import add_capture_arguments
 
     add_capture_arguments(sp)
+    sp = add("can", cmd_can, "CANopen through the jig's SLCAN port (python-can, python-canopen): scan, nmt, "
+                             "sdo read/write, dump, lss")
+    from motorjig.can.command import add_can_arguments
+
+    add_can_arguments(sp, lambda p: _global_options(p, True))
     sp = add("gui", cmd_gui, "MotorJig Desk: the bench program as a local web page (prints its URL)")
     from motorjig.desk.server import add_gui_arguments
 
@@ -257,6 +262,12 @@ def cmd_test(args):
 
 def cmd_capture(args):
     from motorjig.capture.command import cmd_capture as run
+
+    return run(args)
+
+
+def cmd_can(args):
+    from motorjig.can.command import cmd_can as run
 
     return run(args)
 
