@@ -128,6 +128,7 @@ class DeskPage:
     def __init__(self, session, station=None, capture=None, can_link=None, can_why=None):
         self.s = session
         self.can_link = can_link  # the CAN tab's link (one per server), or None: can_why says why
+        self.can_why = can_why
         self.station = station
         if capture is None:
             from motorjig.desk.capture import DeskCapture
