@@ -32,6 +32,9 @@ TYPES = {
     T.OCTET_STRING: ("OCTET_STRING", 0, "bytes"), T.DOMAIN: ("DOMAIN", 0, "bytes"),
 }
 
+# 0x1010 store parameters / 0x1011 restore defaults take these words (as ASCII, little-endian).
+SIGNATURES = {0x1010: "save", 0x1011: "load"}
+
 KIND_HINT = {
     "bool": "0/1, true/false or on/off", "int": "a whole number", "uint": "a whole number (decimal or 0x hex)",
     "float": "a number", "str": "text", "bytes": "hex bytes such as 01 02 0A",
@@ -191,6 +194,8 @@ def parse_value(var, text, label, force=False):
         raise UsageError("%r is not a value for %s" % (text, what))
     if kind in ("int", "uint"):
         value = _number(text)
+        if value is None and var.index in SIGNATURES and text.strip().lower() == SIGNATURES[var.index]:
+            value = int.from_bytes(SIGNATURES[var.index].encode(), "little")
         if value is None:
             raise UsageError("%r is not a value for %s" % (text, what))
         low, high = _type_only_range(var) if force else type_range(var)

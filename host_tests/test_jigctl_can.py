@@ -1,0 +1,255 @@
+"""``jigctl can``: every subcommand against the bench's SLCAN port, every refusal in one sentence.
+
+The first half needs no CAN bench: the CiA 301 names, the EDS lookups and value parsing,
+the dump's lines, and the input refusals (which come before any port is opened), plus
+ports that are not SLCAN ports (the bench's Plus-R port, its capture port, an echoing
+port like a REPL). The second half runs ``cli.main`` against a real-time
+``Bench(can_nodes=(5, 6))`` through the jig's SLCAN port, as test_cli_bench.py does
+for the RS-485 commands.
+"""
+
+import json
+import os
+import struct
+
+import can
+import pytest
+
+from motorjig import cli
+from motorjig.can import EDS_PATH, cia301
+from motorjig.can import objects as O
+from motorjig.can.dump import FrameText
+from motorjig.commands import UsageError
+
+NODES = (5, 6)
+TIMEOUT_MS = 500  # SDO answers: generous, the bench runs in real time on a shared machine
+
+
+@pytest.fixture(scope="module")
+def od():
+    return O.load_eds(EDS_PATH)
+
+
+class Run:
+    """cli.main with captured output; asserts the exit status, and one sentence for refusals."""
+
+    def __init__(self, capsys, port=None):
+        self.capsys = capsys
+        self.port = port
+
+    def __call__(self, *argv, code=0):
+        self.capsys.readouterr()
+        head = ["--port", self.port] if self.port else []
+        rc = cli.main(head + ["--timeout", str(TIMEOUT_MS)] + [str(a) for a in argv])
+        self.out, self.err = self.capsys.readouterr()
+        assert rc == code, (argv, rc, self.out, self.err)
+        if code not in (0, 1):
+            lines = [ln for ln in self.err.splitlines() if ln.strip()]
+            assert len(lines) == 1 and lines[0].startswith("jigctl: ") and lines[0].endswith("."), self.err
+            assert "Traceback" not in self.err
+        return self.out
+
+    def json(self, *argv, code=0):
+        return json.loads(self(*argv, "--json", code=code))
+
+
+# --- names ---------------------------------------------------------------------------
+def test_abort_codes_and_emcy_codes_are_named():
+    assert cia301.abort_text(0x06020000) == "0x06020000 object does not exist in the object dictionary"
+    assert cia301.abort_text(0x06010002) == "0x06010002 attempt to write a read only object"
+    assert cia301.abort_text(0x12345678) == "0x12345678 unknown abort code"
+    assert cia301.emcy_name(0x8611) == "following error"
+    assert cia301.emcy_name(0x2310) == "continuous over current"
+    assert cia301.emcy_name(0x4281) == "device temperature"  # by its class
+    assert cia301.emcy_name(0x5ABC) == "device hardware"
+    assert cia301.profile_name(0x00020192) == "CiA 402 drives and motion control"
+    assert cia301.profile_name(0x1F5) == "profile 501"
+
+
+def test_frames_are_described_by_cob_id():
+    d = cia301.describe_frame
+    assert d(0x000, b"\x01\x05") == "NMT start node 5"
+    assert d(0x000, b"\x81\x00") == "NMT reset node all nodes"
+    assert d(0x705, b"\x05") == "heartbeat node 5: operational"
+    assert d(0x706, b"\x00") == "heartbeat node 6: boot-up"
+    assert d(0x705, b"\x7f") == "heartbeat node 5: pre-operational"
+    assert d(0x085, bytes([0x11, 0x86, 0x01, 0, 0, 0, 0, 0])) == \
+        "EMCY node 5: 0x8611 following error, error register 0x01"
+    assert d(0x605, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0])) == "SDO request node 5: upload 0x6041:00"
+    assert d(0x585, bytes([0x4B, 0x41, 0x60, 0, 0x37, 0x02, 0, 0])) == "SDO response node 5: 0x6041:00 = 0x0237"
+    assert d(0x585, bytes([0x80, 0xFF, 0x2F, 0]) + struct.pack("<I", 0x06020000)) == \
+        "SDO response node 5: abort 0x2FFF:00: 0x06020000 object does not exist in the object dictionary"
+    assert d(0x605, bytes([0x2B, 0x40, 0x60, 0, 0x0F, 0, 0, 0])) == "SDO request node 5: download 0x6040:00 = 0x000F"
+    assert d(0x585, bytes([0x60, 0x40, 0x60, 0, 0, 0, 0, 0])) == "SDO response node 5: download 0x6040:00 done"
+    assert d(0x185, b"\x37\x02\x01") == "TPDO1 node 5"
+    assert d(0x080, b"") == "SYNC"
+    assert d(0x7E5, bytes([0x51] + [0] * 7)) == "LSS master fast scan"
+    assert d(0x123, b"\x01", ext=True) == ""
+    assert d(0x7FF, b"") == ""
+
+
+def test_frames_named_from_the_eds(od):
+    text = FrameText(od)
+
+    def meaning(can_id, data):
+        return text.meaning(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+
+    assert meaning(0x605, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0])) == "SDO request node 5: upload 0x6041:00 Statusword"
+    assert meaning(0x585, bytes([0x4B, 0x41, 0x60, 0, 0x37, 0x02, 0, 0])) == \
+        "SDO response node 5: 0x6041:00 Statusword = 567 (0x0237)"
+    # TPDO2 by the EDS's default mapping: statusword (16 bits), position actual value (32 bits)
+    assert meaning(0x286, struct.pack("<Hi", 0x0637, -1000)) == \
+        "TPDO2 node 6: Statusword=1591 (0x0637), Position actual value=-1000"
+    assert meaning(0x286, b"\x01") == "TPDO2 node 6"  # too short for its mapping: not guessed
+    line = text.line(can.Message(timestamp=10.5, arbitration_id=0x705, data=b"\x05", is_extended_id=False), 10.0)
+    assert line.startswith("(   0.500000)  slcan       705   [1]  05 ") and line.endswith("heartbeat node 5: operational")
+
+
+# --- the EDS ----------------------------------------------------------------------------
+def test_objects_by_number_name_and_sub_name(od):
+    t = O.find(od, "0x6041", "eds")
+    assert (t.index, t.sub, t.var.name) == (0x6041, 0, "Statusword")
+    assert O.find(od, "statusword", "eds").index == 0x6041
+    assert O.find(od, "24641", "eds").index == 0x6041
+    t = O.find(od, "0x1018:2", "eds")
+    assert (t.sub, t.label) == (2, "0x1018:02 Identity object.Product code")
+    t = O.find(od, "Identity object:Serial number", "eds")
+    assert (t.index, t.sub) == (0x1018, 4)
+    t = O.find(od, "0x1018", "eds")
+    assert t.var is None and t.container.name == "Identity object"
+    assert O.find(od, "0x2FFF:3", "eds", force=True).var is None
+
+
+@pytest.mark.parametrize("text, message", [
+    ("0x2FFF", "0x2FFF is not an object in eds"),
+    ("NoSuchThing", "'NoSuchThing' is not the name of an object in eds"),
+    ("0x1018:7", "0x1018 Identity object has no sub-index 7 in eds"),
+    ("0x6041:1", "0x6041 Statusword is a single value: it has no sub-index 1"),
+    ("0x10000", "index 0x10000 is not 0..0xFFFF"),
+    ("0x1018:300", "sub-index 300 is not 0..255"),
+    (":1", "is not an object"),
+])
+def test_unknown_objects_are_refused(od, text, message):
+    with pytest.raises(UsageError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        O.find(od, text, "eds")
+
+
+def test_values_are_parsed_by_type_and_range(od):
+    def parse(obj, text, force=False):
+        t = O.find(od, obj, "eds")
+        return O.parse_value(t.var, text, t.label, force=force)
+
+    assert parse("0x607A", "-1000") == -1000
+    assert parse("0x607A", "0x7FFF_FFFF") == 0x7FFFFFFF
+    assert parse("0x6040", "0x000F") == 15
+    assert parse("0x6060", "-1") == -1
+    assert parse("0x1010:1", "save") == 0x65766173
+    assert parse("0x1011:1", "load") == 0x64616F6C
+    with pytest.raises(UsageError, match="is not a value for 0x607A:00 Target position .INTEGER32: a whole number."):
+        parse("0x607A", "ten")
+    with pytest.raises(UsageError, match="2147483648 is out of range for 0x607A:00 Target position"):
+        parse("0x607A", "2147483648")
+    with pytest.raises(UsageError, match="-1 is out of range for 0x6040:00 Controlword: 0..65535"):
+        parse("0x6040", "-1")
+    with pytest.raises(UsageError, match="0 is out of range for 0x6083:00 Profile acceleration: 1..4294967295"):
+        parse("0x6083", "0")  # the EDS's LowLimit
+    assert parse("0x6083", "0", force=True) == 0  # --force: only the type's own range
+    with pytest.raises(UsageError, match="1.5"):
+        parse("0x6060", "1.5")
+
+
+def test_values_of_other_types(od):
+    var = od[0x1008]  # VISIBLE_STRING
+    assert O.parse_value(var, "hello", "x") == "hello"
+    with pytest.raises(UsageError, match="only ASCII"):
+        O.parse_value(var, "héllo", "x")
+    real = type(var)("real", 0x2100)
+    real.data_type = 0x8  # REAL32
+    assert O.parse_value(real, "1.25", "x") == 1.25
+    with pytest.raises(UsageError, match="does not fit"):
+        O.parse_value(real, "1e300", "x")
+    with pytest.raises(UsageError, match="NaN"):
+        O.parse_value(real, "nan", "x")
+    flag = type(var)("flag", 0x2101)
+    flag.data_type = 0x1  # BOOLEAN
+    assert O.parse_value(flag, "on", "x") is True and O.parse_value(flag, "0", "x") is False
+    with pytest.raises(UsageError, match="0/1, true/false or on/off"):
+        O.parse_value(flag, "maybe", "x")
+    blob = type(var)("blob", 0x2102)
+    blob.data_type = 0xF  # DOMAIN
+    assert O.parse_value(blob, "01 02 0a", "x") == b"\x01\x02\x0a"
+    assert O.parse_value(blob, "0x01020A", "x") == b"\x01\x02\x0a"
+    with pytest.raises(UsageError, match="hex bytes"):
+        O.parse_value(blob, "zz", "x")
+    assert O.show(od[0x6041], 0x237) == "567 (0x0237)"
+    assert O.show(od[0x607A], -5) == "-5"
+    assert O.show(var, "abc") == "'abc'"
+
+
+# --- refusals before any port is opened -------------------------------------------------
+@pytest.mark.parametrize("argv, message", [
+    (["sdo", "read", "0", "0x6041"], "node id must be 1..127, not '0'"),
+    (["sdo", "read", "128", "0x6041"], "node id must be 1..127, not '128'"),
+    (["sdo", "read", "five", "0x6041"], "node id must be 1..127, not 'five'"),
+    (["nmt", "200", "start"], "node id must be 1..127 or all, not '200'"),
+    (["sdo", "read", "5", "0x2FFF"], "0x2FFF is not an object in motorjig-cia402.eds"),
+    (["sdo", "read", "5", "NoSuchObject"], "'NoSuchObject' is not the name of an object"),
+    (["sdo", "write", "5", "0x607A", "ten"], "'ten' is not a value for 0x607A:00 Target position (INTEGER32"),
+    (["sdo", "write", "5", "0x6040", "70000"], "70000 is out of range for 0x6040:00 Controlword: 0..65535"),
+    (["sdo", "write", "5", "0x6041", "1"], "0x6041:00 Statusword is read-only"),
+    (["sdo", "write", "5", "0x1018", "1"], "0x1018 Identity object has sub-indexes: give one"),
+    (["sdo", "read", "5", "0x2001"], "0x2001:00 Set position actual is write-only"),
+    (["--eds", "/no/such.eds", "sdo", "read", "5", "0x6041"], "the EDS /no/such.eds does not exist"),
+    (["nmt", "5", "go"], "NMT command must be one of start, stop, preop, reset, reset-comm, not 'go'"),
+    (["--bitrate", "12345", "scan"], "--bitrate must be one of 10000"),
+    (["scan", "--bitrate", "fast"], "--bitrate must be one of 10000"),
+    (["dump", "--count", "0"], "--count must be at least 1"),
+    (["dump", "--duration", "-1"], "--duration must be a number of seconds"),
+    (["dump", "--log", "frames.pcap"], "give a file ending in .asc, .blf, .csv"),
+    (["dump", "--log", "/no/such/dir/x.asc"], "cannot write /no/such/dir/x.asc"),
+    (["lss", "set-id", "0"], "node id must be 1..127 (or 255: unconfigured), not '0'"),
+    (["lss", "set-bitrate", "750000"], "LSS bitrate must be one of the CiA table's"),
+    (["lss", "store", "--identity", "1,2,3"], "--identity must be four numbers"),
+    (["lss", "fast-scan", "--lss-timeout", "0"], "--lss-timeout must be at least 1 ms"),
+])
+def test_bad_input_is_refused_in_one_sentence(capsys, monkeypatch, argv, message):
+    monkeypatch.delenv("JIGCTL_CAN_PORT", raising=False)
+    run = Run(capsys, "socket://127.0.0.1:1")  # never opened: the input is checked first
+    run("can", *argv, code=2)
+    assert message in run.err
+
+
+def test_no_port_given(capsys, monkeypatch):
+    monkeypatch.delenv("JIGCTL_CAN_PORT", raising=False)
+    monkeypatch.delenv("JIGCTL_PORT", raising=False)
+    run = Run(capsys)
+    run("can", "scan", code=2)
+    assert "give --port PORT" in run.err and "$JIGCTL_CAN_PORT" in run.err
+
+
+def test_help_everywhere(capsys):
+    for argv in (["can", "--help"], ["can", "scan", "--help"], ["can", "nmt", "--help"], ["can", "sdo", "--help"],
+                 ["can", "sdo", "read", "--help"], ["can", "sdo", "write", "--help"], ["can", "dump", "--help"],
+                 ["can", "lss", "--help"], ["can", "lss", "fast-scan", "--help"], ["can", "lss", "set-id", "--help"],
+                 ["can", "lss", "set-bitrate", "--help"], ["can", "lss", "store", "--help"]):
+        assert cli.main(argv) == 0, argv
+        out = capsys.readouterr().out
+        assert "usage: jigctl can" in out and "--bitrate" in out, argv
+    assert cli.main(["can"]) == 2  # a CAN subcommand is required
+    assert "CAN_COMMAND" in capsys.readouterr().err
+
+
+# --- ports that are not SLCAN ports --------------------------------------------------------
+def test_an_echoing_port_is_not_an_slcan_port(capsys):
+    run = Run(capsys, "loop://")  # answers what it is sent, as a REPL echoes
+    run("can", "scan", code=3)
+    assert run.err.startswith("jigctl: loop:// is not an SLCAN port: it answered b'V\\r' to V")
+
+
+def test_missing_ports_are_refused(capsys):
+    run = Run(capsys, "/dev/does-not-exist")
+    run("can", "sdo", "read", 5, "0x6041", code=3)
+    assert "port /dev/does-not-exist does not exist" in run.err
+    run = Run(capsys, "socket://127.0.0.1:1")
+    run("can", "dump", "--count", 1, code=3)
+    assert "connection refused" in run.err
