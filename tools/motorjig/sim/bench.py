@@ -47,6 +47,8 @@ from jig.app import App
 from jig.parser import FrameParser
 
 from ..wiring import Wiring, load_wiring
+from .canbus import CanBus
+from .canhal import SLCAN_RATES, DirectSlcanAdapter
 from .clock import TICKS_MASK, PacedClock, VirtualClock
 from .driver import SimDriver
 from .hal import SimFS, SimHAL
@@ -200,11 +202,19 @@ class SimBench:
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
                  echo_down=False, record=True, servo_on=False, start_us=None, jig_ver8=None,
                  ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0), fastpath=None,
-                 wiring=None, faults=()):
+                 wiring=None, faults=(), can_nodes=(), can_bitrate=500000, can_node_factory=None, can=None,
+                 direct_can=False):
         """``ver8``: the default variant of the jig and every driver. ``jig_ver8``
         (None: ``ver8``) sets the jig's protocol parameter; ``ver8_drivers`` (None:
         every driver follows ``ver8``) lists the ids of the Ver8 drivers, all others
-        are Ver6."""
+        are Ver6.
+
+        The CAN side (``can_nodes``: CANopen node ids; ``can`` True: a CAN bus even
+        without nodes): ``can_bus`` at ``can_bitrate``, ``can_nodes`` {id: node} made by
+        ``can_node_factory(clock, bus, node_id)`` (default ``cia402.Cia402Node``), the
+        jig's HAL with ``can_open`` and its SLCAN port ``slcan``. ``direct`` or
+        ``direct_can``: the host's SLCAN port is a ``DirectSlcanAdapter`` on the bus
+        instead of the jig's (``can_adapter``; the jig, if any, then has no CAN)."""
         if realtime:
             self.clock = PacedClock(realtime_start_us() if start_us is None else start_us)
         else:
@@ -241,6 +251,7 @@ class SimBench:
         self._sync = 0
         self.wiring = None
         self.wired_slave = None
+        self._make_can(can_nodes, can_bitrate, can_node_factory, bool(can) or direct_can, direct or direct_can)
         if direct:
             if jig_params or any(cpu_model) or wiring is not None:
                 raise ValueError("direct=True has no jig: jig_params, cpu_model and wiring do not apply")
@@ -251,7 +262,8 @@ class SimBench:
             return
         self.fs = fs if fs is not None else SimFS()
         self.hal = SimHAL(self.clock, self.up_bus, self.down_bus, self.fs, rxsize=rxsize,
-                          echo_up=echo_up, echo_down=echo_down, record=record, cpu_model=cpu_model)
+                          echo_up=echo_up, echo_down=echo_down, record=record, cpu_model=cpu_model,
+                          can_bus=None if self.can_adapter is not None else self.can_bus)
         if settings or fresh:
             self.write_params(settings)
         self.runner = JigRunner(self.clock, self.hal, DEFAULT_FASTPATH if fastpath is None else fastpath)
@@ -261,6 +273,29 @@ class SimBench:
             self._connect(wiring)
         for slave, name, value in faults:
             self.set_fault(name, value, slave)
+
+    def _make_can(self, node_ids, bitrate, factory, want, direct):
+        self.can_bus = None
+        self.can_nodes = {}
+        self.can_adapter = None
+        self._slcan_got = bytearray()
+        node_ids = tuple(node_ids)
+        if not (node_ids or want):
+            return
+        if bitrate not in SLCAN_RATES:
+            raise ValueError("can_bitrate %r is not an SLCAN bitrate (%s)" % (bitrate, " ".join(map(str, SLCAN_RATES))))
+        for i in node_ids:
+            if not 1 <= i <= 127:
+                raise ValueError("CAN node id %r out of range 1..127" % (i,))
+        if len(set(node_ids)) != len(node_ids):
+            raise ValueError("a CAN node id is given twice: %s" % ",".join(map(str, node_ids)))
+        self.can_bus = CanBus(self.clock, bitrate)
+        if factory is None:
+            factory = cia402_node
+        for i in node_ids:
+            self.can_nodes[i] = factory(self.clock, self.can_bus, i)
+        if direct:
+            self.can_adapter = DirectSlcanAdapter(self.clock, self.can_bus)
 
     def _connect(self, wiring):
         """Wire the jig's relays to the drive's inputs and its outputs to the jig's inputs."""
@@ -298,14 +333,34 @@ class SimBench:
 
     # --- faults --------------------------------------------------------------------
     def clear_faults(self):
-        """Switch off every injected fault: the drives' switches, corruption to the PC."""
+        """Switch off every injected fault: the drives' switches, corruption to the PC,
+        the CAN nodes' faults."""
         for d in self.drivers.values():
             d.clear_faults()
+        for nd in self.can_nodes.values():
+            if hasattr(nd, "clear_faults"):
+                nd.clear_faults()
         if self.hal is not None:
             self.hal.up.node.corrupt(0)
 
     def set_fault(self, name, value=None, slave=None):
-        """``SimDriver.set_fault`` on driver ``slave``; None: the wired drive, else every driver."""
+        """``SimDriver.set_fault`` on driver ``slave``; None: the wired drive, else every driver.
+        A name ``can:NAME`` goes to the CAN node ``slave`` (None: every CAN node) as the
+        node's ``set_fault(NAME, value)``."""
+        if name.startswith(CAN_FAULT_PREFIX):
+            name = name[len(CAN_FAULT_PREFIX):]
+            if slave is not None:
+                if slave not in self.can_nodes:
+                    raise ValueError("no CAN node %d on this bench (CAN nodes: %s)"
+                                     % (slave, ", ".join(str(i) for i in self.can_nodes) or "none"))
+                targets = [self.can_nodes[slave]]
+            else:
+                targets = list(self.can_nodes.values())
+                if not targets:
+                    raise ValueError("no CAN nodes on this bench for the fault can:%s" % name)
+            for nd in targets:
+                nd.set_fault(name, value)
+            return
         if slave is not None:
             if slave not in self.drivers:
                 raise ValueError("no driver %d on this bench (drivers: %s)"
@@ -361,6 +416,45 @@ class SimBench:
         if close:
             port.host_close()
         return data
+
+    # --- the SLCAN port (the jig's third USB CDC port, or the direct adapter's) -------------
+    @property
+    def slcan(self):
+        """The host's SLCAN port (``canhal.SimSlcanPort``): the jig's, or the direct
+        adapter's on a direct bench; None without a CAN bus."""
+        if self.can_adapter is not None:
+            return self.can_adapter.port
+        return None if self.hal is None else self.hal.slcan
+
+    def slcan_send(self, data):
+        """The host sends SLCAN bytes (the port is opened first if it is not)."""
+        port = self.slcan
+        if port is None:
+            raise ValueError("this bench has no CAN bus (SimBench(can_nodes=...) or can=True)")
+        if not port.is_open:
+            port.host_open()
+        port.host_send(data)
+
+    def slcan_read(self, replies=0, limit_us=100000.0):
+        """What the host has received on the SLCAN port since the last read. Runs the
+        clock until at least ``replies`` answers (each ending in CR or BEL) have come in
+        and nothing the jig already has is still on its way (at most ``limit_us``)."""
+        port = self.slcan
+        got = self._slcan_got
+
+        def waiting():
+            got.extend(port.host_read())
+            return got.count(13) + got.count(7) < replies or port.rx or port.busy
+
+        self.clock.run_while(waiting, limit_us)
+        got.extend(port.host_read())
+        data = bytes(got)
+        del got[:]
+        return data
+
+    def slcan_close(self):
+        if self.slcan is not None:
+            self.slcan.host_close()
 
     # --- running -----------------------------------------------------------------
     def run_for(self, us):
@@ -420,6 +514,16 @@ class SimBench:
         return wire, bytes(p.body[p.data_start : p.data_end])
 
 
+CAN_FAULT_PREFIX = "can:"  # SimBench.set_fault / --fault: a fault of a CAN node
+
+
+def cia402_node(clock, bus, node_id):
+    """The default CAN node: a simulated CiA 402 drive (imported when first needed)."""
+    from .cia402 import Cia402Node
+
+    return Cia402Node(clock, bus, node_id)
+
+
 def _diag_names():
     from jig.diag import WIRE_NAMES
 
@@ -427,6 +531,155 @@ def _diag_names():
 
 
 DIAG_NAMES = _diag_names()
+
+
+class HostPort:
+    """One of the jig's USB CDC ports (``SimCapturePort``-like: the capture port, the
+    SLCAN port) served to one host at a time on a TCP port and a pseudo-terminal.
+
+    A TCP client that connects while another host is attached is closed at once;
+    the pty counts as attached while a program holds it open and no TCP client is. A
+    host that goes away closes the port (``host_close``). ``pump`` runs in the
+    simulation thread; ``accept_loop`` in a thread of its own.
+    """
+
+    def __init__(self, name, port, tcp_port=0, pty=True):
+        self.name = name
+        self.port = port
+        self.tcp_port = tcp_port
+        self.want_pty = pty
+        self.url = None
+        self.pty_path = None
+        self.pty = None  # the pty's master fd
+        self._server = None
+        self._poll = None
+        self._new = queue.Queue()  # accepted connections, for the simulation thread
+        self.reader = None  # the attached host: a socket, PTY_READER or None
+
+    def open(self):
+        self.port.sink = self.sink
+        self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._server.bind(("127.0.0.1", self.tcp_port))
+        self._server.listen(2)
+        self._server.settimeout(0.2)
+        self.url = "socket://127.0.0.1:%d" % self._server.getsockname()[1]
+        if self.want_pty:
+            import tty
+
+            master, slave = os.openpty()
+            tty.setraw(slave)  # kept by the pty for whoever opens it next
+            self.pty_path = os.ttyname(slave)
+            # Not kept open here: the master then reports POLLHUP while no program has the
+            # pty open, which is how the bench tells an opened port from a closed one.
+            os.close(slave)
+            os.set_blocking(master, False)
+            self.pty = master
+            self._poll = select.poll()
+            self._poll.register(master, select.POLLIN)
+
+    def accept_loop(self, stop):
+        while not stop.is_set():
+            try:
+                conn, _ = self._server.accept()
+            except (socket.timeout, OSError):
+                continue
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self._new.put(conn)
+
+    def close(self):
+        """The server and the attached TCP host (the pty's fd: ``close_pty``)."""
+        if self._server is not None:
+            self._server.close()
+        if self.reader is not None and self.reader is not PTY_READER:
+            self.reader.close()
+        self.reader = None
+        while not self._new.empty():
+            self._new.get_nowait().close()
+
+    def close_pty(self):
+        fd, self.pty = self.pty, None
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def pump(self):
+        """Hosts coming and going, their bytes to the jig."""
+        port = self.port
+        while True:
+            try:
+                conn = self._new.get_nowait()
+            except queue.Empty:
+                break
+            if self.reader is not None:
+                conn.close()  # one host at a time
+                continue
+            conn.setblocking(False)
+            self._attach(conn)
+        reader = self.reader
+        if reader is not None and reader is not PTY_READER:
+            try:
+                data = reader.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                data = None
+            except OSError:
+                data = b""
+            if data == b"":
+                self._detach()
+            elif data:
+                port.host_send(data)
+        if self.pty is None:
+            return
+        events = 0
+        for _, ev in self._poll.poll(0):
+            events |= ev
+        hup = events & (select.POLLHUP | select.POLLERR)
+        if reader is None and not hup:
+            self._attach(PTY_READER)
+        elif reader is PTY_READER and hup:
+            self._detach()
+        if events & select.POLLIN and not hup:
+            try:
+                data = os.read(self.pty, 4096)
+            except OSError:
+                data = b""
+            if data and self.reader is PTY_READER:  # else: a second host, ignored
+                port.host_send(data)
+
+    def _attach(self, reader):
+        self.reader = reader
+        self.port.host_open()
+
+    def _detach(self):
+        reader, self.reader = self.reader, None
+        if reader is PTY_READER:
+            try:
+                termios.tcflush(self.pty, termios.TCIOFLUSH)  # the next host gets no stale bytes
+            except (OSError, termios.error):
+                pass
+        elif reader is not None:
+            try:
+                reader.close()
+            except OSError:
+                pass
+        self.port.host_close()
+
+    def sink(self, data):
+        """What the host takes now of one USB frame's bytes (never blocks)."""
+        reader = self.reader
+        if reader is None:
+            return 0
+        try:
+            if reader is PTY_READER:
+                return os.write(self.pty, data)
+            return reader.send(data)
+        except (BlockingIOError, InterruptedError):
+            return 0
+        except OSError:
+            self._detach()
+            return 0
 
 
 class Bench:
@@ -438,9 +691,13 @@ class Bench:
     connects while another reader is attached is closed at once; the pty is attached
     while a program has it open and no TCP client is. A reader that goes away closes
     the port (``SimCapturePort.host_close``).
+
+    With a CAN bus (``can_nodes=...`` or ``can=True``, see ``SimBench``) the jig's
+    SLCAN port (or the direct adapter's) is served the same way: ``slcan_url``
+    (``slcan_port``, 0: a free one) and ``slcan_pty_path``.
     """
 
-    def __init__(self, driver_ids=(2, 3), baud=115200, tcp_port=0, pty=True, capture_port=0, **kw):
+    def __init__(self, driver_ids=(2, 3), baud=115200, tcp_port=0, pty=True, capture_port=0, slcan_port=0, **kw):
         self.driver_ids = tuple(driver_ids)
         self.baud = baud
         self.tcp_port = tcp_port
@@ -460,11 +717,10 @@ class Bench:
         self.error = None
         self.capture_url = None
         self.capture_pty_path = None
-        self._cap_server = None
-        self._cap_new = queue.Queue()  # accepted capture connections, for the simulation thread
-        self._cap_reader = None  # the attached capture reader: a socket, PTY_READER or None
-        self._cap_pty = None  # the capture pty's master fd
-        self._cap_poll = None
+        self.slcan_port = slcan_port
+        self.slcan_url = None
+        self.slcan_pty_path = None
+        self._hosts = []  # HostPort: the capture port, the SLCAN port
         self._fd_users = 0  # threads running that use the ptys' descriptors
         self._fds_left = False  # stop() returned while one of them still ran
 
@@ -483,17 +739,18 @@ class Bench:
         self._server.settimeout(0.2)
         port = self._server.getsockname()[1]
         self.tcp_url = "socket://127.0.0.1:%d" % port
-        self.sim.hal.capture.sink = self._cap_sink
-        self._cap_server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._cap_server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._cap_server.bind(("127.0.0.1", self.capture_port))
-        self._cap_server.listen(2)
-        self._cap_server.settimeout(0.2)
-        self.capture_url = "socket://127.0.0.1:%d" % self._cap_server.getsockname()[1]
-        if self.want_pty:
-            self._open_capture_pty()
+        cap = HostPort("capture", self.sim.hal.capture, self.capture_port, self.want_pty)
+        self._hosts.append(cap)
+        cap.open()
+        self.capture_url, self.capture_pty_path = cap.url, cap.pty_path
+        if self.sim.slcan is not None:
+            slc = HostPort("slcan", self.sim.slcan, self.slcan_port, self.want_pty)
+            self._hosts.append(slc)
+            slc.open()
+            self.slcan_url, self.slcan_pty_path = slc.url, slc.pty_path
         self._spawn(self._accept_loop)
-        self._spawn(self._cap_accept_loop)
+        for h in self._hosts:
+            self._spawn(h.accept_loop, self._stop)
         self._fd_user_spawn(self._sim_loop)
         return self
 
@@ -515,13 +772,8 @@ class Bench:
                 self._close_fds()
         if self._server is not None:
             self._server.close()
-        if self._cap_server is not None:
-            self._cap_server.close()
-        if self._cap_reader is not None and self._cap_reader is not PTY_READER:
-            self._cap_reader.close()
-        self._cap_reader = None
-        while not self._cap_new.empty():
-            self._cap_new.get_nowait().close()
+        for h in self._hosts:
+            h.close()
         with self._lock:
             for c in self._clients:
                 try:
@@ -545,7 +797,9 @@ class Bench:
 
     def _close_fds(self):
         """The ptys' raw descriptors (with the lock held; once)."""
-        for name in ("_cap_pty", "_master", "_slave"):
+        for h in self._hosts:
+            h.close_pty()
+        for name in ("_master", "_slave"):
             fd = getattr(self, name)
             setattr(self, name, None)
             if fd is not None:
@@ -588,105 +842,10 @@ class Bench:
         finally:
             self._fd_user_ends()
 
-    # --- the capture port -------------------------------------------------------------
-    def _open_capture_pty(self):
-        import tty
-
-        master, slave = os.openpty()
-        tty.setraw(slave)  # kept by the pty for whoever opens it next
-        self.capture_pty_path = os.ttyname(slave)
-        # Not kept open here: the master then reports POLLHUP while no program has the
-        # pty open, which is how the bench tells an opened port from a closed one.
-        os.close(slave)
-        os.set_blocking(master, False)
-        self._cap_pty = master
-        self._cap_poll = select.poll()
-        self._cap_poll.register(master, select.POLLIN)
-
-    def _cap_accept_loop(self):
-        while not self._stop.is_set():
-            try:
-                conn, _ = self._cap_server.accept()
-            except (socket.timeout, OSError):
-                continue
-            self._cap_new.put(conn)
-
-    def _cap_pump(self):
-        """The host's side of the capture port, in the simulation thread: readers
-        coming and going, their commands to the jig."""
-        port = self.sim.hal.capture
-        while True:
-            try:
-                conn = self._cap_new.get_nowait()
-            except queue.Empty:
-                break
-            if self._cap_reader is not None:
-                conn.close()  # one reader at a time
-                continue
-            conn.setblocking(False)
-            self._cap_attach(conn)
-        reader = self._cap_reader
-        if reader is not None and reader is not PTY_READER:
-            try:
-                data = reader.recv(4096)
-            except (BlockingIOError, InterruptedError):
-                data = None
-            except OSError:
-                data = b""
-            if data == b"":
-                self._cap_detach()
-            elif data:
-                port.host_send(data)
-        if self._cap_pty is None:
-            return
-        events = 0
-        for _, ev in self._cap_poll.poll(0):
-            events |= ev
-        hup = events & (select.POLLHUP | select.POLLERR)
-        if reader is None and not hup:
-            self._cap_attach(PTY_READER)
-        elif reader is PTY_READER and hup:
-            self._cap_detach()
-        if events & select.POLLIN and not hup:
-            try:
-                data = os.read(self._cap_pty, 4096)
-            except OSError:
-                data = b""
-            if data and self._cap_reader is PTY_READER:  # else: a second reader, ignored
-                port.host_send(data)
-
-    def _cap_attach(self, reader):
-        self._cap_reader = reader
-        self.sim.hal.capture.host_open()
-
-    def _cap_detach(self):
-        reader, self._cap_reader = self._cap_reader, None
-        if reader is PTY_READER:
-            try:
-                termios.tcflush(self._cap_pty, termios.TCIOFLUSH)  # the next reader gets no stale bytes
-            except (OSError, termios.error):
-                pass
-        elif reader is not None:
-            try:
-                reader.close()
-            except OSError:
-                pass
-        self.sim.hal.capture.host_close()
-
-    def _cap_sink(self, data):
-        """What the reader takes now of one USB frame's bytes (never blocks)."""
-        reader = self._cap_reader
-        if reader is None:
-            return 0
-        try:
-            if reader is PTY_READER:
-                return os.write(self._cap_pty, data)
-            return reader.send(data)
-        except (BlockingIOError, InterruptedError):
-            return 0
-        except OSError:
-            self._cap_detach()
-            return 0
+    @property
+    def _cap_pty(self):
+        """The capture pty's master fd (None once closed)."""
+        return self._hosts[0].pty if self._hosts else None
 
     # --- TCP -----------------------------------------------------------------------
     def _accept_loop(self):
@@ -725,7 +884,8 @@ class Bench:
         # Bytes from outside reach the bus when they arrived (the wall clock), not at
         # the simulated time the bench is catching up through after a stall: they
         # cannot have been on the wire earlier.
-        self._cap_pump()
+        for h in self._hosts:
+            h.pump()
         try:
             while True:
                 data = self._inbox.get_nowait()

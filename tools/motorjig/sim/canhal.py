@@ -369,3 +369,133 @@ class SimSlcanPort(SimCapturePort):
         super().host_send(data)
         if self.is_open and data and self.on_host_data is not None:
             self.on_host_data()
+
+
+SLCAN_RATES = (10000, 20000, 50000, 100000, 125000, 250000, 500000, 750000, 1000000)  # S0..S8
+
+
+class DirectSlcanAdapter:
+    """A plain USB SLCAN adapter straight on the CAN bus: the reference the jig is
+    measured against (``SimBench(direct=True)`` / ``direct_can=True``).
+
+    An ideal one: its CPU takes no time, a line from the host is handled the moment
+    it arrives, a received frame becomes a line at once; its USB side is a
+    ``SimSlcanPort`` (the same 1 ms USB frames to the host as the jig's port) with a
+    transmit buffer that never fills. Frames go out in the order the host sent
+    them (one in the controller at a time). Commands: ``Sn``, ``O``, ``L``, ``C``,
+    ``t``/``T``/``r``/``R``, ``Zn``, ``V``, ``N``, ``F``; CR = OK, BEL = refused.
+    """
+
+    def __init__(self, clock, bus, name="adapter"):
+        self.clock = clock
+        self.port = SimSlcanPort(clock, tx_size=1 << 24)
+        self.port.on_host_data = self._host_data
+        self.can = SimCan(bus, name=name)
+        self.can.irq(self._irq, SimCan.IRQ_RX | SimCan.IRQ_TX, hard=True)
+        self.bitrate = bus.bitrate
+        self.stamps = False
+        self._line = bytearray()
+        self._txq = []  # (id, data, flags) in the host's order
+        self._busy = False
+        self._lst = [0, memoryview(bytearray(8)), 0, 0]
+
+    def _host_data(self):
+        buf = bytearray(self.port.any())
+        self.port.readinto(buf)
+        for b in buf:
+            if b == 13:
+                line, self._line = bytes(self._line), bytearray()
+                self.port.write(self._command(line))
+            elif b != 10:
+                self._line.append(b)
+        self._pump()
+
+    def _command(self, line):
+        ok, bad = b"\r", b"\a"
+        can = self.can
+        is_open = can.bitrate is not None
+        if not line:
+            return ok
+        c = line[:1]
+        try:
+            if c in (b"t", b"T", b"r", b"R"):
+                if not is_open or can.mode == SimCan.MODE_SILENT:
+                    return bad
+                ext = c in (b"T", b"R")
+                n = 8 if ext else 3
+                can_id = int(line[1:1 + n], 16)
+                dlc = int(line[1 + n:2 + n], 16)
+                if dlc > 8:
+                    return bad
+                flags = (SimCan.FLAG_EXT_ID if ext else 0)
+                if c in (b"r", b"R"):
+                    data, flags = bytes(dlc), flags | SimCan.FLAG_RTR
+                    if len(line) != 2 + n:
+                        return bad
+                else:
+                    data = bytes.fromhex(line[2 + n:].decode())
+                    if len(data) != dlc:
+                        return bad
+                self._txq.append((can_id, data, flags))
+                return ok
+            if c == b"S" and len(line) == 2 and not is_open:
+                self.bitrate = SLCAN_RATES[int(line[1:2])]
+                return ok
+            if c in (b"O", b"L") and len(line) == 1 and not is_open:
+                can.init(self.bitrate, SimCan.MODE_SILENT if c == b"L" else SimCan.MODE_NORMAL)
+                can.set_filters(None)
+                return ok
+            if c == b"C" and len(line) == 1 and is_open:
+                can.deinit()
+                self._txq = []
+                self._busy = False
+                return ok
+            if c == b"Z" and len(line) == 2:
+                self.stamps = line[1:2] == b"1"
+                return ok
+            if line == b"V":
+                return b"V1013\r"
+            if line == b"N":
+                return b"NSIM1\r"
+            if line == b"F":
+                return b"F00\r"
+        except (ValueError, IndexError):
+            pass
+        return bad
+
+    def _pump(self):
+        if self._busy or not self._txq or self.can.bitrate is None:
+            return
+        can_id, data, flags = self._txq[0]
+        try:
+            idx = self.can.send(can_id, data, flags)
+        except OSError:
+            self._txq = []
+            return
+        if idx is not None:
+            self._txq.pop(0)
+            self._busy = True
+
+    def _irq(self, can):
+        lst = self._lst
+        while True:
+            f = can.irq().flags()
+            if not f:
+                break
+            if f & SimCan.IRQ_TX:
+                self._busy = False
+            if f & SimCan.IRQ_RX:
+                while can.recv(lst) is not None:
+                    self.port.write(self._line_of(lst))
+        self._pump()
+
+    def _line_of(self, lst):
+        can_id, data, flags = lst[0], bytes(lst[1]), lst[2]
+        ext = flags & SimCan.FLAG_EXT_ID
+        if flags & SimCan.FLAG_RTR:
+            head = (b"R%08X%d" if ext else b"r%03X%d") % (can_id, len(data))
+        else:
+            head = (b"T%08X%d" if ext else b"t%03X%d") % (can_id, len(data)) + data.hex().upper().encode()
+        if self.stamps:
+            head += b"%04X" % (int(self.clock.now // 1000) % 60000)
+        return head + b"\r"

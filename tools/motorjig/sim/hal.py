@@ -28,6 +28,15 @@ wired to them first catches up to the present with the relays as they were.
 fits and nothing while no host has the port open, emptied by the host once per 1 ms
 USB frame; the host's side (open, close, commands, what it has read) is for the
 bench (``SimCapturePort``).
+
+With a CAN bus (``SimHAL(can_bus=...)``) the HAL has the jig's CAN port
+(docs/hal.md): ``can_open(bitrate, listen_only)`` (re)starts the one FDCAN1
+controller, a ``canhal.SimCan`` on that bus, with ``set_filters(None)`` done, and
+returns it; ``can_close(can)`` stops it; ``slcan`` is the third USB CDC port
+(``canhal.SimSlcanPort``). Frames received, transmissions done and the host's
+bytes on ``slcan`` wake the main loop like UART bytes do. Without a CAN bus the
+HAL has no ``can_open`` attribute at all and ``slcan`` is None (a board without
+the port, as old HALs).
 """
 
 from jig.ringbuf import RingBuffer
@@ -270,7 +279,7 @@ class SimCapturePort:
 class SimHAL:
     def __init__(self, clock, up_bus, down_bus, fs=None, param_path="/flash/jigparams.bin",
                  rxsize=4096, echo_up=False, echo_down=False, record=True, cpu_model=(0.0, 0.0),
-                 capture_tx=CDC_TX_SIZE):
+                 capture_tx=CDC_TX_SIZE, can_bus=None):
         self.clock = clock
         self.up_bus = up_bus
         self.down_bus = down_bus
@@ -299,6 +308,31 @@ class SimHAL:
         self.cpu_us = 0.0  # CPU time charged so far
         self.capture = SimCapturePort(clock, capture_tx)  # jig.capture's port (the second USB CDC)
         self.capture.cpu_us_per_write = us_per_write
+        self.can_bus = can_bus
+        self.can = None  # the FDCAN1 controller once opened (canhal.SimCan)
+        self.slcan = None
+        if can_bus is not None:
+            from .canhal import SimSlcanPort
+
+            self.slcan = SimSlcanPort(clock, capture_tx)  # the third USB CDC port
+            self.slcan.cpu_us_per_write = us_per_write
+            self.slcan.on_host_data = self.on_rx
+            self.can_open = self._can_open
+            self.can_close = self._can_close
+
+    def _can_open(self, bitrate, listen_only):
+        from .canhal import SimCan
+
+        if self.can is None:
+            self.can = SimCan(self.can_bus, name="jig-can")
+            self.can.on_event = self.on_rx
+        mode = SimCan.MODE_SILENT if listen_only else SimCan.MODE_NORMAL
+        self.can.init(bitrate, mode)
+        self.can.set_filters(None)
+        return self.can
+
+    def _can_close(self, can):
+        can.deinit()
 
     def open(self, up_baud, down_baud):
         self.up_bus.set_baud(up_baud)

@@ -1,0 +1,163 @@
+"""The CAN side of the bench: SimHAL's CAN port, SimBench's CAN bus and nodes, the
+direct SLCAN adapter, CAN faults, and the real-time Bench serving the SLCAN port."""
+
+import os
+import select
+import socket
+import time
+
+import pytest
+
+from motorjig.sim.bench import Bench, SimBench
+from motorjig.sim.canhal import SimCan, SimSlcanPort
+
+
+class SdoNode:
+    """A small CANopen-like node for these tests: answers an expedited SDO upload of
+    0x1000 with 0x00020192 and counts its faults; boot-up on start."""
+
+    def __init__(self, clock, bus, node_id):
+        self.node_id = node_id
+        self.node = bus.add_node("node%d" % node_id, self.on_frame)
+        self.faults = {}
+        self.node.transmit(0x700 + node_id, False, False, b"\x00")  # boot-up
+
+    def on_frame(self, t, can_id, ext, rtr, data):
+        if can_id == 0x600 + self.node_id and data[:4] == b"\x40\x00\x10\x00" and "silent" not in self.faults:
+            self.node.transmit(0x580 + self.node_id, False, False, b"\x43\x00\x10\x00\x92\x01\x02\x00")
+
+    def set_fault(self, name, value):
+        self.faults[name] = value
+
+    def clear_faults(self):
+        self.faults = {}
+
+
+def test_a_bench_without_can_has_no_can_port():
+    b = SimBench(driver_ids=(2,))
+    assert b.can_bus is None and b.can_nodes == {} and b.slcan is None
+    assert not hasattr(b.hal, "can_open") and b.hal.slcan is None
+
+
+def test_can_nodes_and_the_jigs_can_port():
+    b = SimBench(driver_ids=(2,), can_nodes=(5, 6), can_bitrate=1000000, can_node_factory=SdoNode)
+    assert b.can_bus.bitrate == 1000000 and sorted(b.can_nodes) == [5, 6]
+    assert isinstance(b.slcan, SimSlcanPort) and b.slcan is b.hal.slcan
+    can = b.hal.can_open(1000000, False)
+    assert isinstance(can, SimCan) and can.state() == can.STATE_ACTIVE
+    assert b.hal.can_open(1000000, True) is can  # one FDCAN1, opened again
+    b.hal.can_close(can)
+    can = b.hal.can_open(1000000, False)
+    can.send(0x605, b"\x40\x00\x10\x00\x00\x00\x00\x00")
+    b.run_for(2000)
+    got = []
+    while (r := can.recv()) is not None:
+        got.append((r[0], bytes(r[1])))
+    assert (0x585, b"\x43\x00\x10\x00\x92\x01\x02\x00") in got
+    b.hal.can_close(can)
+    assert can.state() == can.STATE_STOPPED
+
+
+@pytest.mark.parametrize("bad, msg", [
+    (dict(can_nodes=(0,)), "out of range"), (dict(can_nodes=(128,)), "out of range"),
+    (dict(can_nodes=(5, 5)), "twice"), (dict(can_nodes=(5,), can_bitrate=400000), "SLCAN bitrate"),
+])
+def test_bad_can_settings_are_refused(bad, msg):
+    with pytest.raises(ValueError, match=msg):
+        SimBench(driver_ids=(2,), can_node_factory=SdoNode, **bad)
+
+
+def test_can_faults_go_to_the_nodes_and_plus_r_faults_stay():
+    b = SimBench(driver_ids=(2,), can_nodes=(5, 6), can_node_factory=SdoNode)
+    b.set_fault("can:silent", 1, 5)
+    assert b.can_nodes[5].faults == {"silent": 1} and b.can_nodes[6].faults == {}
+    b.set_fault("can:heartbeat", 100)
+    assert b.can_nodes[6].faults == {"heartbeat": 100}
+    with pytest.raises(ValueError, match="no CAN node 7"):
+        b.set_fault("can:silent", 1, 7)
+    b.set_fault("step-out", 2000, 2)  # a Plus-R fault as before
+    assert b.drivers[2].active_faults()
+    b.clear_faults()
+    assert b.can_nodes[5].faults == {} and not b.drivers[2].active_faults()
+
+
+def test_direct_adapter_answers_slcan_and_a_node_replies():
+    b = SimBench(direct=True, driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode)
+    assert b.hal is None and b.can_adapter is not None
+    b.slcan_send(b"S6\rO\r")
+    # the node's boot-up had nobody to acknowledge it: it is retried until the adapter is on
+    assert b.slcan_read(3) == b"\r\rt705100\r"
+    b.slcan_send(b"V\rt60584000100000000000\r")
+    assert b.slcan_read(3) == b"V1013\r\rt58584300100092010200\r"
+    b.slcan_send(b"t6059\r")  # a DLC that does not match: refused
+    assert b.slcan_read(1) == b"\a"
+
+
+def test_direct_adapter_timestamps_and_remote_frames():
+    b = SimBench(direct=True, driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode)
+    b.slcan_send(b"Z1\rO\rr7052\r")
+    out = b.slcan_read(3)
+    assert out.startswith(b"\r\r\r")
+    boot = [x for x in out.split(b"\r") if x.startswith(b"t705")]
+    assert len(boot) == 1 and len(boot[0]) == len(b"t705100") + 4  # a 4-digit ms stamp
+
+
+def test_the_same_host_helpers_on_a_jig_bench_need_the_jigs_port():
+    b = SimBench(driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode)
+    port = b.slcan
+    assert not port.is_open
+    b.slcan_send(b"V\r")
+    assert port.is_open
+    b.slcan_close()
+    assert not port.is_open
+
+
+# --- real time: the SLCAN port on TCP and a pty -------------------------------------------
+
+def _read_until(sock, want, timeout=5.0):
+    end = time.monotonic() + timeout
+    got = b""
+    while time.monotonic() < end and got.count(b"\r") + got.count(b"\a") < want:
+        r, _, _ = select.select([sock], [], [], 0.1)
+        if r:
+            data = sock.recv(4096)
+            if not data:
+                break
+            got += data
+    return got
+
+
+def test_realtime_bench_serves_the_slcan_port_one_host_at_a_time():
+    with Bench(driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode, direct_can=True) as bench:
+        assert bench.slcan_url.startswith("socket://127.0.0.1:")
+        assert bench.slcan_pty_path and os.path.exists(bench.slcan_pty_path)
+        host, port = bench.slcan_url[len("socket://"):].split(":")
+        a = socket.create_connection((host, int(port)), timeout=5)
+        try:
+            a.sendall(b"S6\rO\rt60584000100000000000\r")
+            got = _read_until(a, 5)  # 3 OKs, the node's boot-up, the SDO reply
+            assert got.startswith(b"\r\r\r") and b"t58584300100092010200\r" in got
+            b2 = socket.create_connection((host, int(port)), timeout=5)
+            try:
+                b2.settimeout(5)
+                assert b2.recv(100) == b""  # a second host is turned away
+            finally:
+                b2.close()
+        finally:
+            a.close()
+
+
+def test_realtime_slcan_pty():
+    with Bench(driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode, direct_can=True) as bench:
+        fd = os.open(bench.slcan_pty_path, os.O_RDWR | os.O_NOCTTY)
+        try:
+            os.write(fd, b"S6\rO\rV\r")
+            end = time.monotonic() + 5
+            got = b""
+            while time.monotonic() < end and b"V" not in got:
+                r, _, _ = select.select([fd], [], [], 0.1)
+                if r:
+                    got += os.read(fd, 4096)
+            assert got.startswith(b"\r\r") and b"V1013\r" in got
+        finally:
+            os.close(fd)
