@@ -684,21 +684,83 @@ def test_the_capture_port_is_the_second_usb_cdc_port_with_cts_flow(fakes, monkey
     assert b.capture is FakeVCP.made[0]
     # CTS flow: a write takes only what fits and nothing while no PC has the port open
     assert b.capture.index == 1 and b.capture.flow == FakeVCP.CTS
+    # the third is the SLCAN port of the CAN port, set up the same way
+    assert b.slcan is FakeVCP.made[1] and b.slcan.index == 2 and b.slcan.flow == FakeVCP.CTS
 
 
 def test_no_capture_port_without_pyb(fakes):
-    assert fakes.board.Board("STM32H7_JIG").capture is None
+    b = fakes.board.Board("STM32H7_JIG")
+    assert b.capture is None and b.slcan is None
 
 
-def test_the_usb_boot_file_asks_for_two_cdc_ports(monkeypatch):
+class FakeCAN:
+    """machine.CAN as far as Board.can_open uses it."""
+
+    MODE_NORMAL = 0
+    MODE_SILENT = 3
+    made = []
+
+    def __init__(self, index, bitrate, mode=0):
+        if bitrate > 1000000:
+            raise ValueError("bitrate")
+        self.index, self.bitrate, self.mode = index, bitrate, mode
+        self.filters = "unset"
+        self.deinits = 0
+        FakeCAN.made.append(self)
+
+    def set_filters(self, filters):
+        self.filters = filters
+
+    def deinit(self):
+        self.deinits += 1
+
+
+@pytest.mark.parametrize("name", ["STM32H7_JIG", "NUCLEO_H743ZI"])
+def test_can_open_is_fdcan1_receiving_all_in_the_mode_asked(fakes, monkeypatch, name):
+    monkeypatch.setattr(fakes.machine, "CAN", FakeCAN, raising=False)
+    b = fakes.board.Board(name)
+    can = b.can_open(500000, 0)
+    assert (can.index, can.bitrate, can.mode, can.filters) == (1, 500000, FakeCAN.MODE_NORMAL, None)
+    assert b.can_open(125000, 1).mode == FakeCAN.MODE_SILENT
+    assert b.can_open(2000000, 0) is None  # a bitrate the controller refuses
+    b.can_close(can)
+    assert can.deinits == 1
+
+
+def test_no_can_without_machine_can(fakes):
+    assert fakes.board.Board("STM32H7_JIG").can_open(500000, 0) is None
+
+
+def _boot_modes(monkeypatch, accepts):
+    """The usb_mode calls of jigusb.py on a build whose CDC modes are ``accepts``."""
     pyb = types.ModuleType("pyb")
     modes = []
-    pyb.usb_mode = modes.append
+
+    def usb_mode(mode):
+        modes.append(mode)
+        if mode not in accepts:
+            raise ValueError("mode not supported")
+
+    pyb.usb_mode = usb_mode
     monkeypatch.setitem(sys.modules, "pyb", pyb)
     sys.modules.pop("jigusb", None)
     importlib.import_module("jigusb")
     sys.modules.pop("jigusb", None)
-    assert modes == ["VCP+VCP"]
+    return modes
+
+
+def test_the_usb_boot_file_asks_for_three_cdc_ports(monkeypatch):
+    assert _boot_modes(monkeypatch, ("VCP+VCP+VCP", "VCP+VCP")) == ["VCP+VCP+VCP"]
     board_h = open(os.path.join(os.path.dirname(__file__), "..", "boards", "STM32H7_JIG", "mpconfigboard.h")).read()
-    assert "#define MICROPY_HW_USB_CDC_NUM      (2)" in board_h
+    assert "#define MICROPY_HW_USB_CDC_NUM      (3)" in board_h
     assert '#define MICROPY_BOARD_FROZEN_BOOT_FILE "jigusb.py"' in board_h
+    # machine.CAN on FDCAN1, PD1 TX / PD0 RX, as upstream's NUCLEO_H743ZI
+    assert '#define MICROPY_HW_CAN1_NAME        "FDCAN1"' in board_h
+    assert "(pin_D1)" in board_h and "(pin_D0)" in board_h
+    pins = open(os.path.join(os.path.dirname(__file__), "..", "boards", "STM32H7_JIG", "pins.csv")).read().split()
+    assert "CAN_TX,PD1" in pins and "CAN_RX,PD0" in pins and ",PD0" not in pins and ",PD1" not in pins
+
+
+def test_the_usb_boot_file_falls_back_to_two_ports_then_the_repl_only(monkeypatch):
+    assert _boot_modes(monkeypatch, ("VCP+VCP",)) == ["VCP+VCP+VCP", "VCP+VCP"]
+    assert _boot_modes(monkeypatch, ()) == ["VCP+VCP+VCP", "VCP+VCP"]  # nothing raised: the REPL only

@@ -6,7 +6,7 @@
 #define MICROPY_HW_MCU_NAME         "STM32H743VI"
 #define MICROPY_HW_FLASH_FS_LABEL   "motorjig"
 
-// Peripherals the jig uses. No SD card, DAC, CAN or networking.
+// Peripherals the jig uses. No SD card, DAC or networking.
 #define MICROPY_HW_ENABLE_RTC       (1)
 #define MICROPY_HW_ENABLE_RNG       (1)
 #define MICROPY_HW_ENABLE_ADC       (1)
@@ -70,6 +70,14 @@
 #define MICROPY_HW_UART3_RX         (pyb_pin_DN_RX)     // PD9 AF7
 #define MICROPY_HW_UART3_RTS        (pyb_pin_DN_DE)     // PD12 AF7 (DE)
 
+// --- CAN port ------------------------------------------------------------------------
+// Connector J4 "CAN": FDCAN1, 3.3 V transceiver U4 (TCAN334 / SN65HVD230 class), 120 ohm
+// termination by jumper. PD1/PD0 (AF9), the pins upstream's NUCLEO_H743ZI uses, so
+// the same machine.CAN(1) works on both. The name makes machine.CAN part of the image.
+#define MICROPY_HW_CAN1_NAME        "FDCAN1"
+#define MICROPY_HW_CAN1_TX          (pin_D1)            // PD1 AF9 FDCAN1_TX
+#define MICROPY_HW_CAN1_RX          (pin_D0)            // PD0 AF9 FDCAN1_RX
+
 // --- LEDs (active high). LED1 is the one the port blinks on a fatal error. ----------
 #define MICROPY_HW_LED1             (pyb_pin_LED_ERR)       // PE4 red: error
 #define MICROPY_HW_LED2             (pyb_pin_LED_HB)        // PE2 green: heartbeat
@@ -82,10 +90,10 @@
 #define MICROPY_HW_USB_VBUS_DETECT_PIN (pyb_pin_USB_VBUS)  // PA9
 // The flash holds littlefs, which a PC cannot mount: USB is CDC (REPL) only.
 #define MICROPY_HW_USB_MSC          (0)
-// Two CDC ports: the REPL, and the stream of records of both RS-485 buses
-// (jig.capture). USB starts in that mode from the frozen boot file, which the
-// port runs before boot.py.
-#define MICROPY_HW_USB_CDC_NUM      (2)
+// Three CDC ports: the REPL, the stream of records of the buses (jig.capture), and
+// the CAN port's SLCAN session (jig.canport). USB starts in that mode from the
+// frozen boot file, which the port runs before boot.py.
+#define MICROPY_HW_USB_CDC_NUM      (3)
 #define MICROPY_BOARD_FROZEN_BOOT_FILE "jigusb.py"
 #define MICROPY_HW_USB_MANUFACTURER_STRING "MotorJig"
 #define MICROPY_HW_USB_PRODUCT_FS_STRING   "MotorJig STM32H7_JIG RS-485 bridge"

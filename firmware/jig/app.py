@@ -1,7 +1,8 @@
 """Wires the jig together and runs its main loop, on any HAL.
 
 ``App(hal)`` builds the two RS-485 ports, their parsers, the bridge, the local
-handlers, the bus scanner and the safety stop from the parameter table, and
+handlers, the bus scanner, the safety stop and the CAN port (``jig.canport``,
+where the HAL has one) from the parameter table, and
 ``poll()`` does one pass of the main loop: bytes waiting on the driver bus, then on
 the PC bus, go through their parser into the bridge (which acts on every event:
 a routing decision, a complete frame, a dropped one). Everything with a time in
@@ -35,6 +36,8 @@ The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
     hal.fs                          .read_into(path, buf) .write(path, buf, n)
                                     .rename(src, dst) .remove(path)
     hal.param_path                  parameter file path
+    hal.can_open(bitrate, listen_only) -> machine.CAN-like object or None   optional:
+    hal.can_close(can)              the CAN port (FDCAN1); hal.slcan its SLCAN CDC port
 
 Ports are opened by the HAL at the baud rates the app asks for: the app calls
 ``hal.open(up_baud, down_baud)`` once after loading the parameters (baud rates
@@ -47,6 +50,7 @@ from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
+from jig.canport import CanPort
 from jig.capture import QUIET_US, Capture
 from jig.compat import NATIVE, const, ticks_add, ticks_diff
 from jig.frame import MAX_BODY
@@ -121,6 +125,9 @@ class App:
         self.scanner = Scanner(self.bridge, self.params)
         self.safety = SafetyStop(self.bridge, self.params, self.counters)
         self.trace = Trace(self)  # (after the parsers and the bridge: it reads both)
+        # The CAN port (an SLCAN adapter on the HAL's third CDC port); None on a HAL
+        # without CAN (no can_open): the app runs as before.
+        self.can = CanPort(self) if hasattr(hal, "can_open") else None
         self._trace_on = self.trace.ts  # [0] (T_ON): the slow pass calls the sampler only while it runs
         self.up_rx = bytearray(RX_CHUNK)
         self.down_rx = bytearray(RX_CHUNK)
@@ -211,6 +218,8 @@ class App:
         self.base_down_ovf = self.hal.down.overflows
         self.base_cap[0] = self.capture.cs[12]
         self.base_cap[1] = self.capture.cs[13]
+        if self.can is not None:
+            self.can.reset_counters()
 
     # --- main loop -----------------------------------------------------------------
     def poll(self):
@@ -281,6 +290,9 @@ class App:
         tracing = self._trace_on[0]
         if tracing:
             self.trace.poll(now)
+        can = self.can
+        if can is not None:
+            can.poll(now)
         cap = self.capture
         stream = -1
         if cap.port is not None or cap.cs[0]:  # (CS_ON) commands to read, or records to move
@@ -295,6 +307,8 @@ class App:
         due = _earlier(due, now, self.safety.wait_us(now))
         if tracing:
             due = _earlier(due, now, self.trace.wait_us(now))
+        if can is not None:
+            due = _earlier(due, now, can.wait_us(now))
         if stream == 0:
             due = _earlier(due, now, QUIET_US)  # more for the capture port
         if ticks_diff(due, now) <= 0:

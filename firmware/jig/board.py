@@ -14,6 +14,12 @@ block device, the SAFE button pin, the reset cause. The pure parts of boot are i
 
 Pin maps are data (``PROFILES``): the jig itself, and a NUCLEO-H743ZI running
 stock MicroPython (``tools/flash.py deploy``), whose UART3 is the ST-LINK REPL.
+
+The CAN port: FDCAN1 (PD1 TX / PD0 RX, AF9, on both profiles as upstream's
+NUCLEO_H743ZI board has it; the image names it "FDCAN1" in mpconfigboard.h) through
+``machine.CAN`` (``can_open`` / ``can_close``), and the third USB CDC port
+(``slcan``) where the host speaks SLCAN to it (``jig.canport``). Either is None where
+the build lacks it (no ``machine.CAN``, fewer CDC ports): the bridge runs without.
 """
 
 import os
@@ -49,6 +55,7 @@ PROFILES = (
             "safe": ("BTN_SAFE", 0, "up"),
             "inputs": (("IN1", 0, "up"), ("IN2", 0, "up"), ("IN3", 0, "up"), ("IN4", 0, "up"), ("BTN_SAFE", 0, "up")),
             "outputs": ("RLY1", "RLY2", "RLY3", "RLY4"),
+            "can": 1,  # J4 "CAN": FDCAN1, PD1 TX / PD0 RX (AF9), 3.3 V transceiver
         },
     ),
     (
@@ -61,6 +68,7 @@ PROFILES = (
             "safe": ("PC13", 1, None),  # blue USER button, pressed = high
             "inputs": (("PC13", 1, None),),
             "outputs": (),
+            "can": 1,  # FDCAN1 on PD1 TX / PD0 RX (CN9), a 3.3 V transceiver wired on
         },
     ),
 )
@@ -125,7 +133,8 @@ class Board:
         self.error_on = False
         self.seen_overflows = 0
         self.streak_cleared = False
-        self.capture = self._capture_port()
+        self.capture = self._usb_port(1)
+        self.slcan = self._usb_port(2)
 
     def open(self, up_baud, down_baud):
         """Open both ports at the given baud rates (called once by jig.app.App)."""
@@ -133,20 +142,46 @@ class Board:
         self.up = UartPort(p["up"], up_baud, p["echo_free"])
         self.down = UartPort(p["down"], down_baud, p["echo_free"])
 
-    # the capture port ---------------------------------------------------------------
-    def _capture_port(self):
-        """The second USB CDC port (jigusb.py selects two), the HAL's ``capture``:
-        ``USB_VCP(1)`` with CTS flow control, so a write takes only what fits in its
-        buffer and nothing while no PC has the port open -- it never blocks the
-        bridge. None where the build has one CDC port or no pyb module."""
+    # the capture and SLCAN ports ------------------------------------------------------
+    def _usb_port(self, index):
+        """A USB CDC port after the REPL (jigusb.py selects three): 1 is the HAL's
+        ``capture``, 2 its ``slcan``. ``USB_VCP(index)`` with CTS flow control, so a
+        write takes only what fits in its buffer and nothing while no PC has the
+        port open -- it never blocks the bridge. None where the build has fewer CDC
+        ports or no pyb module."""
         try:
             import pyb
 
-            vcp = pyb.USB_VCP(1)
+            vcp = pyb.USB_VCP(index)
             vcp.init(flow=pyb.USB_VCP.CTS)
             return vcp
         except (ImportError, AttributeError, ValueError, OSError, TypeError):
             return None
+
+    # the CAN port ------------------------------------------------------------------------
+    def can_open(self, bitrate, listen_only):
+        """FDCAN1 at bitrate, normal or listen-only (MODE_SILENT), receiving every
+        frame; None where the build has no machine.CAN or refuses the bitrate."""
+        cls = getattr(machine, "CAN", None)
+        index = self.profile.get("can")
+        if cls is None or index is None:
+            return None
+        try:
+            can = cls(index, bitrate, mode=cls.MODE_SILENT if listen_only else cls.MODE_NORMAL)
+            can.set_filters(None)  # (v1.28: None = receive every frame)
+        except (ValueError, OSError, TypeError):
+            return None
+        return can
+
+    def can_close(self, can):
+        try:
+            can.deinit()
+        except OSError:
+            pass
+
+    def unique_id(self):
+        """The MCU's 96-bit unique id (the SLCAN serial number is folded from it)."""
+        return machine.unique_id()
 
     # jig I/O ------------------------------------------------------------------------
     def set_outputs(self, mask):

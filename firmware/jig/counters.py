@@ -16,6 +16,7 @@ Conservation laws the tests check (``pending`` is 1 while a reply is awaited):
 from array import array
 
 from jig.compat import const
+from jig.slcan import ERR_NAMES as _SLCAN_ERR_NAMES
 
 NAMES = (
     "up_frames_in",  # good frames received from the PC
@@ -91,6 +92,50 @@ COUNT = const(32)
 _TA_SUM = const(32)
 _TA_BASE = const(33)
 _SLOTS = const(34)
+
+
+# The CAN port's figures (jig.canport), in the order 0xFA ReadCanCounters sends them
+# (ReadCounters' reply has no room left for them). Events count since the last
+# ResetCounters; tec .. bitrate are the present values.
+CAN_NAMES = (
+    "can_rx_frames",  # frames received from the CAN bus
+    "can_tx_frames",  # frames sent onto the bus (the host's and the safety stop's)
+    "can_rx_lost",  # received frames the RX ring could not hold (the host too slow)
+    "can_rx_overruns",  # the controller's RX FIFO overran (RECV_ERR_OVERRUN)
+    "can_tx_failed",  # frames handed to the controller that did not go (bus-off, restart)
+    "can_tx_refused",  # SLCAN frame lines answered BEL: the TX FIFO was full
+    "can_warning_entries",  # error warning entered (TEC or REC >= 96)
+    "can_passive_entries",  # error passive entered (TEC or REC >= 128)
+    "can_bus_off_entries",  # bus-off entered (TEC >= 256)
+    "can_bus_off_restarts",  # restarts after can_bus_off_restart_ms
+    "can_tec",  # the controller's transmit error counter now
+    "can_rec",  # ... receive error counter now
+    "can_state",  # 0 stopped (closed), 1 error active, 2 warning, 3 passive, 4 bus-off
+    "can_open",  # 1: the SLCAN channel is open
+    "can_listen_only",  # 1: opened listen-only
+    "can_bitrate",  # bps of the session (SLCAN Sn, else parameter 14)
+    "can_safety_stops",  # CAN safety stops sent (parameter 18)
+    "slcan_lines",  # good SLCAN lines from the host
+) + tuple(["slcan_" + n for n in _SLCAN_ERR_NAMES])  # lines refused, by kind
+CC_RX = const(0)
+CC_TX = const(1)
+CC_RX_LOST = const(2)
+CC_RX_OVERRUNS = const(3)
+CC_TX_FAILED = const(4)
+CC_TX_REFUSED = const(5)
+CC_WARNINGS = const(6)  # then passive and bus-off entries
+CC_PASSIVES = const(7)
+CC_BUS_OFFS = const(8)
+CC_RESTARTS = const(9)
+CC_TEC = const(10)
+CC_REC = const(11)
+CC_STATE = const(12)
+CC_OPEN = const(13)
+CC_LISTEN = const(14)
+CC_BITRATE = const(15)
+CC_SAFETY = const(16)
+CC_LINES = const(17)
+CAN_COUNT = const(18)  # kept by jig.canport; the SLCAN reader's error counts follow on the wire
 
 
 class Counters:

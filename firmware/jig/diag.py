@@ -1,6 +1,6 @@
 """Wire layouts of the jig's own diagnostic frames and of its GetSlaveInfo reply.
 
-Frame types 0xF0-0xF9 are not used by the Plus-R protocol. Request and reply
+Frame types 0xF0-0xFA are not used by the Plus-R protocol. Request and reply
 layouts (reply data always starts with the status byte)::
 
     0xF0 ReadCounters      req: -        reply: St, u8 n, n x u32 in WIRE_NAMES order
@@ -26,8 +26,11 @@ layouts (reply data always starts with the status byte)::
                                                 bus, u32 tick the reply's last byte came in or
                                                 0xFFFFFFFF: none), the last 16 forwarded requests,
                                                 oldest first
+    0xFA ReadCanCounters   req: -        reply: St, u8 n, n x u32 in CAN_WIRE_NAMES order (the CAN
+                                                port's figures; n = 0 on a jig without one);
+                                                ResetCounters resets them too
 
-The PC library decodes with ``decode_counters`` / ``decode_scan`` / ``decode_crash_log`` below, so the
+The PC library decodes with ``decode_counters`` / ``decode_can_counters`` / ``decode_scan`` / ``decode_crash_log`` below, so the
 layout exists once. ``SLAVE_TYPE`` is what the jig reports in GetSlaveInfo: 200
 (0xC8), a code no FASTECH product uses (their list: 1, 3, 10, 11, 20, 30, 31, 35,
 40, 50, 60, 100, 102, 105, 108, 110, 120, 130, 150, 155, 160, 180, 254, 255).
@@ -46,6 +49,7 @@ STOP_TRACE = const(0xF6)
 READ_TRACE = const(0xF7)
 GET_TRACE_STATUS = const(0xF8)
 READ_TRANSACTION_TIMES = const(0xF9)
+READ_CAN_COUNTERS = const(0xFA)
 XT_ENTRY = const(10)  # u8 id, u8 b1, u32 request sent, u32 reply in
 
 TRACE_SAMPLE = const(20)  # bytes: u32 tick, i32 command, i32 actual, i32 velocity, u32 flags
@@ -63,6 +67,10 @@ WIRE_NAMES = (
     + tuple(["down_" + n for n in parser.COUNTER_NAMES])
 )
 N_WIRE = len(WIRE_NAMES)
+# ReadCounters' reply is at its size limit (2 + 4 x 61 data bytes at most): the CAN
+# port's counters have their own frame.
+CAN_WIRE_NAMES = counters.CAN_NAMES
+N_CAN_WIRE = len(CAN_WIRE_NAMES)
 
 SCAN_IDS = const(16)  # ids 0..15
 SCAN_IDLE = const(0)  # never started
@@ -84,6 +92,21 @@ def decode_counters(data):
     out = {}
     for i in range(n):
         name = WIRE_NAMES[i] if i < N_WIRE else "counter_%d" % i
+        out[name] = frame.get_u32(data, 2 + 4 * i)
+    return out
+
+
+def decode_can_counters(data):
+    """Reply data of ReadCanCounters (status first) -> dict name -> value (host side);
+    empty when the jig has no CAN port."""
+    if len(data) < 2 or data[0] != 0:
+        raise ValueError("bad ReadCanCounters reply")
+    n = data[1]
+    if len(data) != 2 + 4 * n:
+        raise ValueError("bad ReadCanCounters reply length")
+    out = {}
+    for i in range(n):
+        name = CAN_WIRE_NAMES[i] if i < N_CAN_WIRE else "can_counter_%d" % i
         out[name] = frame.get_u32(data, 2 + 4 * i)
     return out
 

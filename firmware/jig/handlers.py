@@ -46,9 +46,9 @@ LEN_ANY = -1
 DEFERRED = -1  # handle(): no reply now; the handler sends it later (Bridge.local_reply)
 # While the sampler runs (or its request is out), a reply with more data bytes than this goes
 # out in pieces with the sampler's slots between them (jig.trace.Trace.reply), not whole:
-# ReadCounters, ReadTransactionTimes, ReadCrashLog (their handlers end in ``_long``). One up
-# to it (<= 50 wire bytes, 4.3 ms at 115 200 baud) stays under the inter-byte timeout (5 ms)
-# even when a sample's reply ends at its start.
+# ReadCounters, ReadCanCounters, ReadTransactionTimes, ReadCrashLog (their handlers end in
+# ``_long``). One up to it (<= 50 wire bytes, 4.3 ms at 115 200 baud) stays under the
+# inter-byte timeout (5 ms) even when a sample's reply ends at its start.
 PACED_MIN = const(40)
 _T_WAITING = const(10)  # jig.trace.T_WAITING (T_ON is 0; a host test checks they agree)
 
@@ -107,6 +107,7 @@ class Handlers:
         info[2:] = s
         self.info = info
         self.counter_values = [0] * diag.N_WIRE
+        self.can_values = [0] * diag.N_CAN_WIRE
         self.pending_change = -1
         self.id_check = SlaveIdCheck(app)
         # frame type -> (handler, required request data length or LEN_ANY), as a list
@@ -133,6 +134,7 @@ class Handlers:
             diag.READ_TRACE: (self.trace_read, 3),
             diag.GET_TRACE_STATUS: (self.trace_status, 0),
             diag.READ_TRANSACTION_TIMES: (self.transaction_times, 0),
+            diag.READ_CAN_COUNTERS: (self.read_can_counters, 0),
         }
         self.table = [None] * 256
         for ftype, entry in by_type.items():
@@ -265,6 +267,19 @@ class Handlers:
         vals = self.app.counter_values(self.counter_values)
         n = len(vals)
         out[0] = frame.STATUS_OK
+        out[1] = n
+        for i in range(n):
+            put_u32(out, 2 + 4 * i, vals[i] & 0x3FFFFFFF)
+        return self._long(p, o, out, 2 + 4 * n)
+
+    def read_can_counters(self, p, d, o, out):
+        can = self.app.can
+        out[0] = frame.STATUS_OK
+        if can is None:  # a HAL without CAN: no figures
+            out[1] = 0
+            return 2
+        vals = can.counter_values(self.can_values)
+        n = len(vals)
         out[1] = n
         for i in range(n):
             put_u32(out, 2 + 4 * i, vals[i] & 0x3FFFFFFF)

@@ -14,12 +14,14 @@ littlefs), so power loss at any moment leaves either the old or the new file. A
 filesystem that cannot rename over an existing file gets remove-then-rename, and
 loading falls back to a complete temporary file if the main one is missing. A
 missing or corrupt file gives the defaults and is reported (``load`` returns
-False; the app counts it).
+False; the app counts it). A file with fewer values than ``COUNT`` (written before
+parameters were added) loads: the values it has, the defaults for the rest.
 """
 
 from jig import crc as _crc
 from jig.compat import const
 from jig.frame import get_i32, put_i32, put_u16
+from jig.slcan import SLCAN_BITRATES
 
 P_SLAVE_ID = const(0)
 P_UP_BAUD = const(1)
@@ -35,6 +37,11 @@ P_SAFETY_ACTION = const(10)
 P_SCAN_TIMEOUT_MS = const(11)
 P_FORWARD_MODE = const(12)
 P_CAPTURE = const(13)
+P_CAN_BITRATE = const(14)
+P_CAN_LISTEN_ONLY = const(15)
+P_CAN_TERMINATION = const(16)
+P_CAN_BUS_OFF_RESTART_MS = const(17)
+P_CAN_SAFETY = const(18)
 
 # forward_mode values
 CUT_THROUGH = const(0)  # bytes go on as they arrive (a wire, less the routing)
@@ -59,11 +66,18 @@ TABLE = (
     (11, "scan_timeout_ms", "ms", 1, 100, 20, IMMEDIATE),
     (12, "forward_mode", "0=cut-through 1=store-and-forward", 0, 1, 0, RESTART),
     (13, "capture", "0=off 1=record both buses", 0, 1, 0, IMMEDIATE),
+    (14, "can_bitrate", "bps", 10000, 1000000, 500000, RESTART),
+    (15, "can_listen_only", "0=normal 1=listen only", 0, 1, 0, IMMEDIATE),
+    (16, "can_termination", "0=no 1=fit the J4 120 ohm jumper", 0, 1, 1, IMMEDIATE),
+    (17, "can_bus_off_restart_ms", "ms, 0=stay off until closed", 0, 60000, 100, IMMEDIATE),
+    (18, "can_safety", "0=off 1=NMT stop all 2=CiA 402 quick stop to nodes seen", 0, 2, 0, IMMEDIATE),
 )
-COUNT = const(14)
+COUNT = const(19)
 
 # Baud parameters must also be one of these.
 BAUD_RATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+# can_bitrate must be one of SLCAN's S0..S8 rates.
+CAN_BITRATES = SLCAN_BITRATES
 
 MAGIC = b"MJP1"
 FILE_SIZE = const(4 + 1 + 4 * COUNT + 2)
@@ -77,6 +91,8 @@ def valid(num, value):
     if value < row[3] or value > row[4]:
         return False
     if (num == P_UP_BAUD or num == P_DOWN_BAUD) and value not in BAUD_RATES:
+        return False
+    if num == P_CAN_BITRATE and value not in CAN_BITRATES:
         return False
     return True
 

@@ -14,6 +14,17 @@ variant reads the frame as an unknown type and answers a frame-type error) makes
 the jig send the stop once more in the other variant's framing to that id. Each
 driver thus executes exactly one stop; on a bus of one variant nothing changes.
 The servo-off of action 2 goes out in the framing the stop was executed in.
+
+``CanSafety`` is the same watch on the CAN port (parameter 18 ``can_safety``, in the
+same ``safety_timeout_ms`` window): while the SLCAN channel is open (normal mode;
+listen-only never transmits), silence from the host longer than the window -- no
+good SLCAN line; the ``O`` that opened it counts -- makes the jig send, once until
+the host speaks again, either the NMT command "stop" to all nodes (action 1: id
+0x000, data 02 00) or a CiA 402 quick stop to every node it has heard on the bus
+(action 2: boot-up/heartbeat 0x701..0x77F or SDO reply 0x581..0x5FF; an expedited
+SDO download of controlword 0x6040 = 0x0002 to 0x600 + node: 2B 40 60 00 02 00 00
+00). The frames go through the port's TX FIFO; what does not fit goes on the next
+slow pass. Counted in ``safety_stops`` and in the CAN port's ``can_safety_stops``.
 """
 
 from jig import counters as K
@@ -21,10 +32,21 @@ from jig import frame
 from jig.bridge import B_PC_FRAMES, B_T_PC, SEEN_IDS
 from jig.compat import ticks_diff
 from jig.compat import const
-from jig.params import P_REPLY_TIMEOUT_MS, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
+from jig.params import P_CAN_SAFETY, P_REPLY_TIMEOUT_MS, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
 
 ACTION_EMERGENCY_STOP = const(1)
 ACTION_EMERGENCY_STOP_SERVO_OFF = const(2)
+
+# can_safety values
+CAN_SAFETY_OFF = const(0)
+CAN_SAFETY_NMT_STOP = const(1)
+CAN_SAFETY_QUICK_STOP = const(2)
+NMT_ID = const(0x000)
+SDO_RX_BASE = const(0x600)  # the node's SDO server receives on 0x600 + node id
+NMT_STOP_ALL = b"\x02\x00"  # command 0x02 (stop), node 0 (all)
+QUICK_STOP_SDO = b"\x2B\x40\x60\x00\x02\x00\x00\x00"  # download 2 bytes to 0x6040 sub 0: 0x0002
+_CC_SAFETY = const(16)  # jig.counters.CC_SAFETY
+_NMT = const(255)  # CanSafety.next_node: the NMT stop is still to queue
 
 
 class SafetyStop:
@@ -125,3 +147,64 @@ class SafetyStop:
         self.other = False
         self.servo_off = False
         self.todo = 0
+
+
+class CanSafety:
+    """The CAN port's master-silence stop (see the module's docstring); driven by
+    ``jig.canport.CanPort``'s slow pass. ``port`` gives is_open, listen, lines (good
+    host lines since open), t_host (tick of the last), seen (node bitmap), cv (its
+    counters) and queue_frame()."""
+
+    def __init__(self, port, params, counters):
+        self.port = port
+        self.params = params
+        self.c = counters
+        self.fired_at = -1  # port.lines when it last fired
+        self.next_node = 0  # the next node id to stop (action 2), _NMT (action 1), 0: nothing to send
+        self.nmt = bytearray(NMT_STOP_ALL)
+        self.sdo = bytearray(QUICK_STOP_SDO)
+
+    def reset(self):
+        """The port opened or closed: nothing pending, armed again."""
+        self.fired_at = -1
+        self.next_node = 0
+
+    def _armed(self):
+        port = self.port
+        pr = self.params.ram
+        return (pr[P_CAN_SAFETY] != CAN_SAFETY_OFF and pr[P_SAFETY_TIMEOUT_MS] != 0 and port.is_open
+                and not port.listen and port.lines != 0 and self.fired_at != port.lines)
+
+    def wait_us(self, now):
+        """µs until the silence limit (0: frames still to queue; -1: not armed)."""
+        if self.next_node:
+            return 0
+        if not self._armed():
+            return -1
+        d = self.params.ram[P_SAFETY_TIMEOUT_MS] * 1000 - ticks_diff(now, self.port.t_host)
+        return d if d > 0 else 0
+
+    def poll(self, now):
+        port = self.port
+        if not self.next_node:
+            if not self._armed():
+                return
+            if ticks_diff(now, port.t_host) <= self.params.ram[P_SAFETY_TIMEOUT_MS] * 1000:
+                return
+            self.fired_at = port.lines
+            self.c.v[K.C_SAFETY_STOPS] += 1
+            port.cv[_CC_SAFETY] += 1
+            self.next_node = _NMT if self.params.ram[P_CAN_SAFETY] == CAN_SAFETY_NMT_STOP else 1
+        if self.next_node == _NMT:
+            if port.queue_frame(NMT_ID, 0, 0, self.nmt, 2):
+                self.next_node = 0
+            return
+        seen = port.seen
+        n = self.next_node
+        while n < 128:
+            if seen[n >> 3] & (1 << (n & 7)):
+                if not port.queue_frame(SDO_RX_BASE + n, 0, 0, self.sdo, 8):
+                    self.next_node = n  # the FIFO is full: the rest on the next pass
+                    return
+            n += 1
+        self.next_node = 0

@@ -1,0 +1,627 @@
+"""The jig's CAN port: FDCAN1 as an SLCAN adapter on the third USB CDC port.
+
+``CanPort(app)`` (``app.can``) owns the SLCAN session the host runs on ``hal.slcan``
+(python-can's ``slcan`` interface, ``slcand``, CANable-style tools): ``Sn`` picks the
+bitrate while closed, ``O`` / ``L`` open the controller (``hal.can_open``) normal or
+listen-only, ``C`` closes it, ``t``/``T``/``r``/``R`` send a frame, ``F`` / ``V`` /
+``N`` / ``Zn`` answer status, version, serial and switch the 4-digit ms timestamps.
+CR is OK, BEL refused (a bad line, a command in the wrong state, a full queue).
+
+Receive: the controller's hard IRQ handler (``_irq``) moves each frame with
+``recv`` into a preallocated ring of ``RX_FRAMES`` frames (id, flags, DLC, tick, 8
+data bytes each) -- nothing allocated; a frame the ring cannot hold is counted as
+lost. The first frame into an empty ring pulls ``app.due[0]`` to now, so the main
+loop's slow pass (``poll``) soon turns the ring into ``t``/``T``/``r``/``R`` lines
+for the host and hands every frame to the recorder (``app.capture.can_frame``).
+The port's ``write`` never blocks: lines it does not take wait in the ring.
+
+Send: frame lines go into a FIFO of ``TX_FRAMES``. ``machine.CAN``'s transmit
+queue is a priority queue by id, so to keep the host's order at most one frame is
+in the controller at a time; the TX IRQ sends the next (copied into a staging
+buffer, passed as a preallocated memoryview of its length). A full FIFO answers
+BEL (counted). Completed frames are counted and recorded in the slow pass.
+
+Bus-off is seen by ``state()`` in the slow pass and restarted after parameter 17
+``can_bus_off_restart_ms`` (0: it stays off until the host closes and opens). The
+CAN safety stop (parameter 18, ``jig.safety.CanSafety``) acts on silence from the
+host while the port is open. Counters in ``counters.CAN_NAMES`` order (0xFA
+ReadCanCounters).
+
+While the port is closed and its host silent the slow pass costs one ``any()``;
+the main loop's hot path never sees the CAN port.
+"""
+
+from array import array
+
+from jig import counters as K
+from jig import params as P
+from jig import slcan as S
+from jig.compat import const, ticks_add, ticks_diff
+from jig.mem import copy
+from jig.safety import CanSafety
+
+RX_FRAMES = const(256)  # the RX ring (a power of two): ~30 ms of a 1 Mbit/s bus full of 8-byte frames
+TX_FRAMES = const(64)  # the host's frames waiting for the bus (a power of two)
+STAGE = const(256)  # bytes of SLCAN lines / answers handed to the port per write
+LINE_MAX = const(31)  # "T" + 8 id + 1 dlc + 16 data + 4 stamp + CR
+IN_CHUNK = const(64)  # bytes read from the host per readinto
+IN_PER_POLL = const(512)  # at most this many a slow pass
+OUT_PER_POLL = const(2048)  # bytes of lines handed to the port a slow pass, at most
+CAN_POLL_US = const(1000)  # while open the slow pass comes at least this often (a USB frame)
+STAMP_PERIOD_MS = const(60000)  # SLCAN timestamps count ms 0..59999
+
+# SLCAN's version and serial answers ("V" + hardware + software version, "N" + 4 digits)
+VERSION_LINE = b"V1013\r"
+SERIAL_DEFAULT = b"NMJ01\r"
+
+# Status flags byte of the F command (Lawicel)
+F_RX_FULL = const(0x01)
+F_TX_FULL = const(0x02)
+F_WARNING = const(0x04)
+F_OVERRUN = const(0x08)
+F_PASSIVE = const(0x20)
+F_BUS_ERROR = const(0x80)
+
+# machine.CAN constants (class attributes there; these are their values in v1.28)
+_IRQ_TX = const(1)
+_IRQ_RX = const(2)
+_IRQ_TX_FAILED = const(4)
+_IRQ_STATE = const(8)
+_FLAG_RTR = const(1)
+_FLAG_EXT_ID = const(2)
+_RECV_ERR_OVERRUN = const(2)
+_STATE_STOPPED = const(0)
+_STATE_WARNING = const(2)
+_STATE_PASSIVE = const(3)
+_STATE_BUS_OFF = const(4)
+
+# Indices into CanPort.rs (the RX ring's state; the IRQ writes HEAD)
+RS_HEAD = const(0)
+RS_TAIL = const(1)
+# ... and CanPort.ts (the TX FIFO: the slow pass writes HEAD and REC, the IRQ DONE)
+TS_HEAD = const(0)  # next free entry
+TS_TAIL = const(1)  # next entry to hand to the controller
+TS_DONE = const(2)  # next entry whose transmission has not ended
+TS_REC = const(3)  # next ended entry not yet counted / recorded
+TS_BUSY = const(4)  # 1: one entry is in the controller
+TS_HOLD = const(5)  # 1: the IRQ sends nothing (bus-off)
+
+_RX_MASK = const(255)  # RX_FRAMES - 1
+_TX_MASK = const(63)  # TX_FRAMES - 1
+
+CAN_COUNTER_NAMES = K.CAN_NAMES
+
+_CR = const(13)
+_BEL = const(7)
+_HEX = b"0123456789ABCDEF"
+
+
+class CanPort:
+    def __init__(self, app):
+        self.app = app
+        hal = app.hal
+        self.hal = hal
+        self.port = getattr(hal, "slcan", None)
+        self.params = app.params
+        pr = app.params.ram
+        self.bitrate = pr[P.P_CAN_BITRATE]  # the session's (Sn changes it while closed)
+        self.is_open = 0
+        self.listen = 0
+        self.state = _STATE_STOPPED
+        self.can = None
+        self.stamps = 0  # Z1: 4-digit ms timestamps on the lines to the host
+        self.due = app.due
+        self._ticks = hal.ticks_us
+        self.cv = array("i", bytes(4 * K.CAN_COUNT))
+        self.flags = 0  # F's latched status bits (cleared when read)
+        self.lines = 0  # good SLCAN lines since the port was opened
+        self.t_host = 0  # tick of the last good line
+        self.seen = bytearray(16)  # CANopen node ids heard on the bus (boot-up, heartbeat, SDO reply)
+        self.reader = S.SlcanReader()
+        self.base_err = [0] * len(S.ERR_NAMES)
+        self.t_bus_off = -1  # tick the controller was found bus-off (-1: it is not)
+        self.base_hw = [0, 0, 0, 0]  # the controller's warning/passive/bus-off/overrun counts seen
+        self.hw = [0] * 8  # get_counters' list
+        # RX ring, filled by the IRQ
+        self.rs = array("i", [0, 0])
+        self.rx_id = array("i", bytes(4 * RX_FRAMES))
+        self.rx_tick = array("i", bytes(4 * RX_FRAMES))
+        self.rx_fl = bytearray(RX_FRAMES)  # bit 0 extended, bit 1 remote (SLCAN's meaning)
+        self.rx_dlc = bytearray(RX_FRAMES)
+        self.rx_data = bytearray(8 * RX_FRAMES)
+        self._rxl = [0, memoryview(bytearray(8)), 0, 0]
+        # TX FIFO; entries are kept until counted (TS_REC) so the recorder gets their data
+        self.ts = array("i", [0, 0, 0, 0, 0, 0])
+        self.tx_id = array("i", bytes(4 * TX_FRAMES))
+        self.tx_tick = array("i", bytes(4 * TX_FRAMES))
+        self.tx_fl = bytearray(TX_FRAMES)
+        self.tx_dlc = bytearray(TX_FRAMES)
+        self.tx_ok = bytearray(TX_FRAMES)
+        self.tx_data = bytearray(8 * TX_FRAMES)
+        self.txb = bytearray(8)  # the frame being handed to the controller
+        mv = memoryview(self.txb)
+        self.txv = [mv[0:k] for k in range(9)]
+        self.mflags = bytearray(4)  # SLCAN flags -> machine.CAN flags (set at open)
+        self.frame = bytearray(8)  # one frame's data for the encoder and the recorder
+        # the host side: input chunk, output stage with one view per length
+        self.inb = bytearray(IN_CHUNK)
+        mv = memoryview(self.inb)
+        self.inv = [mv[0:k] for k in range(IN_CHUNK + 1)]
+        self.out = bytearray(STAGE)
+        self.out_n = 0
+        mv = memoryview(self.out)
+        self.outv = [mv[0:k] for k in range(STAGE + 1)]
+        self.serial = self._serial_line(hal)
+        # the ms clock of the timestamps: t_ms at tick t_ref
+        self.t_ref = self._ticks()
+        self.t_ms = 0
+        self._irq_cb = self._irq  # bound once: the controller keeps it
+        self._irqo = None
+        self.record = getattr(getattr(app, "capture", None), "can_frame", None)  # (does nothing while not recording)
+        self.lost_seen = 0  # rx lost + overruns at the last look (F's overrun bits)
+        self.safety = CanSafety(self, app.params, app.counters)
+
+    @staticmethod
+    def _serial_line(hal):
+        """"N" + 4 hex digits folded from the board's unique id, or NMJ01."""
+        fn = getattr(hal, "unique_id", None)
+        uid = None
+        if fn is not None:
+            try:
+                uid = fn()
+            except Exception:
+                uid = None
+        if not uid:
+            return SERIAL_DEFAULT
+        v = 0
+        for b in uid:
+            v = ((v << 5) ^ (v >> 11) ^ b) & 0xFFFF
+        out = bytearray(b"N0000\r")
+        for i in range(4):
+            out[4 - i] = _HEX[(v >> (4 * i)) & 15]
+        return bytes(out)
+
+    # --- the controller's interrupt (hard: nothing allocated) ----------------------------
+    def _irq(self, can):
+        irqo = self._irqo
+        if irqo is None:
+            irqo = can.irq()
+        while True:
+            f = irqo.flags()
+            if not f:
+                return
+            if f & _IRQ_RX:
+                self._rx(can)
+            if f & _IRQ_TX:
+                self._tx_end(f)
+            if f & _IRQ_STATE:
+                self.due[0] = self._ticks()
+
+    def _rx(self, can):
+        lst = self._rxl
+        rs = self.rs
+        cv = self.cv
+        data = self.rx_data
+        while can.recv(lst) is not None:
+            cv[K.CC_RX] += 1
+            if lst[3] & _RECV_ERR_OVERRUN:
+                cv[K.CC_RX_OVERRUNS] += 1
+            head = rs[RS_HEAD]
+            nxt = (head + 1) & _RX_MASK
+            tail = rs[RS_TAIL]
+            if nxt == tail:
+                cv[K.CC_RX_LOST] += 1
+                continue
+            self.rx_id[head] = lst[0]
+            fl = lst[2]
+            self.rx_fl[head] = (1 if fl & _FLAG_EXT_ID else 0) | (2 if fl & _FLAG_RTR else 0)
+            mv = lst[1]
+            n = len(mv)
+            self.rx_dlc[head] = n
+            base = head << 3
+            for i in range(n):
+                data[base + i] = mv[i]
+            t = self._ticks()
+            self.rx_tick[head] = t
+            rs[RS_HEAD] = nxt
+            if head == tail:
+                self.due[0] = t  # the slow pass serves the port next
+
+    def _tx_end(self, f):
+        ts = self.ts
+        if not ts[TS_BUSY]:
+            return
+        k = ts[TS_DONE]
+        self.tx_ok[k] = 0 if f & _IRQ_TX_FAILED else 1
+        self.tx_tick[k] = self._ticks()
+        ts[TS_DONE] = (k + 1) & _TX_MASK
+        ts[TS_BUSY] = 0
+        if ts[TS_TAIL] != ts[TS_HEAD] and not ts[TS_HOLD]:
+            self._send_next()
+
+    def _send_next(self):
+        """Hand the FIFO's next frame to the controller (only while none is in it)."""
+        ts = self.ts
+        k = ts[TS_TAIL]
+        n = self.tx_dlc[k]
+        txb = self.txb
+        data = self.tx_data
+        base = k << 3
+        for i in range(n):
+            txb[i] = data[base + i]
+        ts[TS_TAIL] = (k + 1) & _TX_MASK
+        ts[TS_BUSY] = 1
+        r = -1
+        try:
+            r = self.can.send(self.tx_id[k], self.txv[n], self.mflags[self.tx_fl[k]])
+        except Exception:  # OSError: bus-off or stopped; the frame is lost
+            self.tx_ok[k] = 0
+            ts[TS_DONE] = (k + 1) & _TX_MASK
+            ts[TS_BUSY] = 0
+            return
+        if r is None:  # the controller's queue is full: again later
+            ts[TS_TAIL] = k
+            ts[TS_BUSY] = 0
+
+    # --- the slow pass -----------------------------------------------------------------
+    def wait_us(self, now):
+        """µs until the port needs the slow pass again (-1: no need while closed)."""
+        if not self.is_open:
+            return 0 if self.out_n else -1
+        w = CAN_POLL_US
+        s = self.safety.wait_us(now)
+        if 0 <= s < w:
+            w = s
+        return w
+
+    def poll(self, now):
+        """Read and answer the host, the controller's state, the RX ring to the host."""
+        port = self.port
+        if port is None:
+            return
+        if not self.is_open and not self.out_n and not port.any():
+            return  # closed and idle: one any() a slow pass
+        self._clock(now)
+        if self.is_open:
+            self._watch(now)
+            self._tx_count()
+        self._flush()
+        if self.reader.gap(now) and self.out_n < STAGE:
+            self._put(_BEL)  # a partial line that never got its CR
+        self._read(now)
+        if self.is_open:
+            self._rx_out()
+            self.safety.poll(now)
+            self._kick()
+        self._flush()
+
+    def _clock(self, now):
+        d = ticks_diff(now, self.t_ref)
+        if d >= 1000:
+            self.t_ms = (self.t_ms + d // 1000) % STAMP_PERIOD_MS
+            self.t_ref = ticks_add(self.t_ref, d - d % 1000)
+
+    def _watch(self, now):
+        """The controller's state and error counters; bus-off recovery."""
+        can = self.can
+        st = can.state()
+        self.state = st
+        hw = can.get_counters(self.hw)
+        cv = self.cv
+        cv[K.CC_TEC] = hw[0]
+        cv[K.CC_REC] = hw[1]
+        base = self.base_hw
+        for i in range(3):  # warning, passive, bus-off entries (restart() zeroes them)
+            x = hw[2 + i]
+            if x is None:
+                continue
+            if x < base[i]:
+                base[i] = 0
+            cv[K.CC_WARNINGS + i] += x - base[i]
+            base[i] = x
+        if st >= _STATE_WARNING:
+            self.flags |= F_WARNING
+        if st >= _STATE_PASSIVE:
+            self.flags |= F_PASSIVE
+        if st != _STATE_BUS_OFF:
+            if self.t_bus_off >= 0:
+                self.t_bus_off = -1
+                self.ts[TS_HOLD] = 0
+            return
+        self.flags |= F_BUS_ERROR
+        if self.t_bus_off < 0:
+            self.t_bus_off = now
+            self.ts[TS_HOLD] = 1
+        ms = self.params.ram[P.P_CAN_BUS_OFF_RESTART_MS]
+        if ms and ticks_diff(now, self.t_bus_off) >= ms * 1000:
+            can.restart()
+            cv[K.CC_RESTARTS] += 1
+            for i in range(3):
+                base[i] = 0
+            self._cancel_in_flight()
+            self.t_bus_off = -1
+            self.ts[TS_HOLD] = 0
+            self.state = can.state()
+
+    def _cancel_in_flight(self):
+        """After restart()/deinit: the frame in the controller is gone, with no IRQ."""
+        ts = self.ts
+        if ts[TS_BUSY]:
+            k = ts[TS_DONE]
+            self.tx_ok[k] = 0
+            ts[TS_DONE] = (k + 1) & _TX_MASK
+            ts[TS_BUSY] = 0
+
+    def _kick(self):
+        ts = self.ts
+        if not ts[TS_BUSY] and not ts[TS_HOLD] and ts[TS_TAIL] != ts[TS_HEAD]:
+            self._send_next()
+
+    def _tx_count(self):
+        """Count (and record) the frames whose transmission has ended."""
+        ts = self.ts
+        cv = self.cv
+        record = self.record
+        while ts[TS_REC] != ts[TS_DONE]:
+            k = ts[TS_REC]
+            if self.tx_ok[k]:
+                cv[K.CC_TX] += 1
+                if record is not None:
+                    copy(self.frame, 0, self.tx_data, k << 3, 8)
+                    record(self.tx_tick[k], self.tx_id[k], self.tx_fl[k], self.tx_dlc[k], self.frame, 1)
+            else:
+                cv[K.CC_TX_FAILED] += 1
+            ts[TS_REC] = (k + 1) & _TX_MASK
+
+    def queue_frame(self, can_id, ext, rtr, data, dlc):
+        """Put one frame into the TX FIFO (data[0:dlc]); False if it is full."""
+        ts = self.ts
+        h = ts[TS_HEAD]
+        nxt = (h + 1) & _TX_MASK
+        if nxt == ts[TS_REC]:
+            return False
+        self.tx_id[h] = can_id
+        self.tx_fl[h] = ext | (rtr << 1)
+        self.tx_dlc[h] = dlc
+        copy(self.tx_data, h << 3, data, 0, dlc)
+        ts[TS_HEAD] = nxt
+        self._kick()
+        return True
+
+    # --- the host's side ---------------------------------------------------------------
+    def _flush(self):
+        """Hand the stage to the port as far as it takes it now."""
+        n = self.out_n
+        if not n:
+            return
+        w = self.port.write(self.outv[n])
+        if not w:
+            return
+        if w < n:
+            copy(self.out, 0, self.out, w, n - w)
+        self.out_n = n - w
+
+    def _put(self, b):
+        self.out[self.out_n] = b
+        self.out_n += 1
+
+    def _put_line(self, s):
+        o = self.out_n
+        for i in range(len(s)):
+            self.out[o + i] = s[i]
+        self.out_n = o + len(s)
+
+    def _read(self, now):
+        """Read the host's lines and act on them; an answer for each line must fit the
+        stage (at most 3 bytes of answer a byte of input: "V" CR -> "V1013" CR)."""
+        port = self.port
+        r = self.reader
+        got = 0
+        while got < IN_PER_POLL:
+            k = (STAGE - self.out_n) // 3
+            if k > IN_CHUNK:
+                k = IN_CHUNK
+            if k <= 0 or not port.any():
+                return
+            n = port.readinto(self.inv[k])
+            if not n:
+                return
+            got += n
+            buf = self.inb
+            i = 0
+            while i < n:
+                i = r.feed(buf, i, n, now)
+                ev = r.ev
+                if ev == S.EV_CMD:
+                    self._command(r, now)
+                elif ev == S.EV_BAD:
+                    self._put(_BEL)
+
+    def _command(self, r, now):
+        c = r.cmd
+        self.lines += 1
+        self.t_host = now
+        self.cv[K.CC_LINES] += 1
+        if c == 0x74 or c == 0x54 or c == 0x72 or c == 0x52:  # t T r R
+            if not self.is_open or self.listen or self.ts[TS_HOLD]:
+                self._put(_BEL)
+            elif self.queue_frame(r.can_id, r.ext, r.rtr, r.data, r.dlc):
+                self._put(_CR)
+            else:
+                self.cv[K.CC_TX_REFUSED] += 1
+                self.flags |= F_TX_FULL
+                self._put(_BEL)
+        elif c == 0x4F or c == 0x4C:  # O L
+            if self.is_open or not self.open(1 if c == 0x4C else self.params.ram[P.P_CAN_LISTEN_ONLY]):
+                self._put(_BEL)
+            else:
+                self._put(_CR)
+        elif c == 0x43:  # C
+            if self.is_open:
+                self.close()
+                self._put(_CR)
+            else:
+                self._put(_BEL)
+        elif c == 0x53:  # S
+            if self.is_open or r.arg < 0 or r.arg >= len(S.SLCAN_BITRATES):
+                self._put(_BEL)
+            else:
+                self.bitrate = S.SLCAN_BITRATES[r.arg]
+                self._put(_CR)
+        elif c == 0x46:  # F
+            self._status_line()
+        elif c == 0x56:  # V
+            self._put_line(VERSION_LINE)
+        elif c == 0x4E:  # N
+            self._put_line(self.serial)
+        elif c == 0x5A:  # Z
+            if r.arg == 0 or r.arg == 1:
+                self.stamps = r.arg
+                self._put(_CR)
+            else:
+                self._put(_BEL)
+        else:  # s (BTR registers) and anything else the jig does not do
+            self._put(_BEL)
+
+    def _status_line(self):
+        f = self.flags
+        if self.is_open:
+            st = self.state
+            if st >= _STATE_WARNING:
+                f |= F_WARNING
+            if st >= _STATE_PASSIVE:
+                f |= F_PASSIVE
+            if st == _STATE_BUS_OFF:
+                f |= F_BUS_ERROR
+            ts = self.ts
+            if ((ts[TS_HEAD] + 1) & _TX_MASK) == ts[TS_REC]:
+                f |= F_TX_FULL
+        self.flags = 0
+        self._put(0x46)
+        self._put(_HEX[f >> 4])
+        self._put(_HEX[f & 15])
+        self._put(_CR)
+
+    def _rx_out(self):
+        """Frames from the ring to the host (and the recorder), as the port takes them."""
+        rs = self.rs
+        cv = self.cv
+        record = self.record
+        frame = self.frame
+        lost = cv[K.CC_RX_LOST] + cv[K.CC_RX_OVERRUNS]
+        if lost != self.lost_seen:
+            self.lost_seen = lost
+            self.flags |= F_RX_FULL | F_OVERRUN
+        sent = 0
+        while rs[RS_TAIL] != rs[RS_HEAD]:
+            if STAGE - self.out_n < LINE_MAX:
+                before = self.out_n
+                self._flush()
+                sent += before - self.out_n
+                if STAGE - self.out_n < LINE_MAX or sent >= OUT_PER_POLL:
+                    return
+            k = rs[RS_TAIL]
+            can_id = self.rx_id[k]
+            fl = self.rx_fl[k]
+            dlc = self.rx_dlc[k]
+            copy(frame, 0, self.rx_data, k << 3, dlc)
+            t = self.rx_tick[k]
+            if fl == 0:
+                self._note_node(can_id)
+            if record is not None:
+                record(t, can_id, fl, dlc, frame, 0)
+            stamp = -1
+            if self.stamps:
+                stamp = (self.t_ms + ticks_diff(t, self.t_ref) // 1000) % STAMP_PERIOD_MS
+            self.out_n = S.encode_frame(self.out, self.out_n, can_id, fl & 1, fl >> 1, frame, dlc, stamp)
+            rs[RS_TAIL] = (k + 1) & _RX_MASK
+
+    def _note_node(self, can_id):
+        """A CANopen node's boot-up/heartbeat (0x701..0x77F) or SDO reply (0x581..0x5FF)."""
+        if 0x701 <= can_id <= 0x77F:
+            n = can_id - 0x700
+        elif 0x581 <= can_id <= 0x5FF:
+            n = can_id - 0x580
+        else:
+            return
+        self.seen[n >> 3] |= 1 << (n & 7)
+
+    # --- open / close ------------------------------------------------------------------
+    def open(self, listen_only):
+        """Open the controller at the session's bitrate; False if the HAL cannot."""
+        fn = getattr(self.hal, "can_open", None)
+        if fn is None:
+            return False
+        can = fn(self.bitrate, 1 if listen_only else 0)
+        if can is None:
+            return False
+        rs = self.rs
+        rs[RS_HEAD] = rs[RS_TAIL] = 0
+        ts = self.ts
+        for i in range(6):
+            ts[i] = 0
+        m = self.mflags
+        m[0] = 0
+        m[1] = can.FLAG_EXT_ID
+        m[2] = can.FLAG_RTR
+        m[3] = can.FLAG_EXT_ID | can.FLAG_RTR
+        for i in range(3):
+            self.base_hw[i] = 0
+        self.t_bus_off = -1
+        self.can = can
+        self.listen = 1 if listen_only else 0
+        self.lines = 0
+        self.is_open = 1
+        self.state = can.state()
+        self._irqo = None
+        self._irqo = can.irq(self._irq_cb, trigger=can.IRQ_RX | can.IRQ_TX | can.IRQ_STATE, hard=True)
+        self.safety.reset()
+        return True
+
+    def close(self):
+        """Close the controller; what the ring and the FIFO held is dropped."""
+        can = self.can
+        self.is_open = 0
+        self.state = _STATE_STOPPED
+        if can is not None:
+            self._tx_count()
+            fn = getattr(self.hal, "can_close", None)
+            if fn is not None:
+                fn(can)
+            else:
+                can.deinit()
+        self.can = None
+        self._irqo = None
+        self.rs[RS_HEAD] = self.rs[RS_TAIL] = 0
+        ts = self.ts
+        for i in range(6):
+            ts[i] = 0
+        self.t_bus_off = -1
+        self.safety.reset()
+
+    # --- counters ----------------------------------------------------------------------
+    def counter_values(self, out):
+        """The CAN counters in counters.CAN_NAMES order into out (a list); returns out."""
+        cv = self.cv
+        cv[K.CC_STATE] = self.state
+        cv[K.CC_OPEN] = self.is_open
+        cv[K.CC_LISTEN] = self.listen
+        cv[K.CC_BITRATE] = self.bitrate
+        if not self.is_open:
+            cv[K.CC_TEC] = cv[K.CC_REC] = 0
+        for i in range(K.CAN_COUNT):
+            out[i] = cv[i]
+        counts = self.reader.counts
+        base = self.base_err
+        for i in range(len(base)):
+            out[K.CAN_COUNT + i] = counts[i] - base[i]
+        return out
+
+    def reset_counters(self):
+        cv = self.cv
+        for i in range(K.CAN_COUNT):
+            cv[i] = 0
+        self.lost_seen = 0
+        counts = self.reader.counts
+        for i in range(len(self.base_err)):
+            self.base_err[i] = counts[i]
