@@ -81,7 +81,7 @@ class CanTab:
             tid(ui.label(self.why or "no CAN port"), "can-unavailable").classes("text-red-9")
             return
         link = self.link
-        from motorjig.desk.canlink import BITRATES, NMT_COMMANDS
+        from motorjig.desk.canlink import BITRATES, NMT_CHOICES
 
         with ui.row().classes("items-end"):
             self.port = tid(ui.input("SLCAN port or pyserial URL", value=link.url,
@@ -98,7 +98,7 @@ class CanTab:
                 .classes("text-caption text-grey-7")
         with ui.row().classes("w-full no-wrap items-start"):
             with ui.column().classes("w-2/3"):
-                self._nodes_card(NMT_COMMANDS)
+                self._nodes_card(NMT_CHOICES)
                 self._sdo_card()
             with ui.card().classes("w-1/3"):
                 self._counters_card()
@@ -111,15 +111,14 @@ class CanTab:
                 ui.label("Nodes").classes("text-subtitle1")
                 tid(ui.button("Scan", icon="search", on_click=self._scan), "btn-can-scan")
                 ui.separator().props("vertical")
-                self.nmt_command = tid(ui.select(list(nmt_commands), value="start", label="NMT"),
+                self.nmt_command = tid(ui.select(nmt_commands, value="start", label="NMT"),
                                        "can-nmt-command").classes("w-48")
                 self.nmt_node = tid(ui.input("node (0 = all)", value="0"), "can-nmt-node").classes("w-28")
                 tid(ui.button("Send NMT", on_click=self._nmt), "btn-can-nmt").props("outline")
             cols = [{"name": k, "label": label, "field": k, "align": "left"} for k, label in (
                 ("id", "node"), ("nmt", "NMT state"), ("name", "name (0x1008)"), ("profile", "profile"),
                 ("device_type", "device type (0x1000)"), ("vendor", "vendor (0x1018:1)"),
-                ("product", "product (:2)"), ("revision", "revision (:3)"), ("serial", "serial (:4)"),
-                ("problem", "problem"))]
+                ("product", "product (:2)"), ("revision", "revision (:3)"), ("serial", "serial (:4)"))]
             self.nodes = tid(ui.table(columns=cols, rows=[], row_key="id", pagination={"rowsPerPage": 0}),
                              "can-nodes").classes("w-full").props("dense")
             ui.label("Scan: python-canopen's scanner (an SDO upload of 0x1000 to ids 1..127), then each node's "

@@ -290,7 +290,7 @@ def serve(args, out=None):
                       **can_kw)
         try:
             bench.start()
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, ImportError) as exc:  # ImportError: a bench without the CAN parts
             bench.stop()
             sys.stderr.write("jigctl gui: cannot start the virtual bench: %s.\n" % exc)
             return 1
