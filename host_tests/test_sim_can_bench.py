@@ -161,3 +161,54 @@ def test_realtime_slcan_pty():
             assert got.startswith(b"\r\r") and b"V1013\r" in got
         finally:
             os.close(fd)
+
+
+# --- python -m motorjig.sim: the CAN options ------------------------------------------------
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--can-nodes", "0"], "CAN node ids must be 1..127, got 0"),
+    (["--can-nodes", "5,128"], "CAN node ids must be 1..127, got 128"),
+    (["--can-nodes", "5,x"], "expected CANopen node ids"),
+    (["--can-nodes", "5", "--can-bitrate", "400000"], "the CAN bitrate must be one of the SLCAN rates"),
+])
+def test_cli_refuses_bad_can_options_in_one_sentence(argv, msg, capsys):
+    from motorjig.sim.__main__ import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv + ["--no-demo", "--duration", "0.1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert msg in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--fault", "can:5:silent"], "a CAN fault needs --can-nodes"),
+    (["--can-nodes", "5", "--fault", "can:6:silent"], "no CAN node 6 (--can-nodes 5)"),
+    (["--can-nodes", "5", "--fault", "can:x:silent"], "'x' is not a CAN node id"),
+    (["--can-nodes", "5", "--slcan-port", "7000", "--tcp-port", "7000"], "--tcp-port and --slcan-port must differ"),
+])
+def test_cli_refuses_bad_can_faults(argv, msg, capsys):
+    from motorjig.sim.__main__ import main
+
+    assert main(argv + ["--no-demo", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and err.count("\n") == 1
+
+
+def test_cli_help_tells_the_can_options(capsys):
+    from motorjig.sim.__main__ import main
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    assert "--can-nodes" in out and "--can-bitrate" in out and "--slcan-port" in out and "can:[ID:]NAME" in out
+
+
+def test_cli_prints_the_slcan_port(capsys):
+    pytest.importorskip("motorjig.sim.cia402")
+    from motorjig.sim.__main__ import main
+
+    assert main(["--can-nodes", "5,6", "--no-demo", "--duration", "0.3"]) == 0
+    out = capsys.readouterr().out
+    assert "CAN bus: 500000 bit/s, CiA 402 nodes 5, 6" in out
+    assert "slcan: socket://127.0.0.1:" in out and "slcan pty: /dev/" in out

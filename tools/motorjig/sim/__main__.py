@@ -7,7 +7,9 @@ of both buses: `jigctl capture --jig URL`), runs a short demo session (scan with
 variant detection -> servo on -> move -> status) through the PC side's TCP port, then
 keeps serving until Ctrl-C (or --duration seconds). Each driver is Ver6 or Ver8 on its own:
 --drivers 2,3:v8. --wiring connects the jig's relays and inputs to a drive's I/O,
---fault makes drives fail the way real ones do.
+--fault makes drives fail the way real ones do. --can-nodes 5,6 adds a CAN bus with
+simulated CiA 402 drives and serves the jig's SLCAN port (python-can's slcan interface,
+jigctl can) on a TCP port and a pty of its own.
 """
 
 import argparse
@@ -16,7 +18,8 @@ import textwrap
 import time
 
 from ..wiring import WiringError, load_wiring
-from .bench import Bench
+from .bench import CAN_FAULT_PREFIX, Bench
+from .canhal import SLCAN_RATES
 from .driver import FAULTS, parse_fault_spec
 
 
@@ -53,6 +56,54 @@ def _drivers(text):
     return spec
 
 
+def _can_nodes(text):
+    """'5,6' -> (5, 6): CANopen node ids 1..127."""
+    ids = []
+    for item in (x.strip() for x in text.split(",")):
+        if not item:
+            continue
+        try:
+            i = int(item)
+        except ValueError:
+            raise argparse.ArgumentTypeError("expected CANopen node ids, e.g. 5,6; not %r" % item) from None
+        if not 1 <= i <= 127:
+            raise argparse.ArgumentTypeError("CAN node ids must be 1..127, got %d" % i)
+        if i in ids:
+            raise argparse.ArgumentTypeError("CAN node id %d given twice" % i)
+        ids.append(i)
+    if not ids:
+        raise argparse.ArgumentTypeError("give at least one CAN node id")
+    return tuple(ids)
+
+
+def _can_bitrate(text):
+    try:
+        rate = int(text)
+    except ValueError:
+        rate = None
+    if rate not in SLCAN_RATES:
+        raise argparse.ArgumentTypeError("the CAN bitrate must be one of the SLCAN rates %s, not %r"
+                                         % (" ".join(map(str, SLCAN_RATES)), text))
+    return rate
+
+
+def parse_can_fault(spec):
+    """``can:[ID:]NAME[=VALUE]`` -> (node id or None, "can:NAME", value or None)."""
+    head, eq, value = spec[len(CAN_FAULT_PREFIX):].strip().partition("=")
+    node, colon, name = head.partition(":")
+    if not colon:
+        node, name = None, head
+    else:
+        try:
+            node = int(node)
+        except ValueError:
+            raise ValueError("expected can:[ID:]NAME[=VALUE]; %r is not a CAN node id" % node) from None
+    name = name.strip()
+    if not name:
+        raise ValueError("expected can:[ID:]NAME[=VALUE], e.g. can:5:NAME")
+    return node, CAN_FAULT_PREFIX + name, value.strip() if eq else None
+
+
 def _protocol(text):
     t = text.lower().lstrip("v").replace("ver", "")
     if t not in ("6", "8"):
@@ -67,6 +118,14 @@ def _fault_help():
         text = what + (" (default %s)" % default if default is not None else "")
         lines.append(textwrap.fill(text, 96, initial_indent="  %-18s " % spec, subsequent_indent=" " * 21))
     lines.append("e.g. --fault step-out=20000 --fault 3:alarm=4@50 --fault param=3:250 --fault no-origin")
+    lines.append("CAN nodes (--can-nodes): --fault can:[ID:]NAME[=VALUE], the CiA 402 node's faults"
+                 " (without ID: every CAN node), see docs/sim.md")
+    try:
+        from .cia402 import FAULTS as CAN_FAULTS
+    except ImportError:
+        CAN_FAULTS = ()
+    if CAN_FAULTS:
+        lines.append(textwrap.fill(", ".join(CAN_FAULTS), 96, initial_indent="  can: ", subsequent_indent=" " * 7))
     lines.append("wiring file: a [wiring] table (a test plan or a wiring-only file), see docs/sim.md")
     return "\n".join(lines)
 
@@ -82,9 +141,16 @@ def parse_args(argv):
     ap.add_argument("--tcp-port", type=int, default=0, help="TCP port for socket:// (default: a free one)")
     ap.add_argument("--capture-port", type=int, default=0, metavar="N",
                     help="TCP port of the jig's capture stream, one reader at a time (default: a free one)")
+    ap.add_argument("--can-nodes", type=_can_nodes, default=(), metavar="IDS",
+                    help="add a CAN bus with simulated CiA 402 drives of these node ids (1..127), e.g. 5,6;"
+                         " the jig's SLCAN port is then served too")
+    ap.add_argument("--can-bitrate", type=_can_bitrate, default=500000, metavar="BPS",
+                    help="the CAN bus's bitrate, one of the SLCAN rates (default 500000)")
+    ap.add_argument("--slcan-port", type=int, default=0, metavar="N",
+                    help="TCP port of the jig's SLCAN port, one host at a time (default: a free one)")
     ap.add_argument("--no-demo", action="store_true", help="skip the scripted demo session")
     ap.add_argument("--no-pty", action="store_true",
-                    help="create no pseudo-terminals (neither the PC side's nor the capture port's)")
+                    help="create no pseudo-terminals (neither the PC side's nor the capture or SLCAN port's)")
     ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: run until Ctrl-C)")
     ap.add_argument("--wiring", metavar="FILE",
                     help="wire the jig's relays and inputs to a drive's I/O: a TOML file with a [wiring] table")
@@ -107,6 +173,18 @@ def check_setup(args):
                              % (args.wiring, wiring.slave, ",".join(str(i) for i in args.drivers)))
     faults = []
     for spec in args.fault:
+        if spec.strip().startswith(CAN_FAULT_PREFIX):
+            try:
+                node, name, value = parse_can_fault(spec.strip())
+            except ValueError as exc:
+                raise ValueError("--fault %s: %s" % (spec, exc)) from None
+            if not args.can_nodes:
+                raise ValueError("--fault %s: a CAN fault needs --can-nodes" % spec)
+            if node is not None and node not in args.can_nodes:
+                raise ValueError("--fault %s: no CAN node %d (--can-nodes %s)"
+                                 % (spec, node, ",".join(str(i) for i in args.can_nodes)))
+            faults.append((node, name, value))
+            continue
         try:
             slave, name, value = parse_fault_spec(spec)
         except ValueError as exc:
@@ -127,6 +205,10 @@ def describe_setup(sim, out=print):
         for line in sim.wiring.describe() or ["(no wires)"]:
             out("    " + line)
     active = ["driver %d: %s" % (i, ", ".join(d.active_faults())) for i, d in sim.drivers.items() if d.active_faults()]
+    for i, nd in sim.can_nodes.items():
+        on = nd.active_faults() if hasattr(nd, "active_faults") else []
+        if on:
+            active.append("CAN node %d: %s" % (i, ", ".join(on)))
     out("  faults: %s" % ("; ".join(active) if active else "none"))
 
 
@@ -170,24 +252,28 @@ def main(argv=None):
     if args.baud not in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600):
         print("error: --baud must be one of 9600 19200 38400 57600 115200 230400 460800 921600", file=sys.stderr)
         return 2
-    for name, value in (("--tcp-port", args.tcp_port), ("--capture-port", args.capture_port)):
+    ports = (("--tcp-port", args.tcp_port), ("--capture-port", args.capture_port), ("--slcan-port", args.slcan_port))
+    for name, value in ports:
         if not 0 <= value <= 65535:
             print("error: %s must be 0..65535" % name, file=sys.stderr)
             return 2
-    if args.capture_port and args.capture_port == args.tcp_port:
-        print("error: --capture-port and --tcp-port must differ", file=sys.stderr)
-        return 2
+    for i, (name, value) in enumerate(ports):
+        for other, value2 in ports[i + 1:]:
+            if value and value == value2:
+                print("error: %s and %s must differ" % (name, other), file=sys.stderr)
+                return 2
     try:
         wiring, faults = check_setup(args)
     except ValueError as exc:
         print("error: %s" % exc, file=sys.stderr)
         return 2
     bench = Bench(driver_ids=tuple(args.drivers), baud=args.baud, tcp_port=args.tcp_port, pty=not args.no_pty,
-                  capture_port=args.capture_port,
-                  jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8, wiring=wiring, faults=faults)
+                  capture_port=args.capture_port, slcan_port=args.slcan_port,
+                  jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8, wiring=wiring, faults=faults,
+                  can_nodes=args.can_nodes, can_bitrate=args.can_bitrate)
     try:
         bench.start()
-    except (OSError, ValueError) as exc:  # (ValueError: a bad $MOTORJIG_SIM_START_US)
+    except (OSError, ValueError, ImportError) as exc:  # (ValueError: a bad $MOTORJIG_SIM_START_US, a CAN fault)
         bench.stop()
         print("error: cannot start the bench: %s" % exc, file=sys.stderr)
         return 1
@@ -202,6 +288,11 @@ def main(argv=None):
         print("  capture: %s" % bench.capture_url)
         if bench.capture_pty_path:
             print("  capture pty: %s" % bench.capture_pty_path)
+        if bench.slcan_url:
+            print("  CAN bus: %d bit/s, CiA 402 nodes %s" % (args.can_bitrate, ", ".join(map(str, args.can_nodes))))
+            print("  slcan: %s" % bench.slcan_url)
+            if bench.slcan_pty_path:
+                print("  slcan pty: %s" % bench.slcan_pty_path)
         sys.stdout.flush()
         if not args.no_demo:
             demo(bench.tcp_url, args.drivers)
