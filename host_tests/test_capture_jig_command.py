@@ -263,7 +263,8 @@ def test_a_port_that_sends_something_else():
 @pytest.mark.parametrize("args, code, text", [
     (["--jig", "/dev/no-such-capture-port"], 3, "cannot open /dev/no-such-capture-port"),
     (["--jig", "loop://", "--sniff", "loop://"], 2, "give --sniff PORT or --jig PORT, not both"),
-    (["--jig", "loop://", "--bus", "drivers"], 2, "--bus is for --sniff"),
+    (["--jig", "loop://", "--bus", "drivers,usb"], 2, "--bus takes pc, drivers or can (comma-separated) with --jig"),
+    (["--sniff", "loop://", "--bus", "can"], 2, "--bus must be pc or drivers with --sniff, not 'can'"),
     (["--jig", "loop://", "--interbyte-timeout", "5"], 2, "--interbyte-timeout is for --sniff"),
     (["--jig", "loop://", "-w", "/no/such/dir/x.pcapng"], 2, "cannot write /no/such/dir/x.pcapng"),
     (["--jig", "loop://", "-w", "/no/such/dir/x.pcapng", "--max-size", "1M"], 2, "cannot write /no/such/dir"),
@@ -295,13 +296,14 @@ def test_help_names_the_jig_option():
 def test_extcap_lists_and_configures_the_jig_interface(capsys):
     assert extcap.main(["--extcap-interfaces"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[2] == "interface {value=motorjig-jig}{display=MotorJig jig: PC bus and driver bus (the jig's own recording)}"
+    assert out[2] == ("interface {value=motorjig-jig}{display=MotorJig jig: PC bus, driver bus and CAN bus (the jig's "
+                      "own recording)}")
     assert extcap.main(["--extcap-interfaces"], interface="motorjig-jig") == 0
     only = capsys.readouterr().out.splitlines()
     assert len(only) == 2 and only[1].startswith("interface {value=motorjig-jig}")
     assert extcap.main(["--extcap-interface", "motorjig-jig", "--extcap-dlts"], interface="motorjig-jig") == 0
     dlts = capsys.readouterr().out.splitlines()
-    assert [d.split("}")[0] for d in dlts] == ["dlt {number=147", "dlt {number=148"]
+    assert [d.split("}")[0] for d in dlts] == ["dlt {number=147", "dlt {number=148", "dlt {number=227"]
     assert extcap.main(["--extcap-interface", "motorjig-jig", "--extcap-config"]) == 0
     config = capsys.readouterr().out.splitlines()
     assert len(config) == 1 and "{call=--port}" in config[0] and "{required=true}" in config[0]

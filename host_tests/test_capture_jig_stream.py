@@ -30,6 +30,8 @@ REP = body(2, F.GET_AXIS_STATUS, b"\x00" + struct.pack("<I", 0x08000000))
 def test_format_constants_agree_with_the_firmware():
     assert (J.MARK, J.VERSION, J.HEADER_LEN) == (C.MARK, C.VERSION, C.HEADER_LEN)
     assert (J.T_HELLO, J.T_LOST, J.T_CLOCK, J.T_NOISE) == (C.T_HELLO, C.T_LOST, C.T_CLOCK, C.T_NOISE)
+    assert (J.T_CAN_IN, J.T_CAN_OUT, J.CAN_HEAD) == (C.T_CAN_IN, C.T_CAN_OUT, C.CAN_HEAD)
+    assert (R.CAN_EXT, R.CAN_RTR) == (C.CAN_EXT, C.CAN_RTR) and J.VERSION == 2
     for name in ("GOOD", "BAD_CRC", "BAD_STUFFING", "SHORT", "OVERLONG", "TIMEOUT", "RESYNC"):
         assert getattr(R, name) == getattr(C, "V_" + name), name
     assert R.LOST not in R.VERDICT_COUNTER and R.LOST not in range(9)  # new, and none of the old codes moved
@@ -40,10 +42,10 @@ def test_hello_sets_the_buses_and_the_jig():
                               ring=8192, name=b"MotorJig bridge 0.2"))
     assert recs == []
     h = js.hello
-    assert (h["version"], h["protocol"], h["variant"], h["forward_mode"], h["slave_id"]) == (1, 1, "Ver8", 1, 4)
+    assert (h["version"], h["protocol"], h["variant"], h["forward_mode"], h["slave_id"]) == (2, 1, "Ver8", 1, 4)
     assert (h["up_baud"], h["down_baud"], h["interbyte_timeout_us"], h["ring_size"]) == (230400, 57600, 3000, 8192)
-    assert h["name"] == "MotorJig bridge 0.2" and h["tick"] == 1000
-    pc, drivers = js.buses()
+    assert h["name"] == "MotorJig bridge 0.2" and h["tick"] == 1000 and h["can_bitrate"] == 0
+    pc, drivers = js.buses()  # no CAN port: two buses
     assert (pc.name, pc.baud, pc.description) == ("pc", 230400, "PC bus, 230400 baud, jig test")
     assert (drivers.name, drivers.baud, drivers.description) == ("drivers", 57600, "driver bus, 57600 baud, jig test")
     assert "store-and-forward" in js.description() and "Ver8" in js.description()
@@ -238,8 +240,16 @@ def test_what_loses_step(bad, text):
 
 def test_another_record_format_is_refused():
     with pytest.raises(J.StreamError) as exc:
-        read_all(hello(0, version=2))
-    assert "record format 2; this jigctl reads format 1" in str(exc.value)
+        read_all(hello(0, version=3, can=500000))
+    assert str(exc.value) == ("the stream from test speaks record format 3; this jigctl reads formats 1 and 2 "
+                              "(update motorjig)")
+
+
+def test_record_format_1_is_still_read():
+    """An older firmware (no CAN, no CAN bitrate in the hello) with this jigctl."""
+    recs, js = read_all(hello(0, version=1, name=b"MotorJig bridge 0.1") + frame(C.CH_PC_IN, REQ, 10, 600))
+    assert js.hello["version"] == 1 and js.hello["can_bitrate"] == 0 and js.hello["name"] == "MotorJig bridge 0.1"
+    assert [r.data for r in recs] == [J.wire_bytes(REQ, R.GOOD)] and len(js.buses()) == 2
 
 
 def test_a_later_hello_with_an_agreeing_clock_keeps_the_timeline():
@@ -346,6 +356,6 @@ def test_a_later_hello_of_another_record_format_is_refused():
     js = J.JigStream()
     js.feed(hello(0) + frame(C.CH_PC_IN, REQ, 10, 500), EPOCH_US)
     with pytest.raises(J.StreamError) as exc:
-        js.feed(hello(1000, version=2) + frame(C.CH_PC_IN, REQ, 1100, 1500), EPOCH_US + 1000)
-    assert "record format 2; this jigctl reads format 1" in str(exc.value)
+        js.feed(hello(1000, version=3) + frame(C.CH_PC_IN, REQ, 1100, 1500), EPOCH_US + 1000)
+    assert "record format 3; this jigctl reads formats 1 and 2" in str(exc.value)
     assert exc.value.records == [] and js.hellos == 1

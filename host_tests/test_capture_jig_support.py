@@ -35,9 +35,21 @@ def raw(typ, verdict=0, data=b"", t0=0, t1=None):
 
 
 def hello(t=0, protocol=0, forward=0, slave=1, up=115200, down=115200, interbyte=5000, ring=16384,
-          name=b"MotorJig bridge 0.1", version=1):
-    data = struct.pack("<BBBBIIII", version, protocol, forward, slave, up, down, interbyte, ring) + name
-    return raw(0x10, 0, data, t, t)
+          name=b"MotorJig bridge 0.1", version=2, can=0):
+    """A hello record; format 2 carries the CAN bitrate (0: no CAN port) before the name,
+    format 1 has none."""
+    data = struct.pack("<BBBBIIII", version, protocol, forward, slave, up, down, interbyte, ring)
+    if version >= 2:
+        data += struct.pack("<I", can)
+    return raw(0x10, 0, data + name, t, t)
+
+
+def can(to_bus, can_id, data=b"", t=0, ext=False, rtr=False, dlc=None):
+    """A CAN record: type 0x30 | to_bus; u32 identifier, u8 flags (1 extended, 2 RTR),
+    u8 DLC, the data bytes (none for RTR)."""
+    dlc = len(data) if dlc is None else dlc
+    flags = (1 if ext else 0) | (2 if rtr else 0)
+    return raw(0x30 | to_bus, 0, struct.pack("<IBB", can_id, flags, dlc) + (b"" if rtr else bytes(data)), t, t)
 
 
 def lost(n, t0, t1):

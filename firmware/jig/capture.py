@@ -1,8 +1,9 @@
-"""The jig's recording of both buses: a ring of records, streamed in the slow pass.
+"""The jig's recording of its buses: a ring of records, streamed in the slow pass.
 
 With parameter 13 ``capture`` = 1 (or a ``S`` on the capture port) the bridge writes
 one *record* into a preallocated ring for every frame and every dropped fragment
-it receives or sends on either bus; the main loop's slow pass moves the ring to the
+it receives or sends on either Plus-R bus, and the CAN port (``jig.canport``) one
+for every CAN frame it receives from or sends onto the CAN bus; the main loop's slow pass moves the ring to the
 capture port (the board's second USB CDC port, the bench's TCP port / pty) as far
 as the port takes it, never waiting. A full ring drops new records and counts
 them; the next record that fits is preceded by a ``lost`` record. So recording
@@ -16,13 +17,16 @@ starts every stream; docs/capture.md, "The jig's record stream")::
             bit 0: 0 received by the jig, 1 sent by it); 4 / 6 a frame received
             on the PC / driver bus and passed on to the other (cut through: the
             same bytes on both); 0x10 hello, 0x11 lost, 0x12 clock,
-            0x20 | channel: noise bytes counted on a receiving channel
+            0x20 | channel: noise bytes counted on a receiving channel;
+            0x30 a CAN frame received from the CAN bus, 0x31 one the jig sent onto it
     2  u8   verdict (motorjig.capture.record codes: 0 good, 1 bad CRC, ...)
     3  u8   n, data bytes that follow the header
     4  u32  t_first: the jig's µs tick of the first byte (wraps at 2**30)
     8  u32  t_end: of the last byte
     (types 4, 6 only) 12 u32 t_first, 16 u32 t_end on the other bus
-    12/20 n data: a frame's body as the parser holds it (id .. CRC, unstuffed)
+    12/20 n data: a frame's body as the parser holds it (id .. CRC, unstuffed);
+            for CAN (0x30, 0x31): u32 identifier, u8 flags (bit 0 extended, bit 1
+            RTR), u8 DLC, then the data bytes (DLC of them, none for RTR)
 
 Times: a received frame ends at the tick at which the main loop read the chunk
 holding its last byte (on the board within a pass of its stop bit) and starts at
@@ -30,7 +34,7 @@ the tick of the read that brought its header (cut through; store-and-forward and
 frame that began with a resync have only the end, and give it twice: the host
 dates the first byte back by the frame's wire time). A sent frame starts at the
 tick its header was handed to the transmitter and ends when its last stop bit had
-gone. ``put`` is machine code on the board
+gone. A CAN frame has one tick, given by the CAN port, as t_first and t_end. ``put`` is machine code on the board
 (``jig.native.cap_put``) and the same logic in Python elsewhere (``put_py``); the
 host tests compare the two.
 """
@@ -41,7 +45,7 @@ from jig.compat import NATIVE, const, ticks_diff
 from jig.mem import copy
 
 MARK = const(0xA5)
-VERSION = const(1)
+VERSION = const(2)  # 2: CAN records, the CAN bitrate in the hello
 HEADER_LEN = const(12)
 PASSED_HEADER_LEN = const(20)  # + t_first and t_end on the other bus
 
@@ -57,6 +61,14 @@ T_HELLO = const(0x10)
 T_LOST = const(0x11)
 T_CLOCK = const(0x12)
 T_NOISE = const(0x20)  # | channel
+T_CAN = const(0x30)  # | 1: sent onto the CAN bus by the jig; | 0: received from it
+T_CAN_IN = const(0x30)
+T_CAN_OUT = const(0x31)
+
+# A CAN record's data: u32 identifier, u8 flags, u8 DLC, data
+CAN_EXT = const(1)  # flags: 29-bit identifier
+CAN_RTR = const(2)  # flags: remote request (no data bytes)
+CAN_HEAD = const(6)
 
 # Verdicts (motorjig.capture.record's codes; a host test checks they agree)
 V_GOOD = const(0)
@@ -194,7 +206,8 @@ class Capture:
         cs[CS_MASK] = size - 1
         self.cs = cs
         self.put = _put_engine()
-        self.info = bytearray(40)  # the hello record's data
+        self.info = bytearray(48)  # the hello record's data
+        self.can_body = bytearray(CAN_HEAD + 8)  # a CAN record's data
         self.stage = bytearray(STAGE)
         # One view per length, made once: port.write takes a whole buffer, and a slice
         # of a memoryview allocates on MicroPython.
@@ -226,9 +239,33 @@ class Capture:
 
     def hello(self, now):
         """A hello record: the stream's version and how the jig runs (again after an
-        immediate parameter change that it reports)."""
+        immediate parameter change that it reports, and after the CAN port's bitrate
+        changed: the CAN port calls it then; nothing while not recording)."""
         n = self._hello_data()
         self.put(self.cs, self.ring, T_HELLO, self.info, n, now)
+
+    def can_frame(self, t, can_id, flags, dlc, data, to_bus):
+        """A CAN frame's record (the CAN port calls it from the main loop, not from its
+        interrupt): ``flags`` bit 0 extended, bit 1 RTR; ``data[0:dlc]`` its bytes;
+        ``to_bus`` 1 if the jig sent it onto the CAN bus, 0 if it received it; ``t``
+        its tick. Nothing while not recording; 0 if the ring is full (counted as
+        lost), else 1. No allocation."""
+        cs = self.cs
+        if not cs[CS_ON]:
+            return 0
+        d = self.can_body
+        d[0] = can_id & 0xFF
+        d[1] = (can_id >> 8) & 0xFF
+        d[2] = (can_id >> 16) & 0xFF
+        d[3] = (can_id >> 24) & 0x1F
+        d[4] = flags & (CAN_EXT | CAN_RTR)
+        if dlc > 8:
+            dlc = 8  # (DLC 9..15 of classic CAN: 8 bytes)
+        d[5] = dlc
+        n = 0 if flags & CAN_RTR else dlc
+        for i in range(n):
+            d[CAN_HEAD + i] = data[i]
+        return self.put(cs, self.ring, T_CAN | (1 if to_bus else 0), d, CAN_HEAD + n, t & _TICKS_MASK)
 
     def stop(self):
         """Recording off; what is in the ring is dropped."""
@@ -260,9 +297,11 @@ class Capture:
         put_u32(d, 8, app.down_baud)
         put_u32(d, 12, pr[P.P_INTERBYTE_US])
         put_u32(d, 16, len(self.ring))
+        can = getattr(app, "can", None)  # the CAN port (0: the jig has none)
+        put_u32(d, 20, can.bitrate if can is not None else 0)
         name = b"MotorJig bridge 0.1"
-        d[20:20 + len(name)] = name
-        return 20 + len(name)
+        d[24:24 + len(name)] = name
+        return 24 + len(name)
 
     # --- the slow pass ----------------------------------------------------------------
     def slow(self, now, bridge=None):

@@ -8,8 +8,9 @@
 
 ``--sniff`` listens through a listen-only USB-RS-485 adapter (or any pyserial URL)
 and frames what it hears with the firmware's parser; ``--jig`` reads the jig's own
-record stream from its capture port (both buses, directions, the jig's µs clock,
-``jigport``). Either way every frame, dropped fragment and run of noise becomes a
+record stream from its capture port (both Plus-R buses and, when the jig has a CAN
+port, the CAN bus; directions, the jig's µs clock, ``jigport``; ``--bus`` keeps some
+of them). Either way every frame, dropped fragment and run of noise becomes a
 pcapng packet with the parser's verdict in its comment. The live view goes to
 standard output (standard error when that carries the pcapng; ``-q`` switches it
 off); ``--json`` prints it as JSON lines.
@@ -63,11 +64,14 @@ def add_capture_arguments(sp):
                      help="listen on a Plus-R bus through this listen-only adapter (/dev/ttyUSB1, COM7) or "
                           "pyserial URL (socket://host:port); --baud sets its baud rate")
     src.add_argument("--jig", metavar="PORT",
-                     help="the jig's own recording of both buses, from its capture port (the board's second USB "
-                          "port, /dev/ttyACM1) or a pyserial URL (socket://127.0.0.1:N on the virtual bench): "
-                          "directions and the jig's microsecond clock; the bauds come from the jig")
-    src.add_argument("--bus", choices=R.BUS_NAMES, default=None,
-                     help="with --sniff: which bus the adapter listens on, names the pcapng interface (default pc)")
+                     help="the jig's own recording of both buses (and of the CAN bus when the jig has a CAN "
+                          "port), from its capture port (the board's second USB port, /dev/ttyACM1) or a pyserial "
+                          "URL (socket://127.0.0.1:N on the virtual bench): directions and the jig's microsecond "
+                          "clock; the bauds and the CAN bitrate come from the jig")
+    src.add_argument("--bus", default=None, metavar="BUS",
+                     help="with --sniff: which bus the adapter listens on, pc or drivers, names the pcapng interface "
+                          "(default pc); with --jig: the buses to keep in the view and the file, comma-separated "
+                          "from pc, drivers, can (default all; the jig's lost-records reports are always kept)")
     src.add_argument("--interbyte-timeout", type=float, default=None, metavar="MS",
                      help="with --sniff: silence inside a frame that drops it, in ms (default %g: longer than a USB "
                           "adapter's usual hold-back; the jig itself uses 5)" % DEFAULT_INTERBYTE_MS)
@@ -124,11 +128,15 @@ def _check(args):
                          "port), or --install-dissector / --install-extcap")
     if args.sniff is not None and args.jig is not None:
         raise UsageError("give --sniff PORT or --jig PORT, not both (one capture at a time)")
+    args.keep = None
     if args.jig is not None:
-        for name, value in (("--bus", args.bus), ("--interbyte-timeout", args.interbyte_timeout)):
-            if value is not None:
-                raise UsageError("%s is for --sniff: the jig records both buses with its own parser" % name)
-    if args.bus is None:
+        if args.interbyte_timeout is not None:
+            raise UsageError("--interbyte-timeout is for --sniff: the jig records its buses with its own parser")
+        if args.bus is not None:
+            args.keep = _bus_filter(args.bus)
+    elif args.bus is not None and args.bus not in R.BUS_NAMES:
+        raise UsageError("--bus must be pc or drivers with --sniff, not %r (can is the jig's: --jig)" % args.bus)
+    if args.bus is None or args.jig is not None:
         args.bus = "pc"
     if args.interbyte_timeout is None:
         args.interbyte_timeout = DEFAULT_INTERBYTE_MS
@@ -151,6 +159,15 @@ def _check(args):
         raise UsageError("--duration cannot be negative")
     if args.count is not None and args.count < 1:
         raise UsageError("--count must be at least 1")
+
+
+def _bus_filter(text):
+    """--bus with --jig: 'pc,can' -> the Record.bus indices to keep."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in R.JIG_BUS_NAMES]
+    if bad or not names:
+        raise UsageError("--bus takes pc, drivers or can (comma-separated) with --jig, not %r" % text)
+    return frozenset(R.JIG_BUS_NAMES.index(n) for n in names)
 
 
 def _check_output(args):
@@ -201,7 +218,7 @@ class _Sinks:
             raise OutputError(_output_name(self.args, self.writer), exc) from None
 
     def show(self, rec):
-        name = R.verdict_name(rec.verdict)
+        name = "can" if rec.is_can else R.verdict_name(rec.verdict)
         self.counts[name] = self.counts.get(name, 0) + 1
         if self.shown is not None:
             d = self.view.as_dict(rec)
@@ -308,8 +325,16 @@ def _capture_jig(args):
         except BaseException:
             cap.close()
             raise
-        banner = "the jig's recording from %s: PC bus %d baud, driver bus %d baud (%s, jig id %d)" % (
-            args.jig, hello["up_baud"], hello["down_baud"], hello["variant"], hello["slave_id"])
+        if args.keep is not None:
+            if R.CAN_BUS in args.keep and not cap.stream.has_can:
+                cap.close()
+                raise UsageError("--bus can: the jig at %s has no CAN port (its hello gives no CAN bitrate)" % args.jig)
+            keep = args.keep
+            cap.keep = lambda rec: rec.bus in keep or rec.verdict == R.LOST  # (a lost report concerns every bus)
+        banner = "the jig's recording from %s: PC bus %d baud, driver bus %d baud%s (%s, jig id %d)" % (
+            args.jig, hello["up_baud"], hello["down_baud"],
+            ", CAN bus %d bit/s" % hello["can_bitrate"] if hello["can_bitrate"] else "", hello["variant"],
+            hello["slave_id"])
         return _record(args, cap, cap.close, cap.stream.buses(), banner, hardware=cap.stream.description(),
                        forced=forced, jig=cap.stream)
 
@@ -365,7 +390,8 @@ def _summary(args, records, nbytes, counts, writer, jig=None):
     if args.json and args.write != "-":
         summary = {"records": records, "bytes": nbytes, "verdicts": counts, "files": files}
         if jig is not None:
-            summary.update(lost=jig.lost, noise={"pc": jig.noise[0], "drivers": jig.noise[1]}, jig=jig.hello)
+            summary.update(lost=jig.lost, noise={"pc": jig.noise[0], "drivers": jig.noise[1]}, jig=jig.hello,
+                           can_frames=jig.can_frames)
         print(json.dumps({"summary": summary}), flush=True)
         return
     parts = ", ".join("%s %d" % kv for kv in sorted(counts.items())) or "nothing heard"

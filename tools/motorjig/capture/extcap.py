@@ -1,5 +1,5 @@
 """Wireshark extcap: the MotorJig interfaces, ``motorjig-sniff`` (a Plus-R bus through a
-listen-only adapter) and ``motorjig-jig`` (the jig's own recording of both buses).
+listen-only adapter) and ``motorjig-jig`` (the jig's own recording of its buses).
 
 Wireshark runs this program (the launchers ``jigctl capture --install-extcap``
 writes, one per interface) in the steps of the extcap interface::
@@ -8,11 +8,13 @@ writes, one per interface) in the steps of the extcap interface::
     --extcap-interface motorjig-sniff --extcap-dlts     its link types (USER0/USER1, the dissector's)
     --extcap-interface motorjig-sniff --extcap-config   its options: port/URL, baud, bus, timeout
     --extcap-interface motorjig-sniff --capture --fifo PATH --port URL [--baud N] ...
+    --extcap-interface motorjig-jig --extcap-dlts       its link types (USER0/USER1, CAN_SOCKETCAN)
     --extcap-interface motorjig-jig --extcap-config     its option: the jig's capture port/URL
     --extcap-interface motorjig-jig --capture --fifo PATH --port URL
 
 and the capture writes pcapng into the fifo (the same writer as ``jigctl capture
--w``; for the jig two interfaces, the PC bus and the driver bus) until Wireshark
+-w``; for the jig two interfaces, the PC bus and the driver bus, and a third, the
+CAN bus as SocketCAN frames, when the jig has a CAN port) until Wireshark
 closes it or stops the program. In tshark the options are preferences:
 ``-o extcap.motorjig_sniff.port:/dev/ttyUSB1`` (also ``baud``, ``bus``,
 ``interbytetimeout``), ``-o extcap.motorjig_jig.port:/dev/ttyACM1``.
@@ -34,7 +36,7 @@ INTERFACE = "motorjig-sniff"
 JIG_INTERFACE = "motorjig-jig"
 INTERFACES = (INTERFACE, JIG_INTERFACE)
 _DISPLAY = {INTERFACE: "MotorJig: FASTECH Plus-R bus (listen-only RS-485 adapter)",
-            JIG_INTERFACE: "MotorJig jig: PC bus and driver bus (the jig's own recording)"}
+            JIG_INTERFACE: "MotorJig jig: PC bus, driver bus and CAN bus (the jig's own recording)"}
 
 
 def _version():
@@ -51,10 +53,14 @@ def interfaces(which=INTERFACES):
         "interface {value=%s}{display=%s}" % (name, _DISPLAY[name]) for name in which]
 
 
-def dlts():
-    return ["dlt {number=%d}{name=USER0}{display=FASTECH Plus-R, PC bus (MotorJig records)}" % pcapng.LINKTYPES["pc"],
-            "dlt {number=%d}{name=USER1}{display=FASTECH Plus-R, driver bus (MotorJig records)}"
-            % pcapng.LINKTYPES["drivers"]]
+def dlts(interface=INTERFACE):
+    out = ["dlt {number=%d}{name=USER0}{display=FASTECH Plus-R, PC bus (MotorJig records)}" % pcapng.LINKTYPES["pc"],
+           "dlt {number=%d}{name=USER1}{display=FASTECH Plus-R, driver bus (MotorJig records)}"
+           % pcapng.LINKTYPES["drivers"]]
+    if interface == JIG_INTERFACE:
+        out.append("dlt {number=%d}{name=CAN_SOCKETCAN}{display=CAN bus, SocketCAN frames (MotorJig records)}"
+                   % pcapng.LINKTYPES["can"])
+    return out
 
 
 def config(interface=INTERFACE):
@@ -206,7 +212,7 @@ def main(argv=None, interface=None):
     if name not in offered:
         return _fail("unknown interface %r (this program has %s)" % (name, ", ".join(offered)), offered[0])
     if args.extcap_dlts:
-        print("\n".join(dlts()))
+        print("\n".join(dlts(name)))
         return 0
     if args.extcap_config:
         print("\n".join(config(name)))

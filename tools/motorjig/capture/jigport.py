@@ -11,7 +11,7 @@ old hellos included), then sends ``S`` (the jig empties its ring and sends a hel
 record first) and waits for that hello, so a port that is not the jig's capture
 port is told within ``HELLO_WAIT_S``; a connection the port closes at once is
 another reader attached (one reader at a time). ``run(sinks)`` hands every record
-(``jigstream.JigStream``) to the sinks until a duration or count is reached,
+(``jigstream.JigStream``; only those ``keep`` keeps, when set) to the sinks until a duration or count is reached,
 ``stop()`` is called or ``alive()`` turns false, or nothing at all has come for
 ``SILENCE_S`` (the jig sends a clock record at least every second while it
 records: it has stopped, ``STOPPED_MSG``); ``close()`` sends ``X`` (recording
@@ -45,7 +45,8 @@ class JigCapture:
         self._monotonic = monotonic
         self.port = port if port is not None else open_port(url, 115200)  # (a CDC port has no baud)
         self.stream = JigStream(url, clock, strict_start=False)
-        self.records = 0
+        self.records = 0  # records handed to the sinks
+        self.keep = None  # a predicate on Records: only those it keeps go to the sinks and count (None: all)
         self._pending = []  # records that came with the hello
         self._stop = False
         self._started = False
@@ -122,7 +123,10 @@ class JigCapture:
         return self.stream.hello
 
     def _out(self, recs, sinks, count=None):
-        """recs to the sinks, only as many as keep the total within count (None: all)."""
+        """recs (those ``keep`` keeps) to the sinks, only as many as keep the total within
+        count (None: all)."""
+        if self.keep is not None:
+            recs = [r for r in recs if self.keep(r)]
         if count is not None:
             recs = recs[:max(0, count - self.records)]
         for rec in recs:

@@ -1,10 +1,11 @@
-"""The jig's own recording of both buses: its record stream read into ``Record``s.
+"""The jig's own recording of its buses: its record stream read into ``Record``s.
 
 The firmware (``jig.capture``) streams one record per frame it received or sent on
-either bus, and per dropped fragment, over its capture port (the board's second
+either Plus-R bus or on the CAN bus, and per dropped fragment, over its capture port (the board's second
 USB CDC port; a TCP port on the virtual bench). ``JigStream.feed(chunk)`` takes
 that stream in pieces of any size and returns the records completed so far, as
-``motorjig.capture.record.Record``: bus 0 the PC bus, 1 the driver bus; the
+``motorjig.capture.record.Record``: bus 0 the PC bus, 1 the driver bus, 2 the
+CAN bus (only when the hello says the jig has a CAN port); the
 direction relative to the jig; the frame's bytes as they were on the wire
 (rebuilt from the body the jig's parser held, see ``wire_bytes``); the verdict;
 the end and the start of the frame in µs since the Unix epoch.
@@ -15,12 +16,16 @@ A record, little-endian (docs/capture.md, "The jig's record stream")::
     1  u8   type: 0..3 a frame on a channel (bit 1 the bus, bit 0 sent by the jig),
             4 / 6 a frame received on the PC / driver bus and passed on to the
             other (cut through), 0x10 hello, 0x11 lost, 0x12 clock,
-            0x20 | channel noise
-    2  u8   verdict (record.py's codes)
+            0x20 | channel noise, 0x30 / 0x31 a CAN frame received from / sent
+            onto the CAN bus
+    2  u8   verdict (record.py's codes; 0 for CAN)
     3  u8   n, data bytes that follow the header
     4  u32  t_first, 8 u32 t_end: the jig's µs ticks (wrapping at 2**30)
     (types 4, 6) 12 u32 t_first, 16 u32 t_end on the other bus
-    12/20 n data
+    12/20 n data (CAN: u32 identifier, u8 flags, u8 DLC, the data bytes)
+
+Versions: 1 (no CAN) and 2 (CAN records; the hello gains the CAN bitrate) are read;
+another is refused in one sentence.
 
 A passed-on frame is one record in the stream and two ``Record``s here, one per
 bus (received, then sent), with the same bytes and verdict.
@@ -55,12 +60,17 @@ from motorjig.capture.sniff import HostClock
 from motorjig.errors import PortError
 
 MARK = 0xA5
-VERSION = 1  # the record format this reader knows (the hello's first data byte)
+VERSION = 2  # the newest record format this reader knows (the hello's first data byte)
+VERSIONS = (1, 2)  # the ones it reads: 1 is 2 without CAN
 HEADER_LEN = 12
 PASSED_HEADER_LEN = 20  # types 4 and 6: + t_first, t_end on the other bus
 T_PC_PASSED, T_DRV_PASSED = 4, 6
 T_HELLO, T_LOST, T_CLOCK, T_NOISE = 0x10, 0x11, 0x12, 0x20
-HELLO_MIN = 20  # hello data before the name
+T_CAN_IN, T_CAN_OUT = 0x30, 0x31  # received from / sent onto the CAN bus
+CAN_HEAD = 6  # a CAN record's data before the frame's bytes: u32 id, u8 flags, u8 DLC
+CAN_MAX_BITRATE = 1000000
+HELLO_MIN = 20  # hello data before the name (format 1; format 2: HELLO_LEN[2])
+HELLO_LEN = {1: 20, 2: 24}
 TICKS_PERIOD = 1 << 30
 _HALF = TICKS_PERIOD >> 1
 #: how far after the chunk's arrival a record's unwrapped time may be (the hello's
@@ -72,7 +82,7 @@ PROTOCOLS = ("Ver6", "Ver8")
 FORWARD_MODES = ("cut-through", "store-and-forward")
 
 # The hello's data: version, protocol, forward_mode, slave id, up_baud, down_baud,
-# interbyte_timeout_us, ring size; then the name.
+# interbyte_timeout_us, ring size, (format 2) CAN bitrate (0: no CAN port); then the name.
 _HELLO = struct.Struct("<BBBBIIII")
 
 
@@ -108,14 +118,23 @@ def _sdiff(a, b):
 
 
 def parse_hello(data):
-    """The hello record's data as a dict (ValueError if it cannot be one)."""
-    if len(data) < HELLO_MIN:
-        raise ValueError("a hello record of %d bytes (at least %d)" % (len(data), HELLO_MIN))
+    """The hello record's data as a dict (ValueError if it cannot be one; a version this
+    reader does not know is read as the newest)."""
+    size = HELLO_LEN.get(data[0] if data else 0, HELLO_LEN[VERSION])
+    if len(data) < size:
+        raise ValueError("a hello record of %d bytes (at least %d)" % (len(data), size))
     version, protocol, forward, slave, up, down, interbyte, ring = _HELLO.unpack_from(data, 0)
+    can = struct.unpack_from("<I", data, HELLO_MIN)[0] if size > HELLO_MIN else 0
     return {"version": version, "protocol": protocol, "variant": PROTOCOLS[protocol] if protocol < 2 else "?",
             "forward_mode": forward, "slave_id": slave, "up_baud": up, "down_baud": down,
-            "interbyte_timeout_us": interbyte, "ring_size": ring,
-            "name": bytes(data[HELLO_MIN:]).decode("ascii", "replace")}
+            "interbyte_timeout_us": interbyte, "ring_size": ring, "can_bitrate": can,
+            "name": bytes(data[size:]).decode("ascii", "replace")}
+
+
+def refusal(name, version):
+    """The one sentence about a stream in a record format this reader does not read."""
+    return "%s speaks record format %d; this jigctl reads formats %s (update motorjig)" % (
+        name, version, " and ".join(str(v) for v in VERSIONS))
 
 
 def _find_hello(buf, i):
@@ -136,10 +155,13 @@ def _plausible_hello(head, data, any_version=False):
     """True if a record that says it is a hello looks like one (used to find step again)."""
     if head[1] != T_HELLO or head[2] != 0 or head[4] != head[5] or len(data) < HELLO_MIN:
         return False
-    if data[0] != VERSION and not any_version:
+    if data[0] not in VERSIONS and not any_version:
+        return False
+    if len(data) < HELLO_LEN.get(data[0], HELLO_LEN[VERSION]):
         return False
     h = parse_hello(data)
-    return h["protocol"] < 2 and h["forward_mode"] < 2 and h["up_baud"] in BAUD_RATES and h["down_baud"] in BAUD_RATES
+    return (h["protocol"] < 2 and h["forward_mode"] < 2 and h["up_baud"] in BAUD_RATES and h["down_baud"] in BAUD_RATES
+            and h["can_bitrate"] <= CAN_MAX_BITRATE)
 
 
 class JigStream:
@@ -159,6 +181,7 @@ class JigStream:
         self.hellos = 0  # hello records read (more than one: the jig restarted recording)
         self.lost = 0  # records the jig reported lost (ring full), in total
         self.noise = [0, 0]  # bytes outside any frame the jig counted, per bus
+        self.can_frames = 0  # CAN records read
         self.records = 0  # records returned
         self.bytes = 0  # stream bytes fed
         self.skipped = 0  # stream bytes skipped while looking for a hello
@@ -176,22 +199,31 @@ class JigStream:
     def in_step(self):
         return not self._hunting
 
+    @property
+    def has_can(self):
+        """True if the hello says the jig has a CAN port (a CAN bitrate)."""
+        return bool(self.hello and self.hello["can_bitrate"])
+
     def buses(self, where=None):
-        """The PC bus and the driver bus, with the bauds the hello gave (Record.bus 0, 1)."""
+        """The PC bus and the driver bus, with the bauds the hello gave (Record.bus 0, 1),
+        and the CAN bus (2) when the jig has a CAN port."""
         where = self.where if where is None else where
         h = self.hello or {}
         tag = ("jig " + where) if where else "jig"
-        return [R.pc_bus(h.get("up_baud", 0), tag), R.driver_bus(h.get("down_baud", 0), tag)]
+        out = [R.pc_bus(h.get("up_baud", 0), tag), R.driver_bus(h.get("down_baud", 0), tag)]
+        if self.has_can:
+            out.append(R.can_bus(h["can_bitrate"], tag))
+        return out
 
     def description(self):
         """One line about the jig from its hello: name, variant, forwarding, bauds."""
         h = self.hello
         if h is None:
             return "no hello yet"
-        return "%s (record format %d, slave id %d, %s, %s), PC bus %d baud, driver bus %d baud" % (
+        return "%s (record format %d, slave id %d, %s, %s), PC bus %d baud, driver bus %d baud%s" % (
             h["name"] or "MotorJig", h["version"], h["slave_id"], h["variant"],
             FORWARD_MODES[h["forward_mode"]] if h["forward_mode"] < 2 else "forward_mode %d" % h["forward_mode"],
-            h["up_baud"], h["down_baud"])
+            h["up_baud"], h["down_baud"], ", CAN bus %d bit/s" % h["can_bitrate"] if h["can_bitrate"] else "")
 
     # --- time -------------------------------------------------------------------------
     def _abs(self, tick):
@@ -251,9 +283,8 @@ class JigStream:
                 if i + HEADER_LEN + n > len(buf):
                     break  # the rest of a possible hello has not come yet
                 data = bytes(buf[i + HEADER_LEN:i + HEADER_LEN + n])
-                if data[0] != VERSION and _plausible_hello(head, data, any_version=True):
-                    error = error or ("%s speaks record format %d; this jigctl reads format %d (update motorjig)"
-                                      % (self._name(), data[0], VERSION), self._pos + i)
+                if data[0] not in VERSIONS and _plausible_hello(head, data, any_version=True):
+                    error = error or (refusal(self._name(), data[0]), self._pos + i)
                 if not _plausible_hello(head, data):
                     i += 1
                     self.skipped += 1
@@ -281,11 +312,15 @@ class JigStream:
                                           % self._name(), self._pos + i)
                         continue
                 data = bytes(buf[i + hlen:i + hlen + n])
-                if head[1] == T_HELLO and data[0] != VERSION:
+                if head[1] == T_HELLO and data[0] not in VERSIONS:
                     # (checked as the first one is; hunting skips it and goes on to the next hello)
                     self._hunting = True
-                    error = error or ("%s speaks record format %d; this jigctl reads format %d (update motorjig)"
-                                      % (self._name(), data[0], VERSION), self._pos + i)
+                    error = error or (refusal(self._name(), data[0]), self._pos + i)
+                    continue
+                why = self._bad_data(head, data)
+                if why is not None:
+                    self._hunting = True
+                    error = error or (why, self._pos + i)
                     continue
             out += self._records(head, data, host_us)
             i += hlen + n
@@ -321,7 +356,29 @@ class JigStream:
             return None if n == 4 else "%s is out of step: a record of type 0x%02X with %d bytes (4)" % (where, typ, n)
         if typ == T_CLOCK:
             return None if n == 0 else "%s is out of step: a clock record with %d bytes" % (where, n)
+        if typ in (T_CAN_IN, T_CAN_OUT) and self.hello is not None and self.hello["version"] >= 2:
+            if verdict != 0:
+                return "%s is out of step: a CAN record with verdict %d" % (where, verdict)
+            if not CAN_HEAD <= n <= CAN_HEAD + 8:
+                return "%s is out of step: a CAN record of %d bytes (%d to %d)" % (where, n, CAN_HEAD, CAN_HEAD + 8)
+            return None
         return "%s is out of step: unknown record type 0x%02X" % (where, typ)
+
+    def _bad_data(self, head, data):
+        """Why a record's data cannot be its type's (None if it can): a CAN frame's."""
+        if head[1] not in (T_CAN_IN, T_CAN_OUT):
+            return None
+        can_id, flags, dlc = struct.unpack_from("<IBB", data, 0)
+        where = self._name()
+        if not self.has_can:
+            return "%s is out of step: a CAN record from a jig whose hello says it has no CAN port" % where
+        if flags > (R.CAN_EXT | R.CAN_RTR) or dlc > 8:
+            return "%s is out of step: a CAN record with flags 0x%02X and DLC %d" % (where, flags, dlc)
+        if can_id > (0x1FFFFFFF if flags & R.CAN_EXT else 0x7FF):
+            return "%s is out of step: a CAN record with identifier 0x%X" % (where, can_id)
+        if len(data) != CAN_HEAD + (0 if flags & R.CAN_RTR else dlc):
+            return "%s is out of step: a CAN record of %d bytes for DLC %d" % (where, len(data), dlc)
+        return None
 
     def _frame(self, channel, verdict, wire, t0, t1):
         """The Record of a frame on a channel (bit 1 the bus, bit 0 sent by the jig)."""
@@ -358,6 +415,11 @@ class JigStream:
         end = self._abs(t1)
         first = self._span(end, t0, t1)
         self._advance(t1)
+        if typ in (T_CAN_IN, T_CAN_OUT):
+            can_id, flags, dlc = struct.unpack_from("<IBB", data, 0)
+            self.can_frames += 1
+            return [R.Record(R.CAN_BUS, end, R.DIR_OUTBOUND if typ & 1 else R.DIR_INBOUND, data[CAN_HEAD:], R.GOOD,
+                             None, None, can_id, flags, dlc)]
         if typ == T_CLOCK:
             self.clocks += 1
             return []

@@ -1,4 +1,4 @@
-"""pcapng files of Plus-R records (standard library only).
+"""pcapng files of Plus-R and CAN records (standard library only).
 
 Layout (pcapng, little-endian, every block 32-bit aligned)::
 
@@ -8,7 +8,9 @@ Layout (pcapng, little-endian, every block 32-bit aligned)::
           for the driver bus (the dissector registers on both and tells the
           buses apart by it), snaplen 0, if_name ("pc", "drivers"),
           if_description ("PC bus, 115200 baud, ..."),
-          if_speed = baud, if_tsresol = 6 (µs)
+          if_speed = baud, if_tsresol = 6 (µs); the jig's CAN bus (only when the
+          jig has a CAN port) a third: LINKTYPE_CAN_SOCKETCAN (227), if_name
+          "can", if_speed = the bitrate, read by Wireshark's own CAN dissector
     EPB   one per record: interface = the record's bus, timestamp in µs, the
           wire bytes, opt_comment = the verdict ("parser: bad_crc (...)"),
           for the jig's records a second opt_comment with the frame's start
@@ -16,7 +18,9 @@ Layout (pcapng, little-endian, every block 32-bit aligned)::
           records (no bytes), the count ("jig: 3 records lost (...)"),
           epb_flags = direction (1 inbound, 2 outbound; absent when unknown)
           plus the link-layer error bit of the verdict (CRC error, too long,
-          too short, wrong inter-frame gap = timeout, symbol error = stuffing)
+          too short, wrong inter-frame gap = timeout, symbol error = stuffing);
+          a CAN frame: the 16 bytes of a SocketCAN frame (``socketcan``), the
+          direction, no comment
 
 ``Writer`` writes one stream (a file, or standard output for ``wireshark -k -i -``,
 flushed after every packet); ``RotatingWriter`` starts a new file when one
@@ -37,8 +41,12 @@ from motorjig.capture import record as R
 #: link type per bus: LINKTYPE_USER0 / USER1, where the dissector registers itself
 #: (wiretap's USER0 / USER1): the bus is known from it in every pass, where the
 #: interface's name is not (a Lua field is empty while no tree is built)
-LINKTYPES = {"pc": 147, "drivers": 148}
+LINKTYPE_CAN_SOCKETCAN = 227
+LINKTYPES = {"pc": 147, "drivers": 148, "can": LINKTYPE_CAN_SOCKETCAN}
 LINKTYPE = LINKTYPES["pc"]
+# The SocketCAN header's identifier word (big-endian): these bits above the identifier
+SOCKETCAN_EFF = 1 << 31
+SOCKETCAN_RTR = 1 << 30
 
 SHB, IDB, EPB = 0x0A0D0D0A, 0x00000001, 0x00000006
 BYTE_ORDER_MAGIC = 0x1A2B3C4D
@@ -96,8 +104,23 @@ def interface_description(bus, linktype=None):
     return _block(IDB, struct.pack("<HHI", linktype, 0, 0) + _options(opts))
 
 
+def socketcan(rec):
+    """A CAN Record as LINKTYPE_CAN_SOCKETCAN's 16 bytes: the identifier word (big-endian:
+    bit 31 extended, bit 30 RTR), the data length, flags (0: classic CAN), two reserved
+    bytes, the data padded to 8."""
+    word = rec.can_id | (SOCKETCAN_EFF if rec.can_flags & R.CAN_EXT else 0) | (
+        SOCKETCAN_RTR if rec.can_flags & R.CAN_RTR else 0)
+    data = bytes(rec.data[:8])
+    return struct.pack(">IBBBB", word, rec.can_dlc, 0, 0, 0) + data + b"\0" * (8 - len(data))
+
+
 def packet(rec):
     """The EPB of one Record."""
+    if rec.is_can:
+        body = socketcan(rec)
+        head = struct.pack("<IIIII", rec.bus, (rec.t_us >> 32) & 0xFFFFFFFF, rec.t_us & 0xFFFFFFFF, len(body), len(body))
+        opts = [(EPB_FLAGS, struct.pack("<I", rec.direction))] if rec.direction else []
+        return _block(EPB, head + body + _options(opts))
     flags = rec.direction | VERDICT_FLAGS.get(rec.verdict, 0)
     opts = [(OPT_COMMENT, R.comment(rec.verdict).encode("utf-8"))]
     more = R.count_comment(rec) if rec.count is not None else R.start_comment(rec)

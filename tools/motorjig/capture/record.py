@@ -9,7 +9,10 @@ jig's own recording of both buses), so the pcapng writer, the text view and the
 dissector take both alike. The jig's records also know when a frame started
 (``t_first_us``), and two of them carry a count instead of bytes: ``noise`` (bytes
 the jig's parser counted outside any frame, not recorded) and ``lost`` (records
-the jig dropped because its capture ring was full).
+the jig dropped because its capture ring was full). The jig's CAN records
+(``can_id`` set) are frames on the CAN bus: ``data`` their data bytes, ``can_flags``
+(``CAN_EXT``, ``CAN_RTR``) and ``can_dlc`` beside them; a CAN controller passes only
+good frames, so their verdict is ``good``.
 
 Verdicts are the parser's counters (``jig.parser.COUNTER_NAMES``) seen from one
 frame, plus ``unfinished`` for a frame the capture ended in the middle of and
@@ -105,17 +108,29 @@ def count_comment(rec):
     return None if text is None else JIG_PREFIX + text
 
 
-class Record(namedtuple("Record", "bus t_us direction data verdict t_first_us count", defaults=(None, None))):
+# A CAN frame's flags (the SocketCAN/slcan meaning; the jig's CAN records carry them)
+CAN_EXT = 1  # 29-bit identifier
+CAN_RTR = 2  # remote request: no data bytes, the DLC asks for that many
+
+
+class Record(namedtuple("Record", "bus t_us direction data verdict t_first_us count can_id can_flags can_dlc",
+                        defaults=(None, None, None, 0, 0))):
     """bus: index into the capture's interface list; t_us: host or jig time of the last
-    byte, µs since the Unix epoch; direction: DIR_*; data: wire bytes; verdict: code;
-    t_first_us: the start bit of the first byte, when known (the jig's records);
-    count: for the jig's noise and lost records (no data), bytes / records counted."""
+    byte, µs since the Unix epoch; direction: DIR_*; data: wire bytes (a CAN frame: its
+    data bytes); verdict: code; t_first_us: the start bit of the first byte, when known
+    (the jig's records); count: for the jig's noise and lost records (no data), bytes /
+    records counted; can_id, can_flags, can_dlc: a CAN frame's identifier (None: not a
+    CAN frame), flags (CAN_EXT, CAN_RTR) and DLC."""
 
     __slots__ = ()
 
     @property
     def good(self):
         return self.verdict == GOOD
+
+    @property
+    def is_can(self):
+        return self.can_id is not None
 
 
 class Bus(namedtuple("Bus", "name description baud")):
@@ -132,7 +147,15 @@ def driver_bus(baud, where=""):
     return Bus("drivers", "driver bus, %d baud%s" % (baud, (", " + where) if where else ""), baud)
 
 
+def can_bus(bitrate, where=""):
+    return Bus("can", "CAN bus, %d bit/s%s" % (bitrate, (", " + where) if where else ""), bitrate)
+
+
+#: the buses a listen-only adapter can be on (--sniff --bus)
 BUS_NAMES = ("pc", "drivers")
+#: the buses of the jig's recording, in Record.bus order (the CAN bus only when the jig has a CAN port)
+JIG_BUS_NAMES = ("pc", "drivers", "can")
+CAN_BUS = 2
 
 
 def make_bus(name, baud, where=""):
