@@ -1,11 +1,13 @@
 """Take the screenshots of MotorJig Desk in docs/ (headless Chromium against the virtual bench).
 
-    .venv/bin/python tools/desk_screenshots.py [OUTDIR]      default: docs/
+    .venv/bin/python tools/desk_screenshots.py [OUTDIR]        default: docs/
+    .venv/bin/python tools/desk_screenshots.py --can [OUTDIR]  only the CAN tab's (desk-can.png)
 
 Starts the bench and the Desk as child processes, plays a short session (scan,
 servo on, a move, a motion test, the parameter table, a raw frame with a broken
 CRC, and on the Test tab ezi-step-eol failing on a drive with a wrong parameter,
-then passing, then smoke passing) and saves one PNG per main view. Uses the
+then passing, then smoke passing; on a bench with CANopen nodes 5 and 6 the CAN tab:
+open, scan, an SDO read, heartbeats and NMT start) and saves one PNG per main view. Uses the
 browser helpers of the tests; the runs' records go to a temporary folder.
 """
 
@@ -26,12 +28,18 @@ def main(argv=None):
     if argv and argv[0] in ("-h", "--help"):
         print(__doc__.strip())
         return 0
+    only_can = "--can" in argv
+    argv = [a for a in argv if a != "--can"]
     out = argv[0] if argv else os.path.join(ROOT, "docs")
     os.makedirs(out, exist_ok=True)
     why = B.browser_missing()
     if why:
         sys.stderr.write("desk_screenshots: %s.\n" % why)
         return 2
+    can_tab(out)
+    if only_can:
+        print("screenshot written to %s" % os.path.join(out, "desk-can.png"))
+        return 0
     wiring = os.path.join(ROOT, "plans", "ezi-step-eol.toml")
     bench, url = B.start_bench("2,3", "--wiring", wiring)
     faulty = desk = b = None
@@ -149,6 +157,42 @@ def test_tab(b, out, url, faulty_url):
     b.driver.set_window_size(1440, height + 140)  # + the browser's own frame in headless mode
     time.sleep(0.8)
     b.screenshot(os.path.join(out, "desk-test.png"))
+
+
+def can_tab(out):
+    """desk-can.png: the CAN tab on a bench with CANopen nodes 5 and 6 after a scan, an SDO read of the
+    device name, node 5 beating and started, the frame log naming it all."""
+    desk = b = None
+    try:
+        desk, page = B.start_desk("--bench", "--drivers", "2", "--can-nodes", "5,6", "--timeout", "300")
+        b = B.Browser()
+        b.driver.set_window_size(1440, 1250)
+        b.open(page)
+        b.tab("tab-can")
+        b.click("btn-can-open")
+        b.wait_for(lambda: b.text("can-state").startswith("open: "), 10, "the SLCAN port open")
+        b.click("btn-can-scan")
+        b.wait_for(lambda: b.text("can-message").startswith("scan: "), 30, "the scan")
+        for node, obj, value in (("5", "0x1017", "500"), ("6", "0x1017", "500")):
+            b.type("can-sdo-node", node)
+            b.type("can-sdo-object", obj)
+            b.type("can-sdo-value", value)
+            b.click("btn-can-sdo-write")
+            b.wait_for(lambda n=node: b.text("can-sdo-result").startswith("node %s 0x1017:00" % n), 10,
+                       "the heartbeat time written")
+        b.type("can-nmt-node", "5")
+        b.click("btn-can-nmt")
+        b.wait_for(lambda: b.text("can-message") == "NMT start sent to node 5", 5, "NMT start")
+        b.type("can-sdo-node", "5")
+        b.type("can-sdo-object", "0x1008")
+        b.click("btn-can-sdo-read")
+        b.wait_for(lambda: "0x1008:00" in b.text("can-sdo-result"), 10, "the device name")
+        time.sleep(2.5)  # a few heartbeats in the log; the notifications fade
+        b.screenshot(os.path.join(out, "desk-can.png"))
+    finally:
+        if b is not None:
+            b.close()
+        B.stop(desk)
 
 
 if __name__ == "__main__":
