@@ -212,3 +212,37 @@ def test_cli_prints_the_slcan_port(capsys):
     out = capsys.readouterr().out
     assert "CAN bus: 500000 bit/s, CiA 402 nodes 5, 6" in out
     assert "slcan: socket://127.0.0.1:" in out and "slcan pty: /dev/" in out
+
+
+# --- end to end through the jig's firmware (jig.canport) -------------------------------------
+
+def test_slcan_through_the_jig_reaches_a_node_and_its_reply_comes_back():
+    b = SimBench(driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode)
+    b.slcan_send(b"S6\rO\r")
+    assert b.slcan_read(3) == b"\r\rt705100\r"  # the boot-up, acknowledged once the jig opened
+    assert b.hal.can.state() == SimCan.STATE_ACTIVE and b.hal.can.bitrate == 500000
+    b.slcan_send(b"t60584000100000000000\r")
+    assert b.slcan_read(2) == b"\rt58584300100092010200\r"
+    assert b.can_bus.frames == 3  # boot-up, request, reply
+    b.slcan_send(b"C\r")
+    assert b.slcan_read(1) == b"\r" and b.hal.can.state() == SimCan.STATE_STOPPED
+
+
+def test_python_can_through_the_jig_on_the_realtime_bench():
+    can = pytest.importorskip("can")
+    with Bench(driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode, pty=False) as bench:
+        bus = can.Bus(interface="slcan", channel=bench.slcan_url, bitrate=500000, sleep_after_open=0)
+        try:
+            bus.send(can.Message(arbitration_id=0x605, data=b"\x40\x00\x10\x00\x00\x00\x00\x00",
+                                 is_extended_id=False))
+            got = []
+            end = time.monotonic() + 5
+            while time.monotonic() < end:
+                m = bus.recv(0.5)
+                if m is not None:
+                    got.append((m.arbitration_id, bytes(m.data)))
+                    if m.arbitration_id == 0x585:
+                        break
+            assert (0x585, b"\x43\x00\x10\x00\x92\x01\x02\x00") in got
+        finally:
+            bus.shutdown()
