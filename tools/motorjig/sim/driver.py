@@ -5,7 +5,8 @@ layout (unknown types: status 0x80, wrong request length: 0x82), after a
 configurable turnaround delay. RAM and ROM parameters 0-28 (SaveAllParameters
 copies RAM to ROM).
 
-Motion: a trapezoidal profile (start speed param 2; accel/decel times from params
+Motion (axis.py, shared with the CiA 402 drive): a trapezoidal profile (start speed
+param 2; accel/decel times from params
 3/4, or from the option block of the Ex moves 0x80-0x82) integrated in 1 ms steps of
 the bus's clock; ``profile_time`` gives the time the model takes for a move. The
 axis status flags (moving, accelerating, constant speed, decelerating, direction,
@@ -52,6 +53,7 @@ import struct
 from jig import frame as F
 from jig.parser import FrameParser
 
+from .axis import STEP_MS, Motion, at_origin, profile_time  # noqa: F401 (the model lives in axis.py)
 from .clock import TICKS_MASK
 
 # Parameters 0-28: (min, max) and defaults (25-28 are STEP-specific guesses)
@@ -128,148 +130,6 @@ REPLY_LEN_VER8.update({0x22: 8, 0x41: 16, 0x43: 36})
 for _t in VER8_UNMODELLED:
     REQ_LEN_VER8.pop(_t, None)
     REPLY_LEN_VER8.pop(_t, None)
-
-STEP_MS = 1.0  # motion integration step
-
-
-def profile_time(distance, speed, acc_ms, dec_ms, start_speed=1):
-    """Seconds the simulated drive's model takes to move ``distance`` pulses at ``speed`` pps.
-
-    The model (``Motion``): the axis starts at the start speed vs = min(start_speed, speed),
-    accelerates at speed / acc time, runs at speed, decelerates at speed / dec time back
-    to vs exactly at the target, and stops. With v = speed, ta, td in seconds and D =
-    |distance|, that takes
-
-        D / v + (ta + td) * (v - vs)**2 / (2 * v**2)            if D >= (ta + td) * (v**2 - vs**2) / (2 * v)
-
-    (with vs = 1 pps: D / v + (ta + td) / 2 to within 0.05 %), and for a shorter move a
-    triangle that peaks at vp = sqrt(vs**2 + 2 * D * v / (ta + td)):
-
-        (vp - vs) * (ta + td) / v
-
-    Speeds below 1 pps and times below 1 ms count as 1, as in the drive. The simulated
-    move ends at the first 1 ms step at or after this time (up to 2 ms later).
-    """
-    d = abs(distance)
-    if d == 0:
-        return 0.0
-    v = float(max(1, speed))
-    vs = float(max(1, min(start_speed, speed)))
-    t_ramps = (max(1, acc_ms) + max(1, dec_ms)) / 1000.0
-    if d >= t_ramps * (v * v - vs * vs) / (2 * v):
-        return d / v + t_ramps * (v - vs) ** 2 / (2 * v * v)
-    vp = math.sqrt(vs * vs + 2 * d * v / t_ramps)
-    return (vp - vs) * t_ramps / v
-
-
-class Motion:
-    """Trapezoidal single-axis motion integrated in fixed steps (``profile_time``).
-
-    Each step moves by the mean of the speeds at its start and end. A position move
-    never ends a step faster than the braking curve to the start speed allows; on the
-    curve it decelerates at the rate that lands it at the start speed exactly on the
-    target (the set one, to rounding), then stops there. So a move lasts
-    ``profile_time`` rounded up to the next step (+ at most one step).
-    """
-
-    def __init__(self):
-        self.pos = 0.0
-        self.vel = 0.0  # signed pps
-        self.target = None  # None: velocity mode
-        self.vmax = 0.0  # unsigned target speed
-        self.direction = 1
-        self.moving = False
-        self.stopping = False
-        self.phase = 0  # 1 accel, 2 const, 3 decel
-        self.acc = 1.0
-        self.dec = 1.0
-        self.vstart = 1.0
-
-    def start(self, target, vmax, direction, acc_ms, dec_ms, vstart):
-        self.target = target
-        self.vmax = float(max(1, vmax))
-        self.direction = direction
-        self.acc = self.vmax / (max(1, acc_ms) / 1000.0)
-        self.dec = self.vmax / (max(1, dec_ms) / 1000.0)
-        self.vstart = float(max(1, min(vstart, vmax)))
-        self.moving = True
-        self.stopping = False
-        self.phase = 0
-        if abs(self.vel) < self.vstart:
-            self.vel = self.vstart * direction
-
-    def stop(self, dec_ms):
-        """Decelerate from the present speed to standstill in dec_ms."""
-        if self.moving:
-            self.stopping = True
-            speed = max(abs(self.vel), 1.0)
-            self.dec = speed / (max(1, dec_ms) / 1000.0)
-
-    def halt(self):
-        self.moving = False
-        self.stopping = False
-        self.vel = 0.0
-        self.phase = 0
-
-    def _arrive(self):
-        self.pos = float(self.target)
-        self.halt()
-
-    def _toward_vmax(self, s, dt):
-        """The speed after dt on the way to vmax (accelerating, or slowing after a lower override)."""
-        if s < self.vmax:
-            self.phase = 1
-            return min(s + self.acc * dt, self.vmax)
-        if s > self.vmax:
-            self.phase = 3
-            return max(s - self.dec * dt, self.vmax)
-        self.phase = 2
-        return s
-
-    def step(self, dt):
-        if not self.moving:
-            return
-        s = abs(self.vel)
-        d = self.direction
-        if self.stopping:
-            s1 = s - self.dec * dt
-            self.phase = 3
-            if s1 <= 0:
-                self.pos = float(round(self.pos + d * s * s / (2 * self.dec)))
-                self.halt()
-                return
-        elif self.target is None:
-            s1 = self._toward_vmax(s, dt)
-        else:
-            left = (self.target - self.pos) * d
-            if left <= 0:
-                self._arrive()
-                return
-            vs = self.vstart
-            # (the tolerance keeps an axis that reached the braking curve on it)
-            if s * s - vs * vs >= 2 * self.dec * left * (1 - 1e-9):
-                s1 = s - (s * s - vs * vs) / (2 * left) * dt
-                self.phase = 3
-                if s1 <= vs:
-                    self._arrive()
-                    return
-            else:
-                s1 = self._toward_vmax(s, dt)
-                # End the step no faster than the braking curve allows (a steep ramp up
-                # would overshoot it by a whole step's speed gain, then brake too hard).
-                b = self.dec * dt
-                on_curve = (math.sqrt(b * b + 4 * (vs * vs + 2 * self.dec * left - b * s)) - b) / 2
-                if on_curve < s1:
-                    if on_curve <= vs:  # it reaches the target within this step
-                        self._arrive()
-                        return
-                    s1 = on_curve
-                    self.phase = 3
-            if (s + s1) / 2 * dt >= left:
-                self._arrive()
-                return
-        self.pos += d * (s + s1) / 2 * dt
-        self.vel = d * s1
 
 
 # --- faults of a failing drive: set_fault(name, value) ----------------------------
@@ -561,11 +421,7 @@ class SimDriver:
     # --- inputs ---------------------------------------------------------------------
     def at_origin(self):
         """True while the shaft is at the origin sensor (``origin_pos`` +- ``origin_width``/2)."""
-        off = self.mech - self.origin_pos
-        if self.rev_pulses:
-            half = self.rev_pulses / 2.0
-            off = (off + half) % self.rev_pulses - half
-        return abs(off) <= self.origin_width / 2.0
+        return at_origin(self.mech, self.origin_pos, self.origin_width, self.rev_pulses)
 
     def sensor_inputs(self):
         """Input bits of the drive's own sensors: origin, and the limit trip points."""
