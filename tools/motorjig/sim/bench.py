@@ -32,6 +32,12 @@ In real time the bench runs on ``PacedClock``: simulated time follows the wall
 clock but never jumps over a pending event, so a stall of the host (a garbage
 collection, a busy machine) delays the whole simulated world alike instead of
 letting the jig's reply timeout expire before a simulated drive had its turn.
+
+``can_nodes`` adds a CAN bus (``canbus.CanBus``) with simulated CANopen nodes; the
+jig's HAL then has its CAN port (``hal.can_open``, ``hal.slcan``) and the host's side
+of the SLCAN port is ``SimBench.slcan_send`` / ``slcan_read``; ``Bench`` serves it on
+``slcan_url`` and ``slcan_pty_path`` like the capture port (``HostPort``).
+``direct``/``direct_can`` put a plain SLCAN adapter on the bus instead of the jig.
 """
 
 import os
