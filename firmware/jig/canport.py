@@ -439,8 +439,6 @@ class CanPort:
 
     def _command(self, r, now):
         c = r.cmd
-        self.lines += 1
-        self.t_host = now
         self.cv[K.CC_LINES] += 1
         if c == 0x74 or c == 0x54 or c == 0x72 or c == 0x52:  # t T r R
             if not self.is_open or self.listen or self.ts[TS_HOLD]:
@@ -482,6 +480,8 @@ class CanPort:
                 self._put(_BEL)
         else:  # s (BTR registers) and anything else the jig does not do
             self._put(_BEL)
+        self.lines += 1  # (after an O: it counts for the safety stop's silence)
+        self.t_host = now
 
     def _status_line(self):
         f = self.flags

@@ -1,0 +1,405 @@
+"""The jig's CAN port (jig.canport) on the bench's CAN bus: SLCAN in and out, the bus both ways.
+
+The rig is the real App on bridge_probe's in-memory RS-485 HAL plus the bench's CAN
+parts: ``SimCan`` (machine.CAN, its IRQ handler called as a hard IRQ) on a
+``CanBus`` with another node ("peer") that sends frames and records what it hears,
+and ``SimSlcanPort`` as the third CDC port whose host side the tests feed.
+"""
+
+import struct
+
+import pytest
+
+import bridge_probe
+from jig import counters as K
+from jig import diag
+from jig import frame as F
+from jig import params as P
+from jig import slcan as S
+from jig.app import App
+from jig.parser import FrameParser
+from motorjig.sim.canbus import CanBus
+from motorjig.sim.canhal import SimCan, SimSlcanPort
+from motorjig.sim.clock import VirtualClock
+
+BEL = b"\x07"
+
+
+class CanHal(bridge_probe.Hal):
+    """bridge_probe's HAL on a virtual clock, with the CAN port: one SimCan, opened
+    and closed as the board's machine.CAN(1) is."""
+
+    def __init__(self, clock, bus, fs=None):
+        super().__init__()
+        self.clock = clock
+        self.bus = bus
+        self.slcan = SimSlcanPort(clock)
+        self.can = None
+        if fs is not None:
+            self.fs = fs
+
+    def ticks_us(self):
+        return self.clock.ticks_us()
+
+    def can_open(self, bitrate, listen_only):
+        if self.can is None:
+            self.can = SimCan(self.bus)
+        self.can.init(bitrate, mode=SimCan.MODE_SILENT if listen_only else SimCan.MODE_NORMAL)
+        self.can.set_filters(None)
+        return self.can
+
+    def can_close(self, can):
+        can.deinit()
+
+
+class Rig:
+    def __init__(self, bitrate=500000, params=None):
+        self.clock = VirtualClock()
+        self.bus = CanBus(self.clock, bitrate)
+        self.heard = []  # (t, id, ext, rtr, data) the peer received
+        self.peer = self.bus.add_node("peer", on_frame=self._heard)
+        fs = None
+        if params:
+            fs = bridge_probe.MemFS()
+            pr = P.Params(fs, "/p")
+            for num, value in params.items():
+                assert pr.set(num, value)
+            assert pr.save()
+        self.hal = CanHal(self.clock, self.bus, fs)
+        self.app = App(self.hal)
+        self.port = self.hal.slcan
+        self.port.host_open()
+
+    def _heard(self, t, can_id, ext, rtr, data):
+        self.heard.append((t, can_id, ext, rtr, bytes(data)))
+
+    def run(self, us, step=50):
+        end = self.clock.now + us
+        while self.clock.now < end:
+            self.app.poll()
+            self.clock.advance(step)
+
+    def say(self, text, us=15000):
+        """Host -> jig; returns what the host got back meanwhile."""
+        self.port.host_send(text)
+        self.run(us)
+        return self.port.host_read()
+
+    def counters(self):
+        return dict(zip(diag.CAN_WIRE_NAMES, self.app.can.counter_values([0] * diag.N_CAN_WIRE)))
+
+    def ask(self, ftype, data=b""):
+        """A local request on the PC bus; the reply's data (status first)."""
+        up = self.hal.up
+        up.out_n = 0
+        wire = F.encode(1, ftype, data)
+        up.rx.write(bytearray(wire), len(wire), self.hal.ticks_us())
+        self.run(2000)
+        p = FrameParser(False)
+        p.feed(bytes(up.out[: up.out_n]))
+        assert p.ready, "no reply to 0x%02X" % ftype
+        return bytes(p.body[p.data_start:p.data_end])
+
+
+def lines(text):
+    return text.split(b"\r")
+
+
+# --- the session: open, close, bitrate --------------------------------------------------
+def test_python_cans_opening_sequence_opens_at_the_bitrate_asked():
+    r = Rig()
+    # what python-can's slcan interface sends: C, S5, an empty line (no data bitrate), O
+    got = r.say(b"C\rS5\r\rO\r")
+    assert got == BEL + b"\r\r"  # C while closed is refused; S5 and O are OK; the empty line is ignored
+    assert r.app.can.is_open == 1 and r.hal.can.bitrate == 250000 and r.app.can.bitrate == 250000
+    c = r.counters()
+    assert c["can_open"] == 1 and c["can_bitrate"] == 250000 and c["can_state"] == SimCan.STATE_ACTIVE
+
+
+def test_bitrate_and_open_only_while_closed_close_only_while_open():
+    r = Rig()
+    assert r.say(b"S9\r") == BEL  # python-can's S9 (83.3 k) is not one of S0..S8
+    assert r.say(b"S8\rO\r") == b"\r\r"
+    assert r.hal.can.bitrate == 1000000
+    assert r.say(b"S6\rO\rL\r") == BEL * 3  # open: no bitrate change, no second open
+    assert r.hal.can.bitrate == 1000000
+    assert r.say(b"C\rC\r") == b"\r" + BEL
+    assert r.app.can.is_open == 0 and r.hal.can.bitrate is None  # deinit
+    assert r.say(b"s4E3C\r") == BEL  # BTR registers: not done by this adapter
+
+
+def test_version_serial_status_and_timestamps():
+    r = Rig()
+    assert r.say(b"V\rN\rF\r") == b"V1013\rNMJ01\rF00\r"
+    assert r.say(b"Z1\rZ2\rO\r") == b"\r" + BEL + b"\r"
+    r.peer.transmit(0x123, False, False, b"\x01")
+    got = r.say(b"", 3000)
+    assert len(got) == len(b"t123101SSSS\r") and got.startswith(b"t12310") and got.endswith(b"\r")
+    stamp = int(got[7:11], 16)
+    assert 0 <= stamp < 60000
+
+
+def test_the_serial_number_comes_from_the_boards_unique_id():
+    r = Rig()
+    r.hal.unique_id = lambda: b"\x12\x34\x56\x78\x9a\xbc\xde\xf0\x11\x22\x33\x44"
+    from jig.canport import CanPort
+
+    line = CanPort._serial_line(r.hal)
+    assert len(line) == 6 and line[:1] == b"N" and line[-1:] == b"\r" and line != b"NMJ01\r"
+    int(line[1:5], 16)
+
+
+# --- frames both ways -------------------------------------------------------------------
+def test_frames_from_the_bus_reach_the_host_as_slcan_lines():
+    r = Rig()
+    r.say(b"O\r")
+    r.peer.transmit(0x18FF00AA, True, False, bytes(range(1, 9)))
+    r.clock.advance(1000)
+    r.peer.transmit(0x123, False, True, b"\x00\x00\x00")
+    r.clock.advance(1000)
+    r.peer.transmit(0x7FF, False, False, b"")
+    got = r.say(b"", 5000)
+    assert lines(got) == [b"T18FF00AA80102030405060708", b"r1233", b"t7FF0", b""]
+    c = r.counters()
+    assert c["can_rx_frames"] == 3 and c["can_rx_lost"] == 0 and c["can_tx_frames"] == 0
+
+
+def test_frames_from_the_host_reach_the_bus_with_cr_on_accept():
+    r = Rig()
+    r.say(b"O\r")
+    assert r.say(b"t12340102030A\rT1234567821122\rr7FF3\rR000000010\r") == b"\r" * 4
+    assert [h[1:] for h in r.heard] == [(0x123, False, False, b"\x01\x02\x03\x0A"),
+                                         (0x12345678, True, False, b"\x11\x22"),
+                                         (0x7FF, False, True, b"\x00\x00\x00"),
+                                         (0x1, True, True, b"")]
+    assert r.counters()["can_tx_frames"] == 4
+
+
+def test_the_hosts_order_is_kept_under_load():
+    """machine.CAN's queue sends the lowest id first; one frame in the controller at
+    a time keeps the host's order, falling ids and repeated ones alike."""
+    r = Rig()
+    r.say(b"O\r")
+    ids = [0x700 - 16 * k for k in range(40)] + [0x100] * 5 + [0x080, 0x7F0]
+    text = b"".join(b"t%03X2%02X%02X\r" % (i, k, k) for k, i in enumerate(ids))
+    got = r.say(text, 60000)
+    assert got == b"\r" * len(ids)
+    assert [h[1] for h in r.heard] == ids
+    assert [h[4][0] for h in r.heard] == list(range(len(ids)))
+
+
+def test_a_full_tx_fifo_answers_bel_and_counts_it():
+    r = Rig()
+    r.say(b"O\r")
+    text = b"t12388877665544332211\r" * 150  # 150 8-byte frames at once: the bus takes ~4 a ms
+    got = r.say(text, 100000)
+    ok, refused = got.count(b"\r"), got.count(BEL)
+    assert ok + refused == 150 and refused > 0 and ok >= 63
+    c = r.counters()
+    assert c["can_tx_refused"] == refused and c["can_tx_frames"] == ok == len(r.heard)
+
+
+def test_f_reports_a_full_tx_fifo_once():
+    r = Rig()
+    r.say(b"O\r")
+    got = r.say(b"t12388877665544332211\r" * 150 + b"F\r", 50000)
+    assert BEL in got
+    f = got[-4:]
+    assert f[:1] == b"F" and int(f[1:3], 16) & 0x02  # TX FIFO full (latched until read)
+    r.run(100000)  # the FIFO drains
+    assert r.say(b"F\r") == b"F00\r"
+
+
+def test_bel_for_bad_lines_and_frames_in_the_wrong_state():
+    r = Rig()
+    assert r.say(b"t1230\r") == BEL  # closed
+    assert r.say(b"X\rt12G0\rt1231\rt8000\r") == BEL * 4  # unknown, bad hex, DLC without data, id range
+    r.say(b"L\r")
+    assert r.say(b"t1230\r") == BEL  # listen-only sends nothing
+    assert r.heard == []
+    c = r.counters()
+    assert c["can_listen_only"] == 1 and c["slcan_unknown"] == 1 and c["slcan_id_range"] == 1
+    assert sum(c["slcan_" + n] for n in S.ERR_NAMES) == 4
+
+
+def test_parameter_listen_only_makes_o_open_listen_only():
+    r = Rig(params={P.P_CAN_LISTEN_ONLY: 1, P.P_CAN_BITRATE: 125000})
+    assert r.say(b"O\r") == b"\r"
+    assert r.hal.can.mode == SimCan.MODE_SILENT and r.hal.can.bitrate == 125000
+    assert r.say(b"t1230\r") == BEL
+
+
+def test_ring_overflow_is_counted_and_the_rest_delivered():
+    """The host stops reading: lines wait in the ring, what it cannot hold is lost and counted."""
+    r = Rig(bitrate=1000000)
+    r.say(b"S8\rO\r")
+    r.port.host_close()  # the PC's program stops reading (the SLCAN channel stays open)
+    for k in range(400):
+        r.peer.transmit(0x100 + (k & 0xFF), False, False, b"\x00")
+    r.run(60000)
+    c = r.counters()
+    assert c["can_rx_frames"] == 400 and c["can_rx_lost"] > 0
+    r.port.host_open()
+    got = r.say(b"", 20000)
+    delivered = got.count(b"\r")
+    assert delivered + c["can_rx_lost"] == 400
+    assert r.counters()["can_rx_lost"] == c["can_rx_lost"]
+
+
+# --- bus-off ----------------------------------------------------------------------------
+def test_bus_off_is_restarted_after_the_parameters_time():
+    r = Rig(params={P.P_CAN_BUS_OFF_RESTART_MS: 50})
+    r.say(b"O\r")
+    r.bus.inject_errors(32)  # TEC += 8 per error frame: 256 = bus-off
+    assert r.say(b"t1230\r", 20000) == b"\r"
+    assert r.app.can.state == SimCan.STATE_BUS_OFF
+    assert r.say(b"t1231AA\r", 1000) == BEL  # refused while bus-off
+    r.run(60000)
+    c = r.counters()
+    assert c["can_bus_off_entries"] == 1 and c["can_bus_off_restarts"] == 1 and c["can_tx_failed"] == 1
+    assert r.app.can.state == SimCan.STATE_ACTIVE
+    assert r.say(b"t1232BBCC\r", 5000) == b"\r"
+    assert r.heard[-1][1:] == (0x123, False, False, b"\xBB\xCC")
+
+
+def test_bus_off_stays_until_the_host_closes_and_opens_with_restart_0():
+    r = Rig(params={P.P_CAN_BUS_OFF_RESTART_MS: 0})
+    r.say(b"O\r")
+    r.bus.inject_errors(32)
+    r.say(b"t1230\r", 20000)
+    r.run(500000)
+    assert r.app.can.state == SimCan.STATE_BUS_OFF and r.counters()["can_bus_off_restarts"] == 0
+    f = r.say(b"F\r")
+    assert int(f[1:3], 16) & 0x80
+    assert r.say(b"C\rO\rt1231AA\r", 5000) == b"\r\r\r"
+    assert r.app.can.state == SimCan.STATE_ACTIVE and r.heard[-1][1:] == (0x123, False, False, b"\xAA")
+
+
+# --- the safety stop on CAN silence -------------------------------------------------------
+def test_safety_nmt_stop_all_on_host_silence_once():
+    r = Rig(params={P.P_SAFETY_TIMEOUT_MS: 100, P.P_CAN_SAFETY: 1})
+    r.say(b"O\rt1230\r")
+    n0 = len(r.heard)  # (the lines came at t = 0, now is 15 ms)
+    r.run(80000)
+    assert len(r.heard) == n0  # not yet
+    r.run(30000)
+    assert [h[1:] for h in r.heard[n0:]] == [(0x000, False, False, b"\x02\x00")]
+    r.run(500000)
+    assert len(r.heard) == n0 + 1  # once, until the host speaks again
+    assert r.counters()["can_safety_stops"] == 1
+    assert r.app.counters.v[K.C_SAFETY_STOPS] == 1
+    r.say(b"F\r")
+    r.run(150000)
+    assert len(r.heard) == n0 + 2  # re-armed by the host's line
+
+
+def test_safety_quick_stop_to_every_node_seen():
+    r = Rig(params={P.P_SAFETY_TIMEOUT_MS: 100, P.P_CAN_SAFETY: 2})
+    r.say(b"O\r")
+    r.peer.transmit(0x705, False, False, b"\x05")  # heartbeat of node 5
+    r.peer.transmit(0x77F, False, False, b"\x00")  # boot-up of node 127
+    r.peer.transmit(0x587, False, False, b"\x60\x40\x60\x00\x00\x00\x00\x00")  # SDO reply of node 7
+    r.peer.transmit(0x185, False, False, b"\x01")  # a PDO: says nothing about node ids
+    r.run(150000)
+    got = [h[1:] for h in r.heard]
+    sdo = b"\x2B\x40\x60\x00\x02\x00\x00\x00"
+    assert got == [(0x605, False, False, sdo), (0x607, False, False, sdo), (0x67F, False, False, sdo)]
+    assert r.counters()["can_safety_stops"] == 1
+
+
+def test_no_safety_stop_when_off_or_listen_only():
+    r = Rig(params={P.P_SAFETY_TIMEOUT_MS: 100, P.P_CAN_SAFETY: 0})
+    r.say(b"O\r")
+    r.run(300000)
+    assert r.heard == []
+    r = Rig(params={P.P_SAFETY_TIMEOUT_MS: 100, P.P_CAN_SAFETY: 1})
+    r.say(b"L\r")
+    r.run(300000)
+    assert r.heard == [] and r.counters()["can_safety_stops"] == 0
+
+
+# --- diagnostics, parameters, old HALs ------------------------------------------------------
+def test_read_can_counters_decoded_and_reset_by_reset_counters():
+    r = Rig()
+    r.say(b"O\rt1230\rX\r")
+    r.peer.transmit(0x181, False, False, b"\x01")
+    r.run(5000)
+    c = diag.decode_can_counters(r.ask(diag.READ_CAN_COUNTERS))
+    assert list(c) == list(diag.CAN_WIRE_NAMES)
+    assert c["can_rx_frames"] == 1 and c["can_tx_frames"] == 1 and c["slcan_unknown"] == 1
+    assert c["slcan_lines"] == 2 and c["can_open"] == 1 and c["can_bitrate"] == 500000
+    assert r.ask(diag.RESET_COUNTERS) == b"\x00"
+    c = diag.decode_can_counters(r.ask(diag.READ_CAN_COUNTERS))
+    assert c["can_rx_frames"] == 0 and c["slcan_unknown"] == 0 and c["can_open"] == 1  # states stay
+    # ReadCounters is unchanged: its reply stays under the data limit
+    counters = diag.decode_counters(r.ask(diag.READ_COUNTERS))
+    assert list(counters) == list(diag.WIRE_NAMES)
+    assert 2 + 4 * (diag.N_WIRE) <= F.MAX_DATA and 2 + 4 * diag.N_CAN_WIRE <= F.MAX_DATA
+
+
+def test_can_counter_names_cover_the_slcan_error_kinds_and_are_documented():
+    assert diag.CAN_WIRE_NAMES[-len(S.ERR_NAMES):] == tuple("slcan_" + n for n in S.ERR_NAMES)
+    assert len(set(diag.CAN_WIRE_NAMES)) == diag.N_CAN_WIRE
+    assert not set(diag.CAN_WIRE_NAMES) & set(diag.WIRE_NAMES)
+    import os
+
+    doc = open(os.path.join(os.path.dirname(__file__), "..", "docs", "diagnostics.md")).read()
+    for name in diag.CAN_WIRE_NAMES:
+        assert "`%s`" % name in doc, name
+
+
+def test_a_parameter_file_from_before_the_can_parameters_loads():
+    fs = bridge_probe.MemFS()
+    old = b"MJP1" + bytes([14]) + struct.pack("<14i", 1, 115200, 921600, 50, 5000, 0, 10, 0, 0, 250, 1, 20, 1, 0)
+    from jig.crc import crc16
+
+    old += struct.pack("<H", crc16(old, 0, len(old)))
+    fs.files["/p"] = old
+    pr = P.Params(fs, "/p")
+    assert pr.load()
+    assert pr.ram[P.P_DOWN_BAUD] == 921600 and pr.ram[P.P_SAFETY_TIMEOUT_MS] == 250
+    assert pr.ram[P.P_CAN_BITRATE:] == [500000, 0, 1, 100, 0]  # the new ones at their defaults
+    assert pr.save()  # and saved again with all of them
+    assert len(fs.files["/p"]) == P.FILE_SIZE and fs.files["/p"][4] == P.COUNT
+
+
+def test_can_bitrate_parameter_takes_slcan_rates_only():
+    pr = P.Params()
+    assert pr.set(P.P_CAN_BITRATE, 125000) and pr.set(P.P_CAN_BITRATE, 750000)
+    assert not pr.set(P.P_CAN_BITRATE, 83333) and not pr.set(P.P_CAN_BITRATE, 2000000)
+    assert P.CAN_BITRATES == S.SLCAN_BITRATES
+
+
+def test_the_app_runs_unchanged_on_a_hal_without_can():
+    rig = bridge_probe.Rig()
+    assert rig.app.can is None
+    for _ in range(5):
+        rig.forward_once()
+    assert rig.hal.up.writes == 5
+    rig.hal.up.out_n = 0
+    rig.local_once(bytearray(F.encode(1, diag.READ_CAN_COUNTERS)))
+    p = FrameParser(False)
+    p.feed(bytes(rig.hal.up.out[: rig.hal.up.out_n]))
+    assert p.ready and diag.decode_can_counters(bytes(p.body[p.data_start:p.data_end])) == {}
+
+
+def test_closed_and_idle_the_port_costs_the_slow_pass_one_any():
+    r = Rig()
+    calls = []
+    real_any = r.port.any
+    r.port.any = lambda: calls.append(1) or real_any()
+    r.run(100000)
+    passes = len(calls)
+    assert 0 < passes <= 100000 // 10000 + 2  # one a slow pass, and the slow pass no more often
+
+
+def test_the_recorder_gets_can_frames_both_ways():
+    r = Rig()
+    if not hasattr(r.app.capture, "can_frame"):
+        pytest.skip("jig.capture has no CAN records yet")
+    r.app.set_capture(1, r.hal.ticks_us())
+    total0 = r.app.capture.cs[12]  # CS_TOTAL
+    r.say(b"O\rt1230\r")
+    r.peer.transmit(0x181, False, False, b"\x01")
+    r.run(5000)
+    assert r.app.capture.cs[12] - total0 == 2
