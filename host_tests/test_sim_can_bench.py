@@ -186,6 +186,8 @@ def test_cli_refuses_bad_can_options_in_one_sentence(argv, msg, capsys):
     (["--can-nodes", "5", "--fault", "can:6:silent"], "no CAN node 6 (--can-nodes 5)"),
     (["--can-nodes", "5", "--fault", "can:x:silent"], "'x' is not a CAN node id"),
     (["--can-nodes", "5", "--slcan-port", "7000", "--tcp-port", "7000"], "--tcp-port and --slcan-port must differ"),
+    (["--can-nodes", "5", "--fault", "can:5:no-such-fault"], "unknown fault 'no-such-fault'"),
+    (["--can-nodes", "5", "--fault", "can:5:dead-input=40"], "dead-input"),
 ])
 def test_cli_refuses_bad_can_faults(argv, msg, capsys):
     from motorjig.sim.__main__ import main
@@ -202,16 +204,17 @@ def test_cli_help_tells_the_can_options(capsys):
         main(["--help"])
     out = capsys.readouterr().out
     assert "--can-nodes" in out and "--can-bitrate" in out and "--slcan-port" in out and "can:[ID:]NAME" in out
+    assert "can:following-error=PPS" in out and "can:missed-heartbeat" in out
 
 
 def test_cli_prints_the_slcan_port(capsys):
-    pytest.importorskip("motorjig.sim.cia402")
     from motorjig.sim.__main__ import main
 
-    assert main(["--can-nodes", "5,6", "--no-demo", "--duration", "0.3"]) == 0
+    assert main(["--can-nodes", "5,6", "--no-demo", "--duration", "0.3", "--fault", "can:6:missed-heartbeat"]) == 0
     out = capsys.readouterr().out
     assert "CAN bus: 500000 bit/s, CiA 402 nodes 5, 6" in out
     assert "slcan: socket://127.0.0.1:" in out and "slcan pty: /dev/" in out
+    assert "CAN node 6: missed-heartbeat" in out
 
 
 # --- end to end through the jig's firmware (jig.canport) -------------------------------------
@@ -246,3 +249,13 @@ def test_python_can_through_the_jig_on_the_realtime_bench():
             assert (0x585, b"\x43\x00\x10\x00\x92\x01\x02\x00") in got
         finally:
             bus.shutdown()
+
+
+def test_cia402_nodes_answer_through_the_jig():
+    b = SimBench(driver_ids=(2,), can_nodes=(5, 6))  # the default node: cia402.Cia402Node
+    b.slcan_send(b"S6\rO\r")
+    assert sorted(b.slcan_read(4).split(b"\r")) == [b"", b"", b"", b"t705100", b"t706100"]
+    b.slcan_send(b"t60684000100000000000\r")
+    out = b.slcan_read(2)
+    assert out.startswith(b"\rt5868430010") and out.endswith(b"\r")  # 0x1000 device type, 4 bytes
+    assert out[len(b"\rt5868430010") + 2:][:4] == b"9201"  # low 16 bits: profile 402

@@ -118,14 +118,16 @@ def _fault_help():
         text = what + (" (default %s)" % default if default is not None else "")
         lines.append(textwrap.fill(text, 96, initial_indent="  %-18s " % spec, subsequent_indent=" " * 21))
     lines.append("e.g. --fault step-out=20000 --fault 3:alarm=4@50 --fault param=3:250 --fault no-origin")
-    lines.append("CAN nodes (--can-nodes): --fault can:[ID:]NAME[=VALUE], the CiA 402 node's faults"
-                 " (without ID: every CAN node), see docs/sim.md")
     try:
         from .cia402 import FAULTS as CAN_FAULTS
     except ImportError:
-        CAN_FAULTS = ()
-    if CAN_FAULTS:
-        lines.append(textwrap.fill(", ".join(CAN_FAULTS), 96, initial_indent="  can: ", subsequent_indent=" " * 7))
+        CAN_FAULTS = {}
+    lines.append("CAN node faults (--can-nodes; --fault can:[ID:]NAME[=VALUE]; without ID: every CAN node):")
+    for name, (value, default, what) in CAN_FAULTS.items():
+        spec = "can:" + name + ("=" + value if value else "")
+        text = what + (" (default %s)" % default if default is not None and "default" not in what else "")
+        lines.append(textwrap.fill(text, 96, initial_indent="  %-22s " % spec, subsequent_indent=" " * 25))
+    lines.append("e.g. --can-nodes 5,6 --fault can:5:following-error=20000 --fault can:missed-heartbeat")
     lines.append("wiring file: a [wiring] table (a test plan or a wiring-only file), see docs/sim.md")
     return "\n".join(lines)
 
@@ -183,6 +185,15 @@ def check_setup(args):
             if node is not None and node not in args.can_nodes:
                 raise ValueError("--fault %s: no CAN node %d (--can-nodes %s)"
                                  % (spec, node, ",".join(str(i) for i in args.can_nodes)))
+            try:
+                from .cia402 import parse_fault as parse_can_node_fault
+            except ImportError:  # (no CiA 402 node model: the node's set_fault judges)
+                parse_can_node_fault = None
+            if parse_can_node_fault is not None:
+                try:
+                    parse_can_node_fault(name[len(CAN_FAULT_PREFIX):], value)
+                except ValueError as exc:
+                    raise ValueError("--fault %s: %s" % (spec, exc)) from None
             faults.append((node, name, value))
             continue
         try:
