@@ -21,7 +21,7 @@ it only uses what both have (no f-strings, no bytes.hex, no dataclasses).
 """
 
 from jig.compat import TICKS_PERIOD, ticks_add
-from jig.slcan import EV_BAD, EV_CMD, ERR_NAMES, SlcanReader
+from jig.slcan import EV_BAD, EV_CMD, ERR_NAMES, SlcanReader, encode_frame
 
 # The replay clock starts just before the tick counter wraps, so every gap also
 # exercises the wrap-around of the tick arithmetic.
@@ -233,3 +233,71 @@ def report(cap, every_split=False):
     problems = check(cap, events, counts)
     out.append("  check " + ("ok" if not problems else "; ".join(problems)))
     return out
+
+
+# --- allocation probe (MicroPython: gc.mem_alloc) -----------------------------------
+
+def timeline(caps):
+    """All captures as one list of [time, bytes] bursts, each capture after the previous
+    one plus a silence longer than the line timeout; returns (bursts, span)."""
+    bursts = []
+    clock = 0
+    for cap in caps:
+        last = 0
+        for t, data in cap.bursts:
+            bursts.append([clock + t, data])
+            last = t
+        if cap.end > last:
+            last = cap.end
+        clock += last + 2000000
+    return bursts, clock
+
+
+def _run(r, bursts, span, rounds, chunk, out):
+    """Feed the bursts ``rounds`` times in pieces of ``chunk`` bytes (0: whole bursts),
+    write every frame read back as a line with encode_frame; returns the lines read."""
+    base = T0
+    count = 0
+    for _ in range(rounds):
+        for burst in bursts:
+            now = ticks_add(base, burst[0])  # C arithmetic: no big ints near the wrap
+            if r.gap(now):
+                count += 1
+            data = burst[1]
+            n = len(data)
+            step = chunk if chunk else n
+            i = 0
+            while i < n:
+                e = i + step
+                if e > n:
+                    e = n
+                while i < e:
+                    i = r.feed(data, i, e, now)
+                    if r.ev == EV_CMD:
+                        count += 1
+                        if r.cmd == 0x74 or r.cmd == 0x54 or r.cmd == 0x72 or r.cmd == 0x52:
+                            encode_frame(out, 0, r.can_id, r.ext, r.rtr, r.data, r.dlc, now >> 10)
+                    elif r.ev == EV_BAD:
+                        count += 1
+        base = ticks_add(base, span)
+    return count
+
+
+def alloc_per_line(caps, chunk=0, rounds=5, reader_class=SlcanReader):
+    """(bytes allocated, lines read) over ``rounds`` replays after a warm-up, with the
+    collector off: everything the loop touches exists before the first reading."""
+    import gc
+
+    bursts, span = timeline(caps)
+    r = reader_class()
+    out = bytearray(32)
+    _run(r, bursts, span, 2, chunk, out)
+    gc.collect()
+    gc.disable()
+    try:
+        a0 = gc.mem_alloc()
+        count = _run(r, bursts, span, rounds, chunk, out)
+        a1 = gc.mem_alloc()
+    finally:
+        gc.enable()
+    return a1 - a0, count

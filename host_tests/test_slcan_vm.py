@@ -1,0 +1,119 @@
+"""The SLCAN reader on a real MicroPython VM (the WebAssembly build, run by Node).
+
+* every captured SLCAN stream (host_tests/captures/slcan) replays on MicroPython
+  exactly as on CPython, event by event, fed whole and byte by byte, and meets its
+  sidecar;
+* reading the streams and writing each frame back with encode_frame allocates
+  nothing in the steady state (gc.mem_alloc with the collector off), for any chunk
+  size, timeouts (gap) included; and the probe does see an allocation when there is one.
+
+Skipped, with the reason printed, when node or host_tests/wasm/node_modules is
+missing -- except when CI=true, where that is a failure.
+"""
+
+import glob
+import os
+import shutil
+import subprocess
+import warnings
+
+import pytest
+
+import slcan_replay as sr
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RUNNER = os.path.join(HERE, "wasm", "run_vm.mjs")
+PACKAGE = os.path.join(HERE, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
+CAPTURES = sorted(glob.glob(os.path.join(HERE, "captures", "slcan", "*.slcan")))
+NAMES = [os.path.basename(p) for p in CAPTURES]
+CHUNKS = (0, 1, 7, 64)
+
+VM_CODE = """
+import sys
+sys.path.insert(0, '/data')
+import slcan_replay as sr
+from jig import compat
+print("@@env", sys.implementation.name, compat.IS_MICROPYTHON)
+caps = [sr.load('/data/' + n) for n in %r]
+print("@@report")
+for cap in caps:
+    for line in sr.report(cap):
+        print(line)
+print("@@alloc")
+for chunk in %r:
+    grew, count = sr.alloc_per_line(caps, chunk)
+    print("alloc", chunk, grew, count)
+print("@@leak")
+class Leaky(sr.SlcanReader):
+    def feed(self, buf, i, n, now):
+        self.keep = bytearray(8)
+        return sr.SlcanReader.feed(self, buf, i, n, now)
+print(*sr.alloc_per_line(caps[:1], 0, 3, Leaky))
+"""
+
+
+def _missing():
+    if shutil.which("node") is None:
+        return "node is not installed (Debian: apt-get install nodejs npm)"
+    if not os.path.isdir(PACKAGE):
+        return "host_tests/wasm/node_modules is missing (run tools/setup.sh, which needs npm)"
+    return None
+
+
+@pytest.fixture(scope="module")
+def vm_output():
+    why = _missing()
+    if why:
+        if os.environ.get("CI") == "true":
+            pytest.fail("MicroPython VM replay is required in CI: " + why)
+        warnings.warn("MicroPython VM replay of the SLCAN captures skipped: " + why)
+        pytest.skip(why)
+    files = ["--file", "slcan_replay.py=" + os.path.join(HERE, "slcan_replay.py")]
+    for path in CAPTURES:
+        base = path[: -len(".slcan")]
+        for p in (path, base + ".expect"):
+            files += ["--file", "%s=%s" % (os.path.basename(p), p)]
+    result = subprocess.run(["node", RUNNER] + files + [VM_CODE % (NAMES, CHUNKS)], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, "the VM run failed:\n" + result.stderr[-3000:]
+    sections = {}
+    current = None
+    for line in result.stdout.splitlines():
+        if line.startswith("@@"):
+            head = line.split()
+            current = head[0][2:]
+            sections[current] = head[1:]
+            sections[current + "_lines"] = []
+        elif current:
+            sections[current + "_lines"].append(line)
+    return sections
+
+
+def test_vm_is_micropython(vm_output):
+    assert vm_output["env"] == ["micropython", "True"]
+
+
+def test_captures_replay_identically_on_micropython(vm_output):
+    expected = []
+    for path in CAPTURES:
+        expected.extend(sr.report(sr.load(path)))
+    got = vm_output["report_lines"]
+    assert len(got) == len(expected)
+    for want_line, got_line in zip(expected, got):
+        assert got_line == want_line
+    assert got.count("  check ok") == len(CAPTURES)
+    assert got.count("  strategies all same") == len(CAPTURES)
+
+
+def test_no_allocation_per_line_on_micropython(vm_output):
+    lines = vm_output["alloc_lines"]
+    assert len(lines) == len(CHUNKS)
+    for line in lines:
+        _, chunk, grew, count = line.split()
+        assert int(count) > 0, chunk
+        assert int(grew) == 0, "chunk %s: %s bytes allocated over %s lines" % (chunk, grew, count)
+
+
+def test_the_allocation_probe_sees_an_allocation(vm_output):
+    grew, count = map(int, vm_output["leak_lines"][0].split())
+    assert count > 0 and grew >= count * 8
