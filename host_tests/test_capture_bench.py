@@ -127,7 +127,7 @@ def test_a_transaction_is_four_records_stamped_with_the_bench_clock():
     b.run_for(5000.0)
     reply = b.pc.frames[-1][1]
     recs = records(b.capture_read())
-    assert recs[0].type == HELLO and recs[0].data[0] == 1  # format version 1 first
+    assert recs[0].type == HELLO and recs[0].data[0] == 2  # format version 2 first
     assert b"MotorJig bridge" in recs[0].data
     got = frames(recs)
     assert [r.type for r in got] == [PC_IN, DRV_OUT, DRV_IN, PC_OUT]
@@ -331,7 +331,7 @@ def test_capture_port_options_and_errors(capsys):
     assert sim_main.main(["--capture-port", "70000"]) == 2
     assert capsys.readouterr().err == "error: --capture-port must be 0..65535\n"
     assert sim_main.main(["--capture-port", "5123", "--tcp-port", "5123"]) == 2
-    assert capsys.readouterr().err == "error: --capture-port and --tcp-port must differ\n"
+    assert capsys.readouterr().err == "error: --tcp-port and --capture-port must differ\n"
     busy = socket.socket()
     busy.bind(("127.0.0.1", 0))
     busy.listen(1)

@@ -148,7 +148,7 @@ def test_pcapng_of_the_jig_records(tmp_path):
     assert [i["linktype"] for i in f["interfaces"]] == [147, 148]
     assert [i["options"][3].decode() for i in f["interfaces"]] == [
         "PC bus, 115200 baud, jig bench", "driver bus, 115200 baud, jig bench"]
-    assert f["shb"][2].decode().startswith("MotorJig bridge 0.1 (record format 1")
+    assert f["shb"][2].decode().startswith("MotorJig bridge 0.1 (record format 2")
     for rec, p in zip(recs, f["packets"]):
         assert (p["interface"], p["t_us"], p["data"]) == (rec.bus, rec.t_us, rec.data)
         assert p["comments"][0] == R.comment(rec.verdict)
