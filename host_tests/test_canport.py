@@ -403,3 +403,18 @@ def test_the_recorder_gets_can_frames_both_ways():
     r.peer.transmit(0x181, False, False, b"\x01")
     r.run(5000)
     assert r.app.capture.cs[12] - total0 == 2
+
+
+def test_jigctl_stats_prints_a_can_port_block():
+    from motorjig.commands import can_block
+
+    r = Rig(params={P.P_CAN_TERMINATION: 0})
+    r.say(b"S4\rL\r")
+    can = diag.decode_can_counters(r.ask(diag.READ_CAN_COUNTERS))
+    text = "\n".join(can_block(can, r.app.params.ram[P.P_CAN_TERMINATION]))
+    assert text.startswith("CAN port: open, listen-only, error active, 125000 bit/s, TEC 0, REC 0")
+    assert "leave J4-TERM open" in text and "can_rx_frames" in text and "slcan_lines" in text
+    r.say(b"C\r")
+    can = diag.decode_can_counters(r.ask(diag.READ_CAN_COUNTERS))
+    assert can_block(can, 1)[0] == "CAN port: closed, 125000 bit/s"
+    assert "fit J4-TERM" in can_block(can, 1)[1]

@@ -703,15 +703,58 @@ def _motion_cycles(args, m, s, moves):
             break
 
 
+CAN_STATE_NAMES = ("closed", "error active", "error warning", "error passive", "bus-off")
+
+
+def _can_figures(m, jig):
+    """(CAN counters, termination advice 0/1) of the jig's CAN port; ({}, None) from a jig
+    without one (a HAL without CAN, or firmware from before it: frame type refused)."""
+    try:
+        can = m.can_counters(jig)
+    except StatusError:
+        return {}, None
+    if not can:
+        return {}, None
+    try:
+        term = m.get_parameter(jig, 16)  # can_termination
+    except StatusError:
+        term = None
+    return can, term
+
+
+def can_block(can, term):
+    """The "CAN port" block of `jigctl stats` (lines)."""
+    state = can.get("can_state", 0)
+    name = CAN_STATE_NAMES[state] if 0 <= state < len(CAN_STATE_NAMES) else "state %d" % state
+    if can.get("can_open"):
+        lines = ["CAN port: %s, %s, %d bit/s, TEC %d, REC %d" % (
+            "open, listen-only" if can.get("can_listen_only") else "open", name, can.get("can_bitrate", 0),
+            can.get("can_tec", 0), can.get("can_rec", 0))]
+    else:
+        lines = ["CAN port: closed, %d bit/s" % can.get("can_bitrate", 0)]
+    if term is not None:
+        lines.append("  termination: %s" % ("fit J4-TERM (120 ohm): the jig is an end of the CAN bus" if term
+                                            else "leave J4-TERM open: the jig is not an end of the CAN bus"))
+    shown = ("can_state", "can_open", "can_listen_only", "can_bitrate", "can_tec", "can_rec")
+    rest = [(k, v) for k, v in can.items() if k not in shown]
+    width = max(len(k) for k, _ in rest) if rest else 0
+    lines += ["  %-*s %d" % (width, k, v) for k, v in rest]
+    return lines
+
+
 def cmd_stats(args):
     with open_master(args) as m:
         counters = m.read_counters(args.jig_id)
+        can, term = _can_figures(m, args.jig_id)
         if args.reset:
             m.reset_counters(args.jig_id)
     width = max(len(k) for k in counters) if counters else 0
     lines = ["jig (slave %d) counters%s" % (args.jig_id, ", now reset" if args.reset else "")]
     lines += ["  %-*s %d" % (width, k, v) for k, v in counters.items()]
-    emit(args, {"jig": args.jig_id, "counters": counters, "reset": args.reset}, "\n".join(lines))
+    if can:
+        lines += can_block(can, term)
+    emit(args, {"jig": args.jig_id, "counters": counters, "can": can, "can_termination": term,
+                "reset": args.reset}, "\n".join(lines))
     return EXIT_OK
 
 

@@ -79,6 +79,7 @@ IDEMPOTENT = frozenset((
     # the jig's sampler: a repeated StartTrace restarts it, a repeated ReadTrace (same
     # from-index) returns the same samples
     D.START_TRACE, D.STOP_TRACE, D.READ_TRACE, D.GET_TRACE_STATUS, D.READ_TRANSACTION_TIMES,
+    D.READ_CAN_COUNTERS,
 ))
 
 VAR = -1  # variable-length reply (info strings)
@@ -103,6 +104,7 @@ REPLY_LEN = {
     D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1, D.READ_CRASH_LOG: VAR,
     D.START_TRACE: 6, D.STOP_TRACE: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRACE: VAR,
     D.GET_TRACE_STATUS: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRANSACTION_TIMES: VAR,
+    D.READ_CAN_COUNTERS: VAR,
 }
 #: data bytes of a request (Ver6); the monitor tells requests from replies with it
 REQUEST_LEN = {
@@ -124,7 +126,7 @@ REQUEST_LEN = {
     F.MOVE_VELOCITY_EX: 37,
     D.READ_COUNTERS: 0, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0, D.GET_BUS_SCAN_RESULT: 0,
     D.READ_CRASH_LOG: 0, D.START_TRACE: 6, D.STOP_TRACE: 0, D.READ_TRACE: 3, D.GET_TRACE_STATUS: 0,
-    D.READ_TRANSACTION_TIMES: 0,
+    D.READ_TRANSACTION_TIMES: 0, D.READ_CAN_COUNTERS: 0,
 }
 
 #: Ver8 libraries widen the inputs to 64 bits; drives that keep 32 are accepted too
@@ -880,6 +882,12 @@ class Master:
     def read_counters(self, jig=1):
         """The jig's counters as {name: value} (0xF0), decoded by jig.diag.decode_counters."""
         return self._jig_reply(jig, D.READ_COUNTERS, D.decode_counters, "ReadCounters")
+
+    def can_counters(self, jig=1):
+        """The jig's CAN port figures as {name: value} (0xFA ReadCanCounters), decoded by
+        jig.diag.decode_can_counters; {} from a jig without a CAN port. ResetCounters
+        resets them too."""
+        return self._jig_reply(jig, D.READ_CAN_COUNTERS, D.decode_can_counters, "ReadCanCounters")
 
     def reset_counters(self, jig=1):
         self.call(jig, D.RESET_COUNTERS)
