@@ -339,6 +339,11 @@ G.JIG_PARAMS = {
   [11] = {"scan_timeout_ms", "ms"},
   [12] = {"forward_mode", "0=cut-through 1=store-and-forward"},
   [13] = {"capture", "0=off 1=record both buses"},
+  [14] = {"can_bitrate", "bps"},
+  [15] = {"can_listen_only", "0=normal 1=listen only"},
+  [16] = {"can_termination", "0=no 1=fit the J4 120 ohm jumper"},
+  [17] = {"can_bus_off_restart_ms", "ms, 0=stay off until closed"},
+  [18] = {"can_safety", "0=off 1=NMT stop all 2=CiA 402 quick stop to nodes seen"},
 }
 G.REQUEST_LEN = {
   [0x01] = {0},
