@@ -253,3 +253,174 @@ def test_missing_ports_are_refused(capsys):
     run = Run(capsys, "socket://127.0.0.1:1")
     run("can", "dump", "--count", 1, code=3)
     assert "connection refused" in run.err
+
+
+# --- against the bench ------------------------------------------------------------------
+VENDOR = 0x4D4A4947  # the EDS's 0x1018:1
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ENV = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.join(ROOT, "firmware"), os.path.join(ROOT, "tools")]))
+
+
+@pytest.fixture(scope="module")
+def bench():
+    from motorjig.sim import Bench
+
+    with Bench(driver_ids=(2,), can_nodes=NODES, can_bitrate=500000) as b:
+        yield b
+
+
+@pytest.fixture
+def run(capsys, bench):
+    return Run(capsys, bench.slcan_url)
+
+
+def test_scan(run, bench):
+    rows = run.json("can", "scan")
+    assert [r["node"] for r in rows] == list(NODES)
+    r = rows[0]
+    assert r["profile"] == "CiA 402 drives and motion control" and r["device_type"] & 0xFFFF == 402
+    assert r["name"] == "MotorJig CiA 402 drive (sim)"
+    assert (r["vendor"], r["product"], r["revision"]) == (VENDOR, 0x402, 0x00010000)
+    assert rows[0]["serial"] != rows[1]["serial"]
+    text = Run(run.capsys, bench.slcan_pty_path)("can", "scan", "--wait", "0.3")  # the pty too
+    assert "node   5  CiA 402 drives and motion control (0x1000 = 0x%08X)" % r["device_type"] in text
+    assert "name 'MotorJig CiA 402 drive (sim)'" in text and "vendor 0x4D4A4947" in text
+
+
+def test_scan_at_the_wrong_bitrate_finds_nothing(run):
+    run("can", "--bitrate", "250000", "scan", "--wait", "0.3", code=4)
+    assert "no node answered on socket://" in run.err and "at 250000 bit/s" in run.err
+
+
+def test_sdo_read_and_write(run):
+    d = run.json("can", "sdo", "read", 5, "0x1018:1")
+    assert (d["index"], d["subindex"], d["name"], d["type"], d["value"]) == (0x1018, 1, "Identity object.Vendor-ID",
+                                                                            "UNSIGNED32", VENDOR)
+    text = run("can", "sdo", "read", 5, "Identity object")  # a record: every sub-index
+    assert "node 5 0x1018:00 Identity object.Highest sub-index supported = 4 (0x04)" in text
+    assert "node 5 0x1018:01 Identity object.Vendor-ID = %d (0x%08X)" % (VENDOR, VENDOR) in text
+    assert len(text.splitlines()) == 5
+    assert "= 'MotorJig CiA 402 drive (sim)'" in run("can", "sdo", "read", 5, "Manufacturer device name")  # segmented
+    assert run("can", "sdo", "write", 6, "Profile velocity", "0x5BA0").strip() == \
+        "node 6 0x6081:00 Profile velocity := 23456 (0x00005BA0)"
+    assert run.json("can", "sdo", "read", 6, "0x6081")["value"] == 23456
+    run("can", "sdo", "write", 6, "0x607A", "-1000")
+    assert run.json("can", "sdo", "read", 6, "Target position")["value"] == -1000
+    run("can", "sdo", "write", 6, "0x607A", "0")
+    # --force: objects the EDS lacks go untyped, as hex bytes (the node decides); the others stay typed
+    assert run.json("can", "sdo", "read", 6, "0x6081", "--force")["value"] == 23456
+    run("can", "sdo", "write", 6, "0x6081", "10000", "--force")
+    assert run.json("can", "sdo", "read", 6, "0x6081")["value"] == 10000
+    run("can", "sdo", "write", 6, "0x2FFF:1", "10 27 00 00", "--force", code=5)
+    assert "node 6 aborted the write of 0x2FFF:01: 0x06020000 object does not exist" in run.err
+
+
+def test_sdo_refusals_from_the_node_and_silence(run):
+    run("can", "sdo", "read", 5, "0x2FFF", "--force", code=5)
+    assert run.err == ("jigctl: node 5 aborted the read of 0x2FFF:00: 0x06020000 object does not exist in the "
+                       "object dictionary.\n")
+    run("can", "sdo", "write", 5, "0x6041", 1, "--force", code=5)
+    assert "0x06010002 attempt to write a read only object" in run.err
+    run("can", "sdo", "read", 5, "0x1018:9", "--force", code=5)
+    assert "0x06090011 sub-index does not exist" in run.err
+    run("can", "sdo", "read", 7, "0x6041", code=4)  # no node 7
+    assert run.err.startswith("jigctl: node 7 did not answer the read of 0x6041:00 Statusword")
+
+
+def _heartbeats(run, ms):
+    for n in NODES:
+        run("can", "sdo", "write", n, "0x1017", ms)
+
+
+def test_nmt(run):
+    _heartbeats(run, 50)
+    try:
+        text = run("can", "nmt", 5, "stop")
+        assert text.splitlines()[0] == "NMT stop sent to node 5" and "node 5: " in text and text.rstrip().endswith("stopped (heartbeat)")
+        run("can", "sdo", "read", 5, "0x6041", code=4)  # a stopped node does no SDO
+        d = run.json("can", "nmt", "all", "start")
+        assert d == {"command": "start", "node": "all", "heard": {"5": "operational", "6": "operational"}}
+        d = run.json("can", "nmt", 6, "preop")
+        assert d["heard"] == {"6": "pre-operational"}
+        text = run("can", "nmt", 6, "reset")  # boots, and comes back with the heartbeat off (0x1017's default)
+        assert "node 6: boot-up" in text
+        assert run.json("can", "sdo", "read", 6, "0x1017")["value"] == 0
+        text = run("can", "nmt", 6, "start", "--wait", "0.3")
+        assert "nothing heard from node 6 within 0.3 s to confirm it" in text
+    finally:
+        _heartbeats(run, 0)
+        run("can", "nmt", "all", "preop", "--wait", "0")
+
+
+def test_dump_lines_json_and_log(run, tmp_path):
+    _heartbeats(run, 20)
+    try:
+        text = run("can", "--eds", EDS_PATH, "dump", "--count", 4)
+        lines = text.splitlines()
+        assert len(lines) == 4 and all("slcan" in ln and "heartbeat node " in ln for ln in lines), text
+        assert "[1]  7F" in lines[0] and lines[0].endswith("pre-operational")
+        assert run.err == "4 frames\n"
+        rows = [json.loads(ln) for ln in run("can", "dump", "--count", 2, "--json").splitlines()]
+        assert len(rows) == 2 and rows[0]["id"] in (0x705, 0x706) and rows[0]["data"] == "7f"
+        log = str(tmp_path / "bus.asc")
+        run("can", "dump", "--duration", 0.5, "--log", log)
+        assert run.err.endswith("logged to %s\n" % log)
+        frames = list(can.LogReader(log))
+        assert len(frames) >= 5 and {m.arbitration_id for m in frames} == {0x705, 0x706}
+    finally:
+        _heartbeats(run, 0)
+    run("can", "dump", "--duration", 0.3)  # a quiet bus: no frame, no error
+    assert run.out == "" and run.err == "0 frames\n"
+
+
+def test_dump_ends_cleanly_on_ctrl_c(bench, tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    log = str(tmp_path / "bus.csv")
+    p = subprocess.Popen([sys.executable, "-m", "motorjig.cli", "--port", bench.slcan_url, "can", "dump", "--log", log],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        import time
+
+        end = time.monotonic() + 20
+        while not os.path.exists(log) and time.monotonic() < end:
+            time.sleep(0.02)
+        time.sleep(0.3)
+    finally:
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=20)
+    assert p.returncode == 0, err
+    assert err.endswith("frames logged to %s\n" % log) and "Traceback" not in err
+    assert open(log).readline().startswith("timestamp,arbitration_id")
+
+
+def test_lss_moves_a_node_through_unconfigured_and_back(run):
+    ident = run.json("can", "scan")[1]  # node 6
+    address = "%d,%d,%d,%d" % (ident["vendor"], ident["product"], ident["revision"], ident["serial"])
+    run("can", "lss", "fast-scan", code=4)  # every node has an id
+    assert "no unconfigured node answered the LSS fast scan" in run.err
+    # node 6 -> unconfigured (255), stored, then a reset makes it so
+    text = run("can", "lss", "set-id", 255, "--identity", address, "--store")
+    assert "node id 255 configured" in text and "configuration stored" in text
+    run("can", "nmt", 6, "reset", "--wait", 0.5)
+    assert [r["node"] for r in run.json("can", "scan")] == [5]
+    d = run.json("can", "lss", "fast-scan")
+    assert d["identity"] == {"vendor": ident["vendor"], "product": ident["product"], "revision": ident["revision"],
+                             "serial": ident["serial"]}
+    d = run.json("can", "lss", "inquire")
+    assert d["node_id"] == 255 and d["identity"]["serial"] == ident["serial"]
+    text = run("can", "lss", "set-id", 6, "--store")  # then back to waiting: it boots as node 6
+    assert "every node switched back to LSS waiting state" in text
+    rows = run.json("can", "scan")
+    assert [r["node"] for r in rows] == list(NODES)
+    # refusals: no node in configuration state; an identity no node has; a bit timing the node does not do
+    run("can", "lss", "set-id", 9, code=4)
+    assert "no node answered the LSS configure node id" in run.err
+    run("can", "lss", "store", "--identity", "1,2,3,4", code=4)
+    assert "no node has the LSS address 1,2,3,4" in run.err
+    run("can", "lss", "set-bitrate", 100000, "--identity", address, code=5)
+    assert run.err.startswith("jigctl: the node refused the LSS configure bit timing")
+    text = run("can", "lss", "set-bitrate", 250000, "--identity", address)
+    assert "bitrate 250000 bit/s configured (table index 3)" in text

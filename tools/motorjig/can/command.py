@@ -470,9 +470,12 @@ def cmd_lss(args):
             lines.append("it is now in LSS configuration state: jigctl can lss set-id NEW")
         else:
             if ident is not None:
-                ok = _lss(lambda: lss.send_switch_state_selective(*ident), "switch state selective")
+                try:
+                    ok = lss.send_switch_state_selective(*ident)
+                except LssError:  # no answer to its last part
+                    ok = False
                 if not ok:
-                    raise NoAnswer("no node has the LSS address %s" % args.identity)
+                    raise NoAnswer("no node has the LSS address %s (vendor,product,revision,serial)" % args.identity)
             if action == "set-id":
                 _lss(lambda: lss.configure_node_id(new_id), "configure node id")
                 lines.append("node id %d configured" % new_id)
