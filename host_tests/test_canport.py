@@ -418,3 +418,34 @@ def test_jigctl_stats_prints_a_can_port_block():
     can = diag.decode_can_counters(r.ask(diag.READ_CAN_COUNTERS))
     assert can_block(can, 1)[0] == "CAN port: closed, 125000 bit/s"
     assert "fit J4-TERM" in can_block(can, 1)[1]
+
+
+# --- no allocation: the steady state in the MicroPython VM --------------------------------
+def test_no_heap_per_frame_either_way_on_micropython():
+    """A frame from the bus to the host, a line from the host to the bus (with its TX
+    interrupt), and idle passes with the port closed allocate nothing on MicroPython
+    (the WebAssembly VM: the IRQ handler runs synchronously there, as a hard IRQ must:
+    with no allocation)."""
+    import os
+    import shutil
+    import subprocess
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    pkg = os.path.join(here, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
+    if shutil.which("node") is None or not os.path.isdir(pkg):
+        pytest.skip("node or the MicroPython WebAssembly package is missing (tools/setup.sh)")
+    code = ("import sys\nsys.path.append('/data')\nimport can_probe as c\n"
+            "print(c.rx_alloc(300))\nprint(c.tx_alloc(300))\nprint(c.idle_alloc(2000))\n"
+            "print(c.heap_used(lambda: bytearray(16), 10) > 0)\nprint(sys.implementation.name)\n")
+    r = subprocess.run(["node", os.path.join(here, "wasm", "run_vm.mjs"),
+                        "--file", "bridge_probe.py=" + os.path.join(here, "bridge_probe.py"),
+                        "--file", "can_probe.py=" + os.path.join(here, "can_probe.py"), code],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["(0,", "True)", "(0,", "True)", "(0,", "True)", "True", "micropython"]
+
+
+def test_can_probe_under_cpython():
+    import can_probe
+
+    assert can_probe.rx_alloc(20)[1] and can_probe.tx_alloc(20)[1] and can_probe.idle_alloc(50)[1]
