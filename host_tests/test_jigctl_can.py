@@ -373,6 +373,19 @@ def test_dump_lines_json_and_log(run, tmp_path):
     assert run.out == "" and run.err == "0 frames\n"
 
 
+def test_dump_names_pdos_from_the_eds(run):
+    run("can", "sdo", "write", 5, "0x1800:5", 100)  # TPDO1 every 100 ms (event timer)
+    try:
+        run("can", "nmt", 5, "start", "--wait", 0)
+        lines = run("can", "--eds", EDS_PATH, "dump", "--count", 2).splitlines()
+        assert len(lines) == 2 and all(" 185   [3]  " in ln for ln in lines), lines
+        assert "TPDO1 node 5: Statusword=" in lines[0] and lines[0].endswith("Modes of operation display=1")
+        plain = run("can", "dump", "--count", 1).splitlines()  # without --eds: the PDO, not its contents
+        assert plain[0].endswith("TPDO1 node 5")
+    finally:
+        run("can", "nmt", 5, "reset")  # the communication parameters back to the EDS's defaults
+
+
 def test_dump_ends_cleanly_on_ctrl_c(bench, tmp_path):
     import signal
     import subprocess
