@@ -4,15 +4,19 @@ read by jigstream, shown by the text view, written as the third pcapng interface
 tshark's own CANopen dissector next to the Plus-R buses.
 
 The firmware's records are made by calling ``app.capture.can_frame`` on a bench's
-app, as the CAN port does from its main-loop pass; the SocketCAN bytes expected in
-the pcapng are written here from the link type's definition, not from
+app with its CAN port (every kind of frame, as the CAN port does from its main-loop
+pass), and by a bench session in which the host talks CANopen through the jig's
+SLCAN port to a simulated CiA 402 drive; the SocketCAN bytes expected in the pcapng
+are written here from the link type's definition, not from
 ``motorjig.capture.pcapng``.
 """
 
 import io
 import json
+import os
+import shutil
 import struct
-import types
+import subprocess
 
 import pytest
 
@@ -22,6 +26,7 @@ from test_capture_support import LUA, jigctl, needs_tshark, parse_pcapng, run_ts
 from jig import capture as C
 from jig import frame as F
 from jig import native
+from jig import params as P
 from jig.params import BAUD_RATES
 
 from motorjig.capture import jigstream as J
@@ -29,6 +34,7 @@ from motorjig.capture import pcapng
 from motorjig.capture import record as R
 from motorjig.capture.textview import TextView, canopen_name
 from motorjig.sim import SimBench
+from motorjig.sim.cia402 import Cia402Node
 
 EXT, RTR = R.CAN_EXT, R.CAN_RTR
 #: (identifier, flags, DLC, data): standard, extended, remote requests, every length 0..8
@@ -42,19 +48,17 @@ FRAMES = [(0x123, 0, n, bytes(range(0xA0, 0xA0 + n))) for n in range(9)] + [
     (0x080, RTR, 0, b""),
     (0x1ABCDEF0, EXT | RTR, 8, b""),
 ]
-BITRATE = 500000
+BITRATE = 250000
 
 
 def recording(bitrate=BITRATE, **kw):
-    """A bench whose app has a CAN port of ``bitrate`` (0: none), recording from now on.
-    Until the bench builds the real CAN port, its bitrate stands in for it."""
-    b = SimBench(**kw)
-    if bitrate:
-        if getattr(b.app, "can", None) is None:
-            b.app.can = types.SimpleNamespace(bitrate=bitrate)
-        bitrate = b.app.can.bitrate
+    """A bench whose jig has a CAN port at ``bitrate`` (0: no CAN bus, so no CAN port),
+    recording from now on."""
+    if bitrate:  # the bus's bitrate, and the jig's CAN port's (parameter 14)
+        b = SimBench(can=True, can_bitrate=bitrate, jig_params={P.P_CAN_BITRATE: bitrate}, **kw)
     else:
-        b.app.can = None
+        b = SimBench(**kw)
+    assert (b.app.can is not None) == bool(bitrate)
     b.app.set_capture(1, b.hal.ticks_us())
     b.t_hello = int(b.clock.now)
     return b, bitrate
@@ -135,13 +139,55 @@ def test_a_dlc_above_8_is_8_bytes():
 def test_the_hello_gives_the_can_bitrate_after_format_1s_fields():
     """Format 2's hello keeps format 1's first 20 bytes (so a format-1 reader knows it for a
     hello and refuses it by its version byte), then the CAN bitrate, then the name."""
-    for bitrate in (BITRATE, 0):
+    for bitrate in (BITRATE, 1000000, 0):
         b, got = recording(bitrate)
         data = drain(b)[12:]
         version, protocol, forward, slave, up, down, interbyte, ring, rate = struct.unpack_from("<BBBBIIIII", data)
         assert (version, protocol, forward, slave, interbyte, ring) == (2, 0, 0, 1, 5000, C.RING_SIZE)
         assert up in BAUD_RATES and down in BAUD_RATES and rate == got
         assert data[24:] == b"MotorJig bridge 0.1"
+
+
+VM_CODE = """
+import sys
+sys.path.append('/data')
+from bridge_probe import heap_used
+from jig import capture as C
+cap = C.Capture(None, None, 1024)
+cap.cs[C.CS_ON] = 1
+mv = memoryview(bytearray(8))
+views = [mv[0:k] for k in range(9)]
+def emptied(can_id, flags, dlc, view, to_bus):
+    def one():
+        cap.can_frame(1000, can_id, flags, dlc, view, to_bus)
+        cap.cs[C.CS_TAIL] = cap.cs[C.CS_HEAD]
+    return one
+for one in (emptied(0x705, 0, 8, views[8], 0), emptied(0x1FFFFFFF, 1, 3, views[3], 1),
+            emptied(0x1ABCDEF0, 3, 8, views[0], 1)):
+    for _ in range(20):
+        one()
+    print(heap_used(one, 500))
+def full():
+    cap.can_frame(1000, 0x185, 0, 8, views[8], 0)
+for _ in range(200):
+    full()
+print(cap.cs[C.CS_LOST] > 0, heap_used(full, 500))
+print(sys.implementation.name)
+"""
+
+
+def test_can_frame_allocates_nothing_in_the_micropython_vm():
+    """Standard, extended and RTR frames into the ring, and into a full one (counted lost):
+    0 heap bytes each over 500 calls, in the real MicroPython VM (its portable engine)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    pkg = os.path.join(here, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
+    if shutil.which("node") is None or not os.path.isdir(pkg):
+        pytest.skip("node or the MicroPython WebAssembly package is missing (tools/setup.sh)")
+    r = subprocess.run(["node", os.path.join(here, "wasm", "run_vm.mjs"),
+                        "--file", "bridge_probe.py=" + os.path.join(here, "bridge_probe.py"), VM_CODE],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["0", "0", "0", "True", "0", "micropython"]
 
 
 # --- read back: Record, text, pcapng ----------------------------------------------------------
@@ -249,18 +295,25 @@ def test_can_records_need_format_2_and_a_can_port():
 
 # --- jigctl capture --jig, and tshark -----------------------------------------------------------
 def bench_session():
-    """A bench recording of both Plus-R buses with CANopen traffic on the CAN bus between
-    the transactions: NMT, SDO request and response, TPDO, EMCY, heartbeat."""
-    b, _bitrate = recording()
-    canopen = [(0x000, 0, 2, b"\x01\x05", 1), (0x605, 0, 8, b"\x40\x41\x60\x00\x00\x00\x00\x00", 1),
-               (0x585, 0, 8, b"\x4b\x41\x60\x00\x37\x06\x00\x00", 0), (0x185, 0, 4, b"\x37\x06\x00\x00", 0),
-               (0x085, 0, 8, b"\x10\x81\x11\x00\x00\x00\x00\x00", 0), (0x705, 0, 1, b"\x05", 0)]
-    for slave, ftype in ((2, F.GET_COMMAND_POS), (1, F.GET_SLAVE_INFO), (3, F.GET_AXIS_STATUS)):
-        b.transact(F.encode(slave, ftype))
-        for can_id, flags, dlc, data, to_bus in canopen:
-            b.run_for(300)
-            b.app.capture.can_frame(b.hal.ticks_us(), can_id, flags, dlc, data, to_bus)
-    b.run_for(20000)
+    """A bench session through the jig: Plus-R transactions on both buses while the host,
+    on the jig's SLCAN port, opens the CAN port and talks CANopen to a simulated CiA 402
+    drive (node 5, heartbeat every 200 ms): NMT start, an SDO upload of 0x1000 (request
+    and response), the drive's TPDOs as it goes operational, its EMCY on a fault, its
+    heartbeats."""
+    b = SimBench(can_nodes=(5,), can_bitrate=500000,
+                 can_node_factory=lambda clock, bus, i: Cia402Node(clock, bus, i, heartbeat_ms=200))
+    b.app.set_capture(1, b.hal.ticks_us())
+    b.transact(F.encode(2, F.GET_COMMAND_POS))
+    b.slcan_send(b"O\r")
+    assert b.slcan_read(1).startswith(b"\r")
+    b.slcan_send(b"t00020105\r")  # NMT start node 5
+    b.transact(F.encode(1, F.GET_SLAVE_INFO))
+    b.slcan_send(b"t60584000100000000000\r")  # SDO upload 0x1000:00 (device type)
+    b.slcan_read(2)
+    b.transact(F.encode(3, F.GET_AXIS_STATUS))
+    b.run_for(250000)
+    b.can_nodes[5].fault(0x2310, 0x02)  # overcurrent: EMCY
+    b.run_for(250000)
     return drain(b)
 
 
@@ -284,7 +337,9 @@ def _capture(session, tmp_path, *args):
 def test_jigctl_capture_writes_the_can_bus_as_a_third_interface(session, tmp_path):
     recs, out, lines = _capture(session, tmp_path, "--count", str(len(read_all(session)[0])))
     summary = lines.pop()["summary"]
-    assert summary["verdicts"]["can"] == 18 and summary["can_frames"] == 18 and summary["jig"]["can_bitrate"] == BITRATE
+    n_can = sum(r.is_can for r in recs)
+    assert n_can >= 8 and summary["verdicts"]["can"] == summary["can_frames"] == n_can
+    assert summary["jig"]["can_bitrate"] == 500000
     assert [(d["bus"], d.get("id")) for d in lines] == [(("pc", "drivers", "can")[r.bus], r.can_id) for r in recs]
     with open(out, "rb") as f:
         p = parse_pcapng(f.read())
@@ -293,13 +348,16 @@ def test_jigctl_capture_writes_the_can_bus_as_a_third_interface(session, tmp_pat
 
 
 def test_bus_keeps_the_buses_named(session, tmp_path):
-    recs, out, lines = _capture(session, tmp_path, "--bus", "can", "--count", "6")
+    recs, _js = read_all(session)
+    can_recs = [r for r in recs if r.is_can]
+    recs, out, lines = _capture(session, tmp_path, "--bus", "can", "--count", str(len(can_recs)))
     summary = lines.pop()["summary"]
-    assert [d["bus"] for d in lines] == ["can"] * 6 and summary["records"] == 6
-    assert [d["id"] for d in lines] == [0x000, 0x605, 0x585, 0x185, 0x085, 0x705]
+    assert summary["records"] == len(can_recs)
+    assert [(d["bus"], d["dir"], d["id"], d["data"]) for d in lines] == [
+        ("can", R.DIRECTION_NAMES[r.direction], r.can_id, r.data.hex(" ")) for r in can_recs]
     with open(out, "rb") as f:
         p = parse_pcapng(f.read())
-    assert len(p["interfaces"]) == 3 and [x["interface"] for x in p["packets"]] == [2] * 6
+    assert len(p["interfaces"]) == 3 and [x["interface"] for x in p["packets"]] == [2] * len(can_recs)
     plusr = [r for r in recs if not r.is_can]
     _recs, _out, lines = _capture(session, tmp_path, "--bus", "pc,drivers", "--count", str(len(plusr)))
     assert [(d["bus"], d["wire"]) for d in lines[:-1]] == [(("pc", "drivers")[r.bus], r.data.hex(" ")) for r in plusr]
@@ -328,12 +386,15 @@ def test_tshark_reads_canopen_on_the_can_interface_and_plusr_as_before(session, 
     rows = [dict(zip(names, line.split("\t"))) for line in res.stdout.splitlines()]
     assert len(rows) == len(recs)
     can_rows = [r for r in rows if r["frame.interface_name"] == "can"]
+    assert len(can_rows) == sum(r.is_can for r in recs)
     assert {r["_ws.col.Protocol"] for r in can_rows} == {"CANopen"}
-    infos = [r["_ws.col.Info"] for r in can_rows[:6]]
-    assert infos[0].startswith("NMT: Start remote node")
-    assert infos[1].startswith("Default-SDO (rx)") and infos[2].startswith("Default-SDO (tx)")
-    assert infos[3].startswith("PDO1 (tx)") and infos[4] == "EMCY" and infos[5].startswith("NMT Error Control")
-    assert [r["canopen.node_id"] for r in can_rows[1:6]] == ["0x00000005"] * 5
+    infos = [r["_ws.col.Info"] for r in can_rows]
+    for name in ("NMT: Start remote node [0x5]", "Default-SDO (rx): Initiate upload request",
+                 "Default-SDO (tx): Initiate upload response", "PDO1 (tx)", "EMCY", "NMT Error Control: Boot-up [0x5]",
+                 "NMT Error Control: Operational [0x5]"):
+        assert any(i.startswith(name) for i in infos), (name, infos)
+    assert infos.index("EMCY") > [i.startswith("NMT: Start") for i in infos].index(True)
+    assert {r["canopen.node_id"] for r in can_rows if not r["_ws.col.Info"].startswith("NMT:")} == {"0x00000005"}
     # the Plus-R interfaces: what the same records without the CAN bus dissect to
     plain = str(tmp_path / "plain.pcapng")
     with open(plain, "wb") as f:
