@@ -10,7 +10,10 @@ same capture records (jig.capture), byte for byte.
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jig import app, bridge, counters, fastpath, frame, params, parser
+import ast
+import os
+
+from jig import app, bridge, counters, fastpath, frame, native, params, parser
 from jig import diag
 from motorjig.sim import SimBench
 
@@ -27,8 +30,12 @@ def test_constants_mirror_the_modules_they_come_from():
         "E_PC_BROADCAST": bridge, "E_REPLY": bridge, "N_EVENTS": bridge, "F_ABORT": bridge, "SEEN_IDS": bridge,
         "STATUS_FRAME_TYPE_ERROR": frame, "STATUS_DATA_ERROR": frame, "STATUS_FRAME_ERROR": frame,
         "P_SLAVE_ID": params, "P_REPLY_TIMEOUT_MS": params, "P_INTERBYTE_US": params, "P_DE_PRE_US": params,
-        "P_DE_POST_US": params, "TA_SUM": counters, "TA_BASE": counters,
+        "P_DE_POST_US": params, "TA_SUM": counters, "TA_BASE": counters, "EV_DROP": parser, "HUNT": parser,
+        "CRC_AT": native,
     }
+    for name in vars(parser):
+        if name.startswith(("S_", "A_")):
+            sources[name] = parser
     names = [n[1:] for n in vars(fastpath) if n.startswith("_") and n[1:2].isupper()]
     checked = 0
     for name in names:
@@ -41,8 +48,20 @@ def test_constants_mirror_the_modules_they_come_from():
         attr = name if hasattr(src, name) else "_" + name
         assert getattr(fastpath, "_" + name) == getattr(src, attr), name
         checked += 1
-    assert checked >= 48
+    assert checked >= 75
     assert fastpath._MASK == app.TICKS_MASK and fastpath._HALF == app.TICKS_HALF
+    uart = _uartport_constants()  # (jig.uartport imports machine: read from its source)
+    assert fastpath._ISR_TXFNF == uart["USART_ISR_TXFNF"] and fastpath._TDR == uart["USART_TDR_WORDS_AFTER_ISR"]
+    assert fastpath._TX_FIFO_SPINS == uart["TX_FIFO_SPINS"]
+
+
+def _uartport_constants():
+    path = os.path.join(os.path.dirname(parser.__file__), "uartport.py")
+    out = {}
+    for node in ast.parse(open(path).read()).body:
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call) and getattr(node.value.func, "id", "") == "const":
+            out[node.targets[0].id] = eval(compile(ast.Expression(node.value.args[0]), path, "eval"))
+    return out
     assert fastpath._STUFF == frame.STUFF and fastpath._BROADCAST_ID == frame.BROADCAST_ID
 
 
@@ -55,12 +74,40 @@ def test_the_board_runs_the_pump_only_where_it_applies():
     assert echo.runner.app.pump is None  # a port that hears its own echo is not plain
 
 
-class Run:
-    """One bench, everything it puts on the wire recorded with its time."""
+class FifoRegs:
+    """A USART's ISR..TDR as the pump sees them, for a port of the bench: the transmit
+    FIFO never full, each byte written to TDR queued on the port, as the USART would
+    send it (jig.compat.ptr32 indexes an object that is no buffer as memory)."""
 
-    def __init__(self, fast, chunk, faults):
+    def __init__(self, port):
+        self.port = port
+        self.written = 0
+
+    def __getitem__(self, k):
+        assert k == 0  # ISR
+        return fastpath._ISR_TXFNF
+
+    def __setitem__(self, k, value):
+        assert k == fastpath._TDR and 0 <= value <= 0xFF
+        self.written += 1
+        self.port.queue(bytes([value]), 0, 1)
+
+
+class Run:
+    """One bench, everything it puts on the wire recorded with its time. ``regs``: the
+    pump writes the bytes it passes on into the ports' FIFO registers (FifoRegs), as on
+    the board, instead of calling their ``queue``."""
+
+    def __init__(self, fast, chunk, faults, regs=False):
         # Recording both buses on (jig.capture): its records are compared too.
         self.b = SimBench(driver_ids=(2, 3), fastpath=fast, stream_chunk=chunk, jig_params={params.P_CAPTURE: 1})
+        self.regs = []
+        if regs:
+            a = self.b.app
+            for port in (self.b.hal.up, self.b.hal.down):
+                port.regs = FifoRegs(port)
+                self.regs.append(port.regs)
+            a.pump_ctx = fastpath.context(a)
         for slave, fault in faults:
             setattr(self.b.drivers[slave], fault, True)
         self.down = []
@@ -117,3 +164,43 @@ def test_a_local_frame_after_a_long_burst_scans_only_what_was_read():
     assert pumped == portable
     c = pumped[5]  # the counters
     assert c["up_noise"] == 0 and c["local_requests"] == 2 and c["up_frames_out"] == 3  # (2 local + the drive's answer)
+
+
+def _per_byte(segments, bt):
+    """(end of each byte's stop bit, byte) from (end of a piece, its bytes)."""
+    return sorted((round(t - (len(data) - 1 - i) * bt, 3), data[i]) for t, data in segments for i in range(len(data)))
+
+
+# Gaps long enough for every answer: the bench's bus corrupts whole pieces that collide,
+# so a collision would tell pieces of one byte from longer ones.
+quiet_steps = st.lists(
+    st.builds(_step, st.sampled_from(["good", "good", "bad_crc", "cut", "garbage"]), st.sampled_from([1, 2, 3, 5, 99]),
+              st.sampled_from(GOOD_TYPES + (frame.SET_PARAMETER,)), st.integers(1, 12), st.just(20000)),
+    min_size=1, max_size=6)
+
+
+@settings(max_examples=30, deadline=None)
+@given(quiet_steps, st.sampled_from([1, 3, 64]))
+def test_the_fifo_filled_through_its_registers_sends_what_the_queue_calls_send(steps, chunk):
+    """On the board the pump writes the bytes it passes on into TDR itself; the pieces
+    then reach the line byte by byte instead of as one queued piece: the same bytes at
+    the same times."""
+    called = Run(True, chunk, ())
+    a = called.play(steps)
+    written = Run(True, chunk, (), regs=True)
+    b = written.play(steps)
+    assert sum(r.written for r in written.regs) > 0 or not any(w for w, _ in steps if len(w) > 3)
+    bt = written.b.down_bus.bt
+    for name, x, y in zip(("PC bytes", "PC frames", "driver bus", "PC-side DE", "driver-side DE", "counters",
+                           "capture records"), a, b):
+        if name == "driver bus":
+            x, y = _per_byte(x, bt), _per_byte(y, bt)
+        assert _ns(x) == _ns(y), name  # (a time summed over other pieces: equal to the float's last bits)
+
+
+def _ns(x):
+    if isinstance(x, float):
+        return round(x, 3)
+    if isinstance(x, (list, tuple)):
+        return [_ns(e) for e in x]
+    return x

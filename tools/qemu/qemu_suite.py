@@ -33,6 +33,8 @@ import sys
 from array import array
 
 from jig import compat, crc, frame, mem, parser
+from jig.counters import C_DOWN_OUT as K_DOWN_OUT
+from jig.counters import C_UP_OUT as K_UP_OUT
 from jig.compat import ticks_diff, ticks_us
 
 try:
@@ -264,6 +266,9 @@ H_QUEUE = 6
 H_DRAIN = 7
 H_QBYTES = 8  # not a call: the bytes the queue calls carried
 HAL_CALL_NAMES = ("any", "readinto", "write", "de", "sleep_us", "load", "queue", "drain")
+ISR_TXFNF = 1 << 7  # jig.uartport.USART_ISR_TXFNF / _TC
+ISR_TC = 1 << 6
+TDR = 3
 HAL_CALLS = array("i", [0] * (len(HAL_CALL_NAMES) + 1))
 
 
@@ -360,6 +365,11 @@ class MemPort:
         self.drain = c.drain
         self.de = c.de
         self.load = c.load
+        # The USART's ISR..TDR in RAM, as board_check runs UartPort.queue on: the transmit
+        # FIFO never full (TXFNF) and the line idle (TC). jig.fastpath.pump writes the
+        # bytes of a frame it passes on into TDR itself, as on the board; only the last
+        # byte written stays there (the rig checks it is a tail's EE).
+        self.regs = array("i", [ISR_TXFNF | ISR_TC, 0, 0, 0])
 
     def hw_de(self, on, pre16, post16):
         return False
@@ -504,6 +514,7 @@ class BridgeRig:
         # out (run(0)) for each call, counted in runs.
         self.poll = self.app.run  # bound once: making a bound method allocates
         self.runs = 0
+        self.out0 = array("i", [0, 0])  # the bridge's frames-out counters before a probe
 
     def fresh(self):
         """Before a measurement: an empty capture ring and port (they must not fill up
@@ -513,11 +524,25 @@ class BridgeRig:
             self.hal.capture.sink.seek(0)
 
     def _done(self, count, w_up, w_down=None):
-        """count frames reached the PC bus (and, given w_down, the driver bus)."""
-        if self.hal.up.c.writes - w_up != count:
+        """count frames reached the PC bus (and, given w_down, the driver bus): pieces
+        ending in a tail that went through the port's calls, or -- for a frame the pump
+        passed on through the register block -- as many frames counted by the bridge
+        (replies relayed, frames sent on to the drivers) and a tail's EE last in TDR."""
+        v = self.app.counters.v
+        up = self.hal.up
+        down = self.hal.down
+        if up.c.writes - w_up != count and (v[K_UP_OUT] - self.out0[0] != count or up.regs[TDR] != 0xEE):
             self.stuck = True
-        if w_down is not None and self.hal.down.c.writes - w_down != count:
+        if w_down is not None and down.c.writes - w_down != count and (
+                v[K_DOWN_OUT] - self.out0[1] != count or down.regs[TDR] != 0xEE):
             self.stuck = True
+
+    def _before(self):
+        v = self.app.counters.v
+        self.out0[0] = v[K_UP_OUT]
+        self.out0[1] = v[K_DOWN_OUT]
+        self.hal.up.regs[TDR] = 0
+        self.hal.down.regs[TDR] = 0
 
     def forward(self, count):
         """Request as one burst, forwarded in the first pass; reply as one burst (held
@@ -542,6 +567,7 @@ class BridgeRig:
         nr = len(rep)
         w_up = up.c.writes
         w_down = down.c.writes
+        self._before()
         up.c.trickle(most)
         down.c.trickle(most)
         try:
@@ -561,6 +587,7 @@ class BridgeRig:
         wire = self.local
         n = len(wire)
         w_up = up.c.writes
+        self._before()
         for _ in range(count):
             up.load(wire, n, 0, 0)
             run(1)
