@@ -260,6 +260,9 @@ def test_bus_off_is_restarted_after_the_parameters_time():
     assert r.app.can.state == SimCan.STATE_ACTIVE
     assert r.say(b"t1232BBCC\r", 5000) == b"\r"
     assert r.heard[-1][1:] == (0x123, False, False, b"\xBB\xCC")
+    r.run(300000)  # (the 128 x 11 bit recovery is not a second bus-off)
+    c = r.counters()
+    assert c["can_bus_off_entries"] == 1 and c["can_bus_off_restarts"] == 1 and c["can_state"] == SimCan.STATE_ACTIVE
 
 
 def test_bus_off_stays_until_the_host_closes_and_opens_with_restart_0():
@@ -381,6 +384,33 @@ def test_the_app_runs_unchanged_on_a_hal_without_can():
     p = FrameParser(False)
     p.feed(bytes(rig.hal.up.out[: rig.hal.up.out_n]))
     assert p.ready and diag.decode_can_counters(bytes(p.body[p.data_start:p.data_end])) == {}
+
+
+class WakingSlcanPort(SimSlcanPort):
+    """The SLCAN port with pyb.USB_VCP's ``irq(handler)``: the handler runs (soft) when
+    the host's bytes arrive."""
+
+    handler = None
+
+    def irq(self, handler=None, trigger=1, hard=False):
+        self.handler = handler
+
+    def host_send(self, data):
+        super().host_send(data)
+        if self.handler is not None and data:
+            self.handler(self)
+
+
+def test_host_bytes_wake_the_slow_pass_where_the_port_can_say_so():
+    for cls, within in ((SimSlcanPort, False), (WakingSlcanPort, True)):
+        r = Rig()
+        r.hal.slcan = r.port = cls(r.clock)
+        from jig.canport import CanPort
+
+        r.app.can = CanPort(r.app)
+        r.port.host_open()
+        r.run(3000)  # between two slow passes (every 10 ms while closed)
+        assert (r.say(b"V\r", 2000) == b"V1013\r") is within
 
 
 def test_closed_and_idle_the_port_costs_the_slow_pass_one_any():

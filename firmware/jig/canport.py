@@ -48,6 +48,9 @@ IN_CHUNK = const(64)  # bytes read from the host per readinto
 IN_PER_POLL = const(512)  # at most this many a slow pass
 OUT_PER_POLL = const(2048)  # bytes of lines handed to the port a slow pass, at most
 CAN_POLL_US = const(1000)  # while open the slow pass comes at least this often (a USB frame)
+WATCH_US = const(10000)  # the controller's state and error counters are read this often
+_NOT_OFF = const(-1)  # CanPort.t_bus_off: not bus-off
+_RECOVERING = const(-2)  # ... restarted, waiting to be back on the bus
 STAMP_PERIOD_MS = const(60000)  # SLCAN timestamps count ms 0..59999
 
 # SLCAN's version and serial answers ("V" + hardware + software version, "N" + 4 digits)
@@ -78,6 +81,7 @@ _STATE_BUS_OFF = const(4)
 # Indices into CanPort.rs (the RX ring's state; the IRQ writes HEAD)
 RS_HEAD = const(0)
 RS_TAIL = const(1)
+RS_STATE_EV = const(2)  # 1: the IRQ saw IRQ_STATE (the slow pass looks at the state)
 # ... and CanPort.ts (the TX FIFO: the slow pass writes HEAD and REC, the IRQ DONE)
 TS_HEAD = const(0)  # next free entry
 TS_TAIL = const(1)  # next entry to hand to the controller
@@ -119,11 +123,12 @@ class CanPort:
         self.seen = bytearray(16)  # CANopen node ids heard on the bus (boot-up, heartbeat, SDO reply)
         self.reader = S.SlcanReader()
         self.base_err = [0] * len(S.ERR_NAMES)
-        self.t_bus_off = -1  # tick the controller was found bus-off (-1: it is not)
+        self.t_bus_off = _NOT_OFF  # tick the controller was found bus-off, or _NOT_OFF / _RECOVERING
+        self.t_watch = 0  # tick of the last look at the controller's state
         self.base_hw = [0, 0, 0, 0]  # the controller's warning/passive/bus-off/overrun counts seen
         self.hw = [0] * 8  # get_counters' list
         # RX ring, filled by the IRQ
-        self.rs = array("i", [0, 0])
+        self.rs = array("i", [0, 0, 0])
         self.rx_id = array("i", bytes(4 * RX_FRAMES))
         self.rx_tick = array("i", bytes(4 * RX_FRAMES))
         self.rx_fl = bytearray(RX_FRAMES)  # bit 0 extended, bit 1 remote (SLCAN's meaning)
@@ -156,10 +161,22 @@ class CanPort:
         self.t_ref = self._ticks()
         self.t_ms = 0
         self._irq_cb = self._irq  # bound once: the controller keeps it
+        # The host's bytes wake the slow pass at once where the port can say so
+        # (pyb.USB_VCP.irq: a soft callback, scheduled between bytecodes -- the main
+        # loop's idle pass pays nothing for it); else they wait for the next slow pass.
+        irq = getattr(self.port, "irq", None)
+        if irq is not None:
+            try:
+                irq(self._host_data)
+            except (TypeError, ValueError, OSError):
+                pass
         self._irqo = None
         self.record = getattr(getattr(app, "capture", None), "can_frame", None)  # (does nothing while not recording)
         self.lost_seen = 0  # rx lost + overruns at the last look (F's overrun bits)
         self.safety = CanSafety(self, app.params, app.counters)
+
+    def _host_data(self, _port):
+        self.due[0] = self._ticks()
 
     @staticmethod
     def _serial_line(hal):
@@ -195,6 +212,7 @@ class CanPort:
             if f & _IRQ_TX:
                 self._tx_end(f)
             if f & _IRQ_STATE:
+                self.rs[RS_STATE_EV] = 1
                 self.due[0] = self._ticks()
 
     def _rx(self, can):
@@ -267,7 +285,7 @@ class CanPort:
     def wait_us(self, now):
         """µs until the port needs the slow pass again (-1: no need while closed)."""
         if not self.is_open:
-            return 0 if self.out_n else -1
+            return CAN_POLL_US if self.out_n else -1  # (answers the port has not taken yet)
         w = CAN_POLL_US
         s = self.safety.wait_us(now)
         if 0 <= s < w:
@@ -302,14 +320,18 @@ class CanPort:
             self.t_ref = ticks_add(self.t_ref, d - d % 1000)
 
     def _watch(self, now):
-        """The controller's state and error counters; bus-off recovery."""
+        """The controller's state and error counters (every WATCH_US, and at once after
+        an IRQ_STATE); bus-off recovery."""
+        rs = self.rs
+        if not rs[RS_STATE_EV] and ticks_diff(now, self.t_watch) < WATCH_US:
+            return
+        rs[RS_STATE_EV] = 0
+        self.t_watch = now
         can = self.can
         st = can.state()
         self.state = st
         hw = can.get_counters(self.hw)
         cv = self.cv
-        cv[K.CC_TEC] = hw[0]
-        cv[K.CC_REC] = hw[1]
         base = self.base_hw
         for i in range(3):  # warning, passive, bus-off entries (restart() zeroes them)
             x = hw[2 + i]
@@ -324,12 +346,14 @@ class CanPort:
         if st >= _STATE_PASSIVE:
             self.flags |= F_PASSIVE
         if st != _STATE_BUS_OFF:
-            if self.t_bus_off >= 0:
-                self.t_bus_off = -1
+            if self.t_bus_off != _NOT_OFF:  # back on the bus (after a restart's recovery)
+                self.t_bus_off = _NOT_OFF
                 self.ts[TS_HOLD] = 0
             return
         self.flags |= F_BUS_ERROR
-        if self.t_bus_off < 0:
+        if self.t_bus_off == _RECOVERING:
+            return  # restarted: the controller waits for 128 x 11 recessive bits
+        if self.t_bus_off == _NOT_OFF:
             self.t_bus_off = now
             self.ts[TS_HOLD] = 1
         ms = self.params.ram[P.P_CAN_BUS_OFF_RESTART_MS]
@@ -339,9 +363,7 @@ class CanPort:
             for i in range(3):
                 base[i] = 0
             self._cancel_in_flight()
-            self.t_bus_off = -1
-            self.ts[TS_HOLD] = 0
-            self.state = can.state()
+            self.t_bus_off = _RECOVERING
 
     def _cancel_in_flight(self):
         """After restart()/deinit: the frame in the controller is gone, with no IRQ."""
@@ -567,12 +589,13 @@ class CanPort:
         m[3] = can.FLAG_EXT_ID | can.FLAG_RTR
         for i in range(3):
             self.base_hw[i] = 0
-        self.t_bus_off = -1
+        self.t_bus_off = _NOT_OFF
         self.can = can
         self.listen = 1 if listen_only else 0
         self.lines = 0
         self.is_open = 1
         self.state = can.state()
+        self.rs[RS_STATE_EV] = 1
         self._irqo = None
         self._irqo = can.irq(self._irq_cb, trigger=can.IRQ_RX | can.IRQ_TX | can.IRQ_STATE, hard=True)
         self.safety.reset()
@@ -596,7 +619,7 @@ class CanPort:
         ts = self.ts
         for i in range(6):
             ts[i] = 0
-        self.t_bus_off = -1
+        self.t_bus_off = _NOT_OFF
         self.safety.reset()
 
     # --- counters ----------------------------------------------------------------------
@@ -607,8 +630,11 @@ class CanPort:
         cv[K.CC_OPEN] = self.is_open
         cv[K.CC_LISTEN] = self.listen
         cv[K.CC_BITRATE] = self.bitrate
-        if not self.is_open:
-            cv[K.CC_TEC] = cv[K.CC_REC] = 0
+        cv[K.CC_TEC] = cv[K.CC_REC] = 0
+        if self.is_open:
+            hw = self.can.get_counters(self.hw)
+            cv[K.CC_TEC] = hw[0] or 0
+            cv[K.CC_REC] = hw[1] or 0
         for i in range(K.CAN_COUNT):
             out[i] = cv[i]
         counts = self.reader.counts
