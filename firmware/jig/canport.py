@@ -125,7 +125,7 @@ class CanPort:
         self.base_err = [0] * len(S.ERR_NAMES)
         self.t_bus_off = _NOT_OFF  # tick the controller was found bus-off, or _NOT_OFF / _RECOVERING
         self.t_watch = 0  # tick of the last look at the controller's state
-        self.base_hw = [0, 0, 0, 0]  # the controller's warning/passive/bus-off/overrun counts seen
+        self.base_hw = [0, 0, 0]  # the controller's warning/passive/bus-off entry counts last seen
         self.hw = [0] * 8  # get_counters' list
         # RX ring, filled by the IRQ
         self.rs = array("i", [0, 0, 0])
