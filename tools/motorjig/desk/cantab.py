@@ -23,7 +23,7 @@ from motorjig.desk.page import Changed, tid
 from motorjig.desk.session import UserError
 
 LOG_LINES = 500  # lines the browser keeps in the frame log
-PUSH_MAX = 150  # new lines shown a tick (0.2 s); more are summed up in one line
+PUSH_MAX = 400  # new lines shown a tick (0.2 s: 2000 frames/s, a scan whole); more are summed up in one line
 REFRESH_S = 0.2
 
 
