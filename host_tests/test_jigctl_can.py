@@ -282,7 +282,7 @@ def test_scan(run, bench):
     assert r["name"] == "MotorJig CiA 402 drive (sim)"
     assert (r["vendor"], r["product"], r["revision"]) == (VENDOR, 0x402, 0x00010000)
     assert rows[0]["serial"] != rows[1]["serial"]
-    text = Run(run.capsys, bench.slcan_pty_path)("can", "scan", "--wait", "0.3")  # the pty too
+    text = run("can", "scan", "--wait", "0.3")
     assert "node   5  CiA 402 drives and motion control (0x1000 = 0x%08X)" % r["device_type"] in text
     assert "name 'MotorJig CiA 402 drive (sim)'" in text and "vendor 0x4D4A4947" in text
 
@@ -437,3 +437,11 @@ def test_lss_moves_a_node_through_unconfigured_and_back(run):
     assert run.err.startswith("jigctl: the node refused the LSS configure bit timing")
     text = run("can", "lss", "set-bitrate", 250000, "--identity", address)
     assert "bitrate 250000 bit/s configured (table index 3)" in text
+
+
+def test_over_the_pty(capsys, bench):
+    # Last in this module: the bench sees the pty closed a moment after it is, and turns
+    # away a TCP client that comes in that moment (one host at a time).
+    run = Run(capsys, bench.slcan_pty_path)
+    assert [r["node"] for r in run.json("can", "scan", "--wait", "0.3")] == list(NODES)
+    assert run.json("can", "sdo", "read", 6, "0x1018:1")["value"] == VENDOR
