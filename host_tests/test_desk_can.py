@@ -146,6 +146,19 @@ def test_nmt_start_node_6_is_seen_in_its_heartbeat(desk):
     b.wait_for(lambda: "heartbeat node 6: operational" in log_text(b), 5, "an operational heartbeat")
 
 
+def test_the_jigs_can_counters_come_through_its_pc_port(desk):
+    b = desk.b
+    b.click("btn-can-counters")
+    script = """return Object.fromEntries(Array.from(document.querySelectorAll(
+                    '[data-testid="can-counters"] tbody tr')).map(tr => [tr.children[0].innerText.trim(),
+                    tr.children[1].innerText.trim()]));"""
+    counters = b.wait_for(lambda: (lambda c: "can_rx_frames" in c and c)(b.js(script)), 10, "the CAN counters")
+    # the jig forwarded the scan's 127 requests onto the bus and the nodes' answers to this tab
+    assert int(counters["can_tx_frames"]) >= 127, counters
+    assert int(counters["can_rx_frames"]) >= 20, counters
+    assert b.text("can-counters-note").startswith("read ")
+
+
 def test_a_nodes_refusal_is_named_and_bad_input_is_one_sentence(desk):
     b = desk.b
     sdo(b, "5", "0x2345:00")  # not in the EDS: uploaded untyped, and the node aborts
@@ -153,11 +166,11 @@ def test_a_nodes_refusal_is_named_and_bad_input_is_one_sentence(desk):
     assert message(b) == ("node 5 aborted the upload of 0x2345:00: 0x06020000 object does not exist in the "
                           "object dictionary"), message(b)
     sdo(b, "5", "0x1000", "7")  # the device type is read-only
-    b.wait_for(lambda: "cannot be written" in message(b), 5, "the read-only object")
+    b.wait_for(lambda: "cannot be written" in message(b), 10, "the read-only object")
     sdo(b, "5", "0x1017", "seventy")
-    b.wait_for(lambda: "'seventy' is not a value for 0x1017:00" in message(b), 5, "the bad value")
+    b.wait_for(lambda: "'seventy' is not a value for 0x1017:00" in message(b), 10, "the bad value")
     sdo(b, "200", "0x1008")
-    b.wait_for(lambda: message(b) == "the node id must be 1..127, not 200", 5, "the bad node id")
+    b.wait_for(lambda: message(b) == "the node id must be 1..127, not 200", 10, "the bad node id")
     assert "Traceback" not in b.driver.page_source
 
 
