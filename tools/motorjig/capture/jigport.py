@@ -34,6 +34,7 @@ QUIET_S = 0.05  # after X: this long without bytes, the old stream has all come
 DRAIN_MAX_S = 1.0  # ... but no longer than this (a port that never stops talking)
 SILENCE_S = 3.0  # while recording: this long without a byte, the jig has stopped
 STOPPED_MSG = "the jig stopped recording (parameter 13 capture = 0, or a reset)"
+ANOTHER_READER = "%s closed the connection at once: another reader is attached (one reader at a time)"
 HELLO_WAIT_S = 2.0  # the jig answers S within a slow pass (10 ms); USB and the OS add a little
 
 
@@ -43,13 +44,24 @@ class JigCapture:
     def __init__(self, url, clock=None, port=None, monotonic=time.monotonic):
         self.url = url
         self._monotonic = monotonic
-        self.port = port if port is not None else open_port(url, 115200)  # (a CDC port has no baud)
+        self.port = port if port is not None else self._open(url)
         self.stream = JigStream(url, clock, strict_start=False)
         self.records = 0  # records handed to the sinks
         self.keep = None  # a predicate on Records: only those it keeps go to the sinks and count (None: all)
         self._pending = []  # records that came with the hello
         self._stop = False
         self._started = False
+
+    @staticmethod
+    def _open(url):
+        """The port (a CDC port has no baud); a server that resets the connection while
+        it is being opened is another reader's, as one that closes it at the first read."""
+        try:
+            return open_port(url, 115200)
+        except PortError as exc:
+            if "reset by peer" in str(exc).lower():
+                raise PortError(ANOTHER_READER % url) from None
+            raise
 
     @property
     def bytes(self):
@@ -74,8 +86,7 @@ class JigCapture:
     def _failed(self, exc, doing, starting):
         """The PortError of a failed read or write ("another reader" while starting)."""
         if starting and self._closed_at_once(exc):
-            return PortError("%s closed the connection at once: another reader is attached "
-                             "(one reader at a time)" % self.url)
+            return PortError(ANOTHER_READER % self.url)
         return PortError("%s %s failed: %s" % (doing, self.url, exc))
 
     @staticmethod

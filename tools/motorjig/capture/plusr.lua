@@ -415,6 +415,7 @@ G.REQUEST_LEN = {
   [0xF7] = {3},
   [0xF8] = {0},
   [0xF9] = {0},
+  [0xFA] = {0},
 }
 G.REQUEST_LEN_VER8 = {
   [0x01] = {0},
@@ -486,6 +487,7 @@ G.REQUEST_LEN_VER8 = {
   [0xF7] = {3},
   [0xF8] = {0},
   [0xF9] = {0},
+  [0xFA] = {0},
 }
 G.REPLY_LEN = {
   [0x01] = {-1},
@@ -549,6 +551,7 @@ G.REPLY_LEN = {
   [0xF7] = {-1},
   [0xF8] = {26},
   [0xF9] = {-1},
+  [0xFA] = {-1},
 }
 G.REPLY_LEN_VER8 = {
   [0x01] = {-1},
@@ -612,6 +615,7 @@ G.REPLY_LEN_VER8 = {
   [0xF7] = {-1},
   [0xF8] = {26},
   [0xF9] = {-1},
+  [0xFA] = {-1},
 }
 G.JIG = {
   READ_COUNTERS = 240,
