@@ -156,6 +156,8 @@ def test_the_jigs_can_counters_come_through_its_pc_port(desk):
     # the jig forwarded the scan's 127 requests onto the bus and the nodes' answers to this tab
     assert int(counters["can_tx_frames"]) >= 127, counters
     assert int(counters["can_rx_frames"]) >= 20, counters
+    # the scan's burst paced: the jig refused none of its frames (python-canopen's search() at once: ~20)
+    assert counters["can_tx_refused"] == "0", counters
     assert b.text("can-counters-note").startswith("read ")
 
 

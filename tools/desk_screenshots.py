@@ -166,7 +166,7 @@ def can_tab(out):
     try:
         desk, page = B.start_desk("--bench", "--drivers", "2", "--can-nodes", "5,6", "--timeout", "300")
         b = B.Browser()
-        b.driver.set_window_size(1440, 1250)
+        b.driver.set_window_size(1440, 1500)
         b.open(page)
         b.tab("tab-can")
         b.click("btn-can-open")
@@ -187,6 +187,8 @@ def can_tab(out):
         b.type("can-sdo-object", "0x1008")
         b.click("btn-can-sdo-read")
         b.wait_for(lambda: "0x1008:00" in b.text("can-sdo-result"), 10, "the device name")
+        b.click("btn-can-counters")
+        b.wait_for(lambda: "can_rx_frames" in b.text("can-counters"), 10, "the jig's CAN counters")
         time.sleep(2.5)  # a few heartbeats in the log; the notifications fade
         b.screenshot(os.path.join(out, "desk-can.png"))
     finally:

@@ -11,7 +11,8 @@ EDS: NMT, SYNC, EMCY with its error code named, TPDO/RPDO n with their mapped
 objects, SDO rx/tx with the object's name and value, heartbeat with its state,
 LSS); heartbeats give each node's NMT state.
 
-``scan()`` is python-canopen's ``network.scanner.search()`` followed by each node's
+``scan()`` is python-canopen's scanner (its request paced in blocks the jig's TX FIFO
+takes: ``_search``) followed by each node's
 device type (0x1000), name (0x1008) and identity (0x1018) by SDO
 (``jigctl can scan``'s ``describe_node``); ``sdo_read``/``sdo_write`` take an
 object as ``index:sub`` or by its name in the EDS (``motorjig.can.EDS_PATH``
@@ -44,6 +45,8 @@ BITRATES = SLCAN_BITRATES  # S0..S8
 LOG_SIZE = 2000  # frames kept for the tab's log (the newest)
 SDO_TIMEOUT = 1.0  # seconds an SDO answer may take (through the jig and a PC's USB)
 SCAN_WAIT = 0.6  # seconds the scan listens for answers after its requests
+SCAN_BLOCK = 16  # scan requests sent at once (the jig's TX FIFO holds 64 frames; see _search)
+SCAN_REQUEST = b"\x40\x00\x10\x00\x00\x00\x00\x00"  # python-canopen's scanner's: upload 0x1000:00
 HEARTBEAT_STALE = 3.0  # a node silent this long is shown as silent, with its last state
 
 #: the tab's NMT choices: jigctl can nmt's command -> words
@@ -237,7 +240,7 @@ class CanLink:
 
     # --- scan ------------------------------------------------------------------------------------------------
     def scan(self, wait=SCAN_WAIT):
-        """python-canopen's scanner (an SDO upload of 0x1000 to every id), then each node's device type,
+        """python-canopen's scanner (an SDO upload of 0x1000 to every id, paced), then each node's device type,
         name and identity by SDO; returns the rows (also kept in ``nodes``)."""
         with self._lock:
             net = self._network()
@@ -245,7 +248,7 @@ class CanLink:
             try:
                 net.scanner.reset()
                 try:
-                    net.scanner.search()
+                    self._search(net)
                 except Exception as exc:
                     raise UserError(self._failure("scanning", exc)) from None
                 time.sleep(wait)
@@ -265,6 +268,17 @@ class CanLink:
             finally:
                 self.scanning = False
         return list(rows.values())
+
+    def _search(self, net):
+        """The request of python-canopen's ``scanner.search()`` to ids 1..127, in blocks of SCAN_BLOCK
+        with the time they take on the bus between them: sent at once, as search() does, 127 frames
+        outrun the jig's TX FIFO and about 20 of them are refused (SLCAN's BEL, which python-can does
+        not report), so nodes with high ids would go unseen. The scanner still collects the answers."""
+        frame_s = 135.0 / self.bitrate  # an 8-byte standard frame with worst-case stuffing
+        for first in range(1, 128, SCAN_BLOCK):
+            for nid in range(first, min(first + SCAN_BLOCK, 128)):
+                net.send_message(0x600 + nid, SCAN_REQUEST)
+            time.sleep(SCAN_BLOCK * frame_s + 0.002)
 
     def node_rows(self, now=None):
         """The node list: the last scan's rows and every node heard since, each with its NMT state

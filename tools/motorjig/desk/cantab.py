@@ -26,6 +26,9 @@ LOG_LINES = 500  # lines the browser keeps in the frame log
 PUSH_MAX = 400  # new lines shown a tick (0.2 s: 2000 frames/s, a scan whole); more are summed up in one line
 REFRESH_S = 0.2
 
+#: machine.CAN's controller states (the jig's can_state counter)
+CAN_STATES = {0: "stopped", 1: "error active", 2: "error warning", 3: "error passive", 4: "bus-off"}
+
 
 def jig_can_counters(session):
     """The jig's CAN counters ({name: value}) through the Desk's Plus-R connection (ReadCanCounters, 0xFA)."""
@@ -96,11 +99,11 @@ class CanTab:
         if link.read_only:
             ui.label("read-only Desk: the port is opened listen-only (SLCAN's L); scan, SDO and NMT are refused") \
                 .classes("text-caption text-grey-7")
+        self._nodes_card(NMT_CHOICES)
         with ui.row().classes("w-full no-wrap items-start"):
-            with ui.column().classes("w-2/3"):
-                self._nodes_card(NMT_CHOICES)
+            with ui.column().classes("w-3/5"):
                 self._sdo_card()
-            with ui.card().classes("w-1/3"):
+            with ui.card().classes("w-2/5"):
                 self._counters_card()
         self._log_card()
         ui.timer(REFRESH_S, self.refresh)
@@ -120,7 +123,7 @@ class CanTab:
                 ("device_type", "device type (0x1000)"), ("vendor", "vendor (0x1018:1)"),
                 ("product", "product (:2)"), ("revision", "revision (:3)"), ("serial", "serial (:4)"))]
             self.nodes = tid(ui.table(columns=cols, rows=[], row_key="id", pagination={"rowsPerPage": 0}),
-                             "can-nodes").classes("w-full").props("dense")
+                             "can-nodes").classes("w-full").props("dense hide-pagination")
             ui.label("Scan: python-canopen's scanner (an SDO upload of 0x1000 to ids 1..127), then each node's "
                      "name and identity by SDO; the NMT state is the node's last heartbeat.") \
                 .classes("text-caption text-grey-7")
@@ -132,8 +135,8 @@ class CanTab:
                 self.sdo_node = tid(ui.input("node", value=""), "can-sdo-node").classes("w-20")
                 self.sdo_object = tid(ui.input("object: index:sub or EDS name", value="0x1008",
                                                placeholder="0x6041, 0x1018:2, Producer heartbeat time"),
-                                      "can-sdo-object").classes("w-72")
-                self.sdo_value = tid(ui.input("value to write"), "can-sdo-value").classes("w-40")
+                                      "can-sdo-object").classes("w-60")
+                self.sdo_value = tid(ui.input("value to write"), "can-sdo-value").classes("w-32")
                 tid(ui.button("Read", on_click=self._sdo_read), "btn-can-sdo-read")
                 tid(ui.button("Write", on_click=self._sdo_write), "btn-can-sdo-write").props("outline")
             self.sdo_node.on("keydown.enter", self._sdo_read)
@@ -151,7 +154,8 @@ class CanTab:
         cols = [{"name": "name", "label": "counter", "field": "name", "align": "left"},
                 {"name": "value", "label": "value", "field": "value", "align": "right"}]
         self.counters = tid(ui.table(columns=cols, rows=[], row_key="name", pagination={"rowsPerPage": 0}),
-                            "can-counters").classes("w-full").props("dense")
+                            "can-counters").classes("w-full").props("dense hide-pagination") \
+            .style("max-height: 24rem")  # about 30 counters: the table scrolls
         self.counters_note = tid(ui.label("through the jig's PC port (Connect & bus), as the diagnostics tab "
                                           "reads them"), "can-counters-note").classes("text-caption text-grey-7")
         ui.timer(1.0, lambda: self._read_counters(auto=True) if self.counters_auto.value else None)
@@ -205,7 +209,11 @@ class CanTab:
             else:
                 self._say(str(exc), error=True)
             return
-        self.counters.rows = [{"name": k, "value": v} for k, v in res.items()]
+        if not res:
+            self.counters_note.text = "the jig has no CAN port (its ReadCanCounters reply is empty)"
+            return
+        self.counters.rows = [{"name": k, "value": "%d (%s)" % (v, CAN_STATES.get(v, "?")) if k == "can_state" else v}
+                              for k, v in res.items()]
         self.counters.update()
         self.counters_note.text = "read %s through the jig's PC port" % time.strftime("%H:%M:%S")
 
