@@ -16,7 +16,8 @@ from jig import diag
 from jig import frame as F
 from jig import params as P
 from jig import slcan as S
-from jig.app import App
+from jig.app import CAN_IDLE_PARK, CAN_PASSES, SLOW_US, App
+from jig.canport import CAN_POLL_US
 from jig.parser import FrameParser
 from motorjig.sim.canbus import CanBus
 from motorjig.sim.canhal import SimCan, SimSlcanPort
@@ -53,7 +54,7 @@ class CanHal(bridge_probe.Hal):
 
 
 class Rig:
-    def __init__(self, bitrate=500000, params=None):
+    def __init__(self, bitrate=500000, params=None, fastpath=None):
         self.clock = VirtualClock()
         self.bus = CanBus(self.clock, bitrate)
         self.heard = []  # (t, id, ext, rtr, data) the peer received
@@ -66,7 +67,7 @@ class Rig:
                 assert pr.set(num, value)
             assert pr.save()
         self.hal = CanHal(self.clock, self.bus, fs)
-        self.app = App(self.hal)
+        self.app = App(self.hal, fastpath)
         self.port = self.hal.slcan
         self.port.host_open()
 
@@ -253,7 +254,7 @@ def test_bus_off_is_restarted_after_the_parameters_time():
     r.bus.inject_errors(32)  # TEC += 8 per error frame: 256 = bus-off
     assert r.say(b"t1230\r", 20000) == b"\r"
     assert r.app.can.state == SimCan.STATE_BUS_OFF
-    assert r.say(b"t1231AA\r", 1000) == BEL  # refused while bus-off
+    assert r.say(b"t1231AA\r", 3000) == BEL  # refused while bus-off (a USB frame each way)
     r.run(60000)
     c = r.counters()
     assert c["can_bus_off_entries"] == 1 and c["can_bus_off_restarts"] == 1 and c["can_tx_failed"] == 1
@@ -395,9 +396,9 @@ class WakingSlcanPort(SimSlcanPort):
     def irq(self, handler=None, trigger=1, hard=False):
         self.handler = handler
 
-    def host_send(self, data):
-        super().host_send(data)
-        if self.handler is not None and data:
+    def _arrived(self):
+        super()._arrived()
+        if self.handler is not None:
             self.handler(self)
 
 
@@ -411,6 +412,112 @@ def test_host_bytes_wake_the_slow_pass_where_the_port_can_say_so():
         r.port.host_open()
         r.run(3000)  # between two slow passes (every 10 ms while closed)
         assert (r.say(b"V\r", 2000) == b"V1013\r") is within
+
+
+# --- the port's own pass (due[1]): the host's lines reach the bus within CAN_POLL_US ------------
+def _count_passes(r):
+    serves, slows = [], []
+    real_serve, real_slow = r.app.can.serve, r.app._slow
+    r.app.can.serve = lambda now: serves.append(now) or real_serve(now)
+    r.app._slow = lambda now: slows.append(now) or real_slow(now)
+    return serves, slows
+
+
+def test_open_the_ports_own_pass_comes_every_can_poll_us_and_the_slow_pass_keeps_its_period():
+    r = Rig()
+    r.say(b"O\r")
+    serves, slows = _count_passes(r)
+    r.run(100000, step=5)  # the board's loop: a pass every 5 µs
+    gaps = [b - a for a, b in zip(serves, serves[1:])]
+    assert len(serves) >= 100000 // CAN_POLL_US - 2 and max(gaps) <= CAN_POLL_US + 5
+    assert len(slows) <= 100000 // SLOW_US + 2  # open and idle: no more slow passes than closed
+    r.say(b"C\r")
+    serves[:] = []
+    r.run(50000, step=5)
+    assert serves == []  # closed: no pass of its own
+
+
+def test_a_host_line_reaches_the_bus_within_can_poll_us_of_its_usb_frame():
+    """On the virtual timeline: a line the host sends at any moment reaches the jig in
+    the next 1 ms USB frame, and its frame is on the bus at most CAN_POLL_US later."""
+    r = Rig()
+    r.say(b"O\r")
+    r.peer.transmit(0x181, False, False, b"\x01")  # its IRQ sets the phase of the port's passes
+    r.run(1237, step=5)
+    usb = r.port.frame_us
+    frame = r.bus.frame_us(False, False, 8) - 3 * r.bus.bit_us  # start of frame to end of EOF
+    late = []
+    for k in range(23):
+        r.run(usb + 37 * k % usb, step=5)
+        t_send = r.clock.now
+        arrive = (t_send // usb + 1) * usb
+        n0 = len(r.heard)
+        r.port.host_send(b"t12388877665544332211\r")
+        r.run(2 * usb + 2 * frame, step=5)
+        assert len(r.heard) == n0 + 1
+        late.append(r.heard[-1][0] - frame - arrive)  # from the USB frame to the start on the bus
+    assert min(late) >= 0 and max(late) <= CAN_POLL_US + 5
+    assert max(late) > 0  # (the pass's own period, not the USB frame, decides)
+
+
+def test_a_frame_from_the_bus_goes_to_the_host_in_the_next_usb_frame():
+    r = Rig()
+    r.say(b"O\r")
+    r.run(333, step=5)
+    r.peer.transmit(0x181, False, False, b"\x01\x02")
+    r.run(r.bus.frame_us(False, False, 2), step=5)  # the frame ends; the IRQ pulls due[1] to now
+    assert r.app.can.cv[K.CC_RX] == 1 and r.port.tx == bytearray(b"t18120102\r")  # at once, not a period on
+    assert r.say(b"", 1000) == b"t18120102\r"
+
+
+def test_a_simulation_skips_the_idle_ports_passes_on_their_grid():
+    """App.wait_us (the bench's scheduler) wakes the loop for the port's pass only when
+    it has work, and then at the tick of its grid the board's loop would have used."""
+    r = Rig()
+    r.say(b"O\r")
+    app = r.app
+    t0 = app.due[1]
+    w = app.wait_us()
+    assert 0 < w <= SLOW_US  # only the slow pass's
+    parked = app.due[1]
+    assert (parked - t0) % CAN_POLL_US == 0 and parked - r.clock.ticks_us() >= CAN_IDLE_PARK
+    r.clock.advance(1234)
+    r.port.rx += b"t1230\r"  # the host's line arrives between two of the port's passes
+    app.poll()
+    assert r.heard == [] and app.wait_us() == CAN_POLL_US - 1234 % CAN_POLL_US
+    r.clock.advance(app.wait_us())
+    app.poll()
+    r.clock.advance(1000)
+    assert [h[1] for h in r.heard] == [0x123] and (app.due[1] - t0) % CAN_POLL_US == 0
+    assert CAN_IDLE_PARK % CAN_POLL_US == 0
+
+
+def test_the_pump_runs_can_passes_passes_at_a_time_while_the_port_is_open():
+    r = Rig(fastpath=True)
+    app = r.app
+    if app.pump is None:
+        pytest.skip("this rig's ports do not take the pump")
+    calls = []
+    real = app.pump
+    app.pump = None
+    r.say(b"O\r")
+
+    def pump(ctx, k):
+        calls.append(k)
+        return real(ctx, k)
+
+    app.pump = pump
+    app.run(3 * CAN_PASSES + 7)
+    assert sum(calls) == 3 * CAN_PASSES + 7 and max(calls) <= CAN_PASSES
+    serves, slows = _count_passes(r)
+    for _ in range(20):
+        r.clock.advance(CAN_POLL_US)
+        app.run(CAN_PASSES)
+    assert len(serves) == 20
+    r.say(b"C\r")
+    del calls[:]
+    app.run(3 * CAN_PASSES)
+    assert calls == [3 * CAN_PASSES]  # closed: the pump as before
 
 
 def test_closed_and_idle_the_port_costs_the_slow_pass_one_any():

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from motorjig.sim.bench import Bench, SimBench
-from motorjig.sim.canhal import SimCan, SimSlcanPort
+from motorjig.sim.canhal import SLCAN_RATES, SimCan, SimSlcanPort
 
 
 class SdoNode:
@@ -254,8 +254,74 @@ def test_python_can_through_the_jig_on_the_realtime_bench():
 def test_cia402_nodes_answer_through_the_jig():
     b = SimBench(driver_ids=(2,), can_nodes=(5, 6))  # the default node: cia402.Cia402Node
     b.slcan_send(b"S6\rO\r")
-    assert sorted(b.slcan_read(4).split(b"\r")) == [b"", b"", b"", b"t705100", b"t706100"]
+    assert b.slcan_read(2) == b"\r\r"  # (the nodes booted meanwhile, acknowledging each other)
+    b.slcan_send(b"t00028100\r")  # NMT reset node, all: their boot-ups again
+    assert sorted(b.slcan_read(3).split(b"\r")) == [b"", b"", b"t705100", b"t706100"]
     b.slcan_send(b"t60684000100000000000\r")
     out = b.slcan_read(2)
     assert out.startswith(b"\rt5868430010") and out.endswith(b"\r")  # 0x1000 device type, 4 bytes
     assert out[len(b"\rt5868430010") + 2:][:4] == b"9201"  # low 16 bits: profile 402
+
+
+# --- the same full-speed USB on both adapters; the jig against the direct adapter ------------
+
+def test_the_slcan_ports_host_bytes_come_in_usb_frames():
+    from motorjig.sim.canhal import CDC_RX_SIZE
+    from motorjig.sim.clock import VirtualClock
+
+    clock = VirtualClock()
+    port = SimSlcanPort(clock)
+    arrived = []
+    port.on_host_data = lambda: arrived.append((clock.now, len(port.rx)))
+    port.host_open()
+    clock.advance(250)
+    port.host_send(b"V\r")
+    assert port.any() == 0  # not before the next USB frame
+    clock.advance(749)
+    assert port.any() == 0
+    clock.advance(1)
+    assert port.any() == 2 and arrived == [(1000, 2)]
+    port.readinto(bytearray(2))
+    port.host_send(bytes(3000))  # more than a frame moves, and than the device's buffer holds
+    clock.advance(10000)
+    assert port.any() == CDC_RX_SIZE and len(port.host_out) == 3000 - CDC_RX_SIZE  # the rest NAKed
+    port.readinto(bytearray(CDC_RX_SIZE))
+    clock.advance(5000)
+    assert port.any() == CDC_RX_SIZE and len(port.host_out) == 3000 - 2 * CDC_RX_SIZE
+
+
+def _sdo_round_trips(direct, bitrate, offsets):
+    """(host line sent -> its frame's end on the bus, host line sent -> reply line in) for
+    an SDO upload at each offset into a USB frame."""
+    b = SimBench(driver_ids=(2,), can_nodes=(5,), can_node_factory=SdoNode, can_bitrate=bitrate,
+                 direct_can=direct)
+    port = b.slcan
+    b.slcan_send(b"S%d\rO\r" % SLCAN_RATES.index(bitrate))
+    b.slcan_read(3)
+    ends = []
+    b.can_bus.monitor = lambda t, f, kind: ends.append(t) if f.can_id == 0x605 else None
+    got = []
+    port.sink = lambda chunk: got.append((b.clock.now, bytes(chunk))) or len(chunk)
+    out = []
+    for off in offsets:
+        b.run_for(5000 - b.clock.now % 1000 + off)
+        t0 = b.clock.now
+        del got[:], ends[:]
+        port.host_send(b"t60584000100000000000\r")
+        b.clock.run_while(lambda: not any(b"t585" in c for _, c in got), 20000)
+        out.append((ends[0] - t0, [t for t, c in got if b"t585" in c][0] - t0))
+    return out
+
+
+def test_through_the_jig_an_sdo_upload_takes_what_it_takes_on_the_direct_adapter():
+    """Both adapters on the same full-speed USB: the jig's line reaches the bus within
+    CAN_POLL_US of the direct adapter's, and an idle bus's SDO round trip is the same."""
+    from jig.canport import CAN_POLL_US
+
+    offsets = [0, 90, 333, 500, 777, 999]
+    for bitrate in (500000, 1000000):
+        jig = _sdo_round_trips(False, bitrate, offsets)
+        ref = _sdo_round_trips(True, bitrate, offsets)
+        for (bus_j, rt_j), (bus_d, rt_d) in zip(jig, ref):
+            assert bus_d <= bus_j <= bus_d + CAN_POLL_US
+            assert rt_j == rt_d

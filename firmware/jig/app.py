@@ -15,6 +15,13 @@ compare. ``run()`` loops forever (the board's main.py calls it). On the board, c
 through, the passes themselves run as machine code in ``jig.fastpath.pump``
 (docs/bridge.md, "The machine-code hot path"); elsewhere in the portable loop here.
 
+While the CAN port is open it has a pass of its own, ``CanPort.serve`` (the host's
+SLCAN lines in, frames both ways), at the tick ``due[1]``, every
+``canport.CAN_POLL_US``: nothing of the slow pass's work, so the host's frames
+reach the bus within a fraction of a frame time without the slow pass's cost. The
+pump returns only for ``due[0]``, so while the port is open ``run`` asks it for
+``CAN_PASSES`` passes at a time and looks at ``due[1]`` between them.
+
 The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
 
     hal.ticks_us() -> int           wrapping µs ticks (time.ticks_us semantics)
@@ -50,7 +57,7 @@ from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
 from jig.bridge import Bridge
-from jig.canport import CanPort
+from jig.canport import CAN_POLL_US, CanPort
 from jig.capture import QUIET_US, Capture
 from jig.compat import NATIVE, const, ticks_add, ticks_diff
 from jig.frame import MAX_BODY
@@ -63,6 +70,10 @@ from jig.trace import Trace
 RX_CHUNK = const(256)
 HEARTBEAT_US = const(500000)
 SLOW_US = const(10000)  # the slow pass runs at least this often
+# While the CAN port is open the pump runs at most this many passes before run looks
+# at the port's tick (an idle pass is ~720 instructions at board prices: ~100 µs).
+CAN_PASSES = const(50)
+CAN_IDLE_PARK = const(1000000)  # wait_us: an idle CAN port's next pass parked this far on (a multiple of CAN_POLL_US)
 TICKS_MASK = const(0x3FFFFFFF)
 TICKS_HALF = const(0x20000000)
 PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
@@ -113,7 +124,9 @@ class App:
         self.down_parser.max_body = MAX_BODY
         self.handlers = Handlers(self)
         self.t_beat = hal.ticks_us()
-        self.due = array("i", [self.t_beat])  # the tick at which the slow pass must next run
+        # due[0]: the tick at which the slow pass must next run (anyone may move it
+        # earlier); due[1]: the CAN port's own pass, while it is open (jig.canport)
+        self.due = array("i", [self.t_beat, self.t_beat])
         self.cut = cut
         self.ver8 = ver8  # (how this boot runs: the RESTART parameters may differ in RAM)
         self.up_baud = pr[P.P_UP_BAUD]
@@ -245,6 +258,8 @@ class App:
         up_rx = self.up_rx
         ticks = self._ticks
         due = self.due
+        can = self.can
+        serving = can is not None and can.is_open
         while passes != 0:
             passes -= 1
             # Driver bus first: a reply already in must be relayed before a new PC
@@ -263,20 +278,45 @@ class App:
             now = ticks()
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
                 self._slow(now)
+                serving = can is not None and can.is_open
+            elif serving and (now - due[1]) & TICKS_MASK < TICKS_HALF:
+                self._can_pass(now)
+                serving = can.is_open
 
     def _run_pump(self, passes):
-        """run() with the passes in jig.fastpath.pump, which returns to run the slow pass."""
+        """run() with the passes in jig.fastpath.pump, which returns to run the slow pass
+        (and, the CAN port open, every CAN_PASSES passes for the port's own pass)."""
         pump = self.pump
         ctx = self.pump_ctx
         ticks = self._ticks
         due = self.due
+        can = self.can
+        serving = can is not None and can.is_open
         while True:
-            passes = pump(ctx, passes)
+            k = passes
+            if serving and (k < 0 or k > CAN_PASSES):
+                k = CAN_PASSES
+            left = pump(ctx, k)
+            if passes > 0:
+                passes -= k - left
             now = ticks()
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
                 self._slow(now)
+                serving = can is not None and can.is_open
+            elif serving and (now - due[1]) & TICKS_MASK < TICKS_HALF:
+                self._can_pass(now)
+                serving = can.is_open
             if passes == 0:
                 return
+
+    def _can_pass(self, now):
+        """The CAN port's own pass (due[1]); the next one a period on (on its grid)."""
+        self.can.serve(now)
+        due = self.due
+        t = ticks_add(due[1], CAN_POLL_US)
+        if ticks_diff(t, now) <= 0:
+            t = ticks_add(now, CAN_POLL_US)
+        due[1] = t
 
     def _slow(self, now):
         """Everything with a time in it; sets the next due tick."""
@@ -327,12 +367,28 @@ class App:
     def wait_us(self):
         """µs until the app next needs a poll without new input (0: now).
 
-        Lets a simulation (or a board that sleeps) skip idle loop passes.
+        Lets a simulation (or a board that sleeps) skip idle loop passes. The CAN
+        port's own passes count only when it has something to do; an idle port's next
+        pass is parked further on its period's grid (``due[1]``), so a host line that
+        comes meanwhile waits for the pass the board's loop would have run.
         """
         hal = self.hal
         if hal.up.any() or hal.down.any():
             return 0
-        d = ticks_diff(self.due[0], hal.ticks_us())
+        now = hal.ticks_us()
+        d = ticks_diff(self.due[0], now)
+        can = self.can
+        if can is not None and can.is_open:
+            due = self.due
+            w = ticks_diff(due[1], now)
+            if not 0 <= w <= CAN_POLL_US:
+                w %= CAN_POLL_US  # the next tick on its grid
+            if can.pending():
+                due[1] = ticks_add(now, w)
+                if w < d:
+                    d = w
+            else:
+                due[1] = ticks_add(now, w + CAN_IDLE_PARK)
         return d if d > 0 else 0
 
 

@@ -10,16 +10,25 @@ CR is OK, BEL refused (a bad line, a command in the wrong state, a full queue).
 Receive: the controller's hard IRQ handler (``_irq``) moves each frame with
 ``recv`` into a preallocated ring of ``RX_FRAMES`` frames (id, flags, DLC, tick, 8
 data bytes each) -- nothing allocated; a frame the ring cannot hold is counted as
-lost. The first frame into an empty ring pulls ``app.due[0]`` to now, so the main
-loop's slow pass (``poll``) soon turns the ring into ``t``/``T``/``r``/``R`` lines
-for the host and hands every frame to the recorder (``app.capture.can_frame``).
+lost. The ring becomes ``t``/``T``/``r``/``R`` lines for the host, and every frame
+goes to the recorder (``app.capture.can_frame``), in the port's own pass (``serve``).
 The port's ``write`` never blocks: lines it does not take wait in the ring.
+
+The port's own pass: while the port is open the main loop calls ``serve`` every
+``CAN_POLL_US`` (its tick in ``app.due[1]``; the first frame into an empty ring
+pulls it to now): the host's lines in, frames both ways -- a few compares when
+there is nothing to do, and none of the slow pass's work. On the board the host's
+bytes cannot wake the loop (``USB_VCP.irq`` is a soft callback, which never runs
+inside the machine-code pump), so this period is what a host line waits for at
+most: less than a frame time at 1 Mbit/s (47-135 µs). The slow pass (``poll``)
+does the rest: the controller's state, the SLCAN session's line timeout, the
+safety stop; closed, the host's commands wait for it.
 
 Send: frame lines go into a FIFO of ``TX_FRAMES``. ``machine.CAN``'s transmit
 queue is a priority queue by id, so to keep the host's order at most one frame is
 in the controller at a time; the TX IRQ sends the next (copied into a staging
 buffer, passed as a preallocated memoryview of its length). A full FIFO answers
-BEL (counted). Completed frames are counted and recorded in the slow pass.
+BEL (counted). Completed frames are counted and recorded in the port's pass.
 
 Bus-off is seen by ``state()`` in the slow pass and restarted after parameter 17
 ``can_bus_off_restart_ms`` (0: it stays off until the host closes and opens). The
@@ -27,8 +36,8 @@ CAN safety stop (parameter 18, ``jig.safety.CanSafety``) acts on silence from th
 host while the port is open. Counters in ``counters.CAN_NAMES`` order (0xFA
 ReadCanCounters).
 
-While the port is closed and its host silent the slow pass costs one ``any()``;
-the main loop's hot path never sees the CAN port.
+While the port is closed and its host silent the slow pass costs one ``any()``
+and the main loop nothing more; the main loop's hot path never sees the CAN port.
 """
 
 from array import array
@@ -45,9 +54,10 @@ TX_FRAMES = const(64)  # the host's frames waiting for the bus (a power of two)
 STAGE = const(256)  # bytes of SLCAN lines / answers handed to the port per write
 LINE_MAX = const(31)  # "T" + 8 id + 1 dlc + 16 data + 4 stamp + CR
 IN_CHUNK = const(64)  # bytes read from the host per readinto
-IN_PER_POLL = const(512)  # at most this many a slow pass
-OUT_PER_POLL = const(2048)  # bytes of lines handed to the port a slow pass, at most
-CAN_POLL_US = const(1000)  # while open the slow pass comes at least this often (a USB frame)
+IN_PER_POLL = const(512)  # at most this many a pass
+OUT_PER_POLL = const(2048)  # bytes of lines handed to the port a pass, at most
+CAN_POLL_US = const(100)  # while open the port's own pass (serve) comes this often
+ANSWER_US = const(1000)  # closed with answers the port has not taken: the slow pass this often
 WATCH_US = const(10000)  # the controller's state and error counters are read this often
 _NOT_OFF = const(-1)  # CanPort.t_bus_off: not bus-off
 _RECOVERING = const(-2)  # ... restarted, waiting to be back on the bus
@@ -161,9 +171,10 @@ class CanPort:
         self.t_ref = self._ticks()
         self.t_ms = 0
         self._irq_cb = self._irq  # bound once: the controller keeps it
-        # The host's bytes wake the slow pass at once where the port can say so
+        # The host's bytes wake the port's pass at once where the port can say so
         # (pyb.USB_VCP.irq: a soft callback, scheduled between bytecodes -- the main
-        # loop's idle pass pays nothing for it); else they wait for the next slow pass.
+        # loop's idle pass pays nothing for it, and it cannot run inside the pump);
+        # else they wait for the next one (open: CAN_POLL_US; closed: the slow pass).
         irq = getattr(self.port, "irq", None)
         if irq is not None:
             try:
@@ -176,7 +187,7 @@ class CanPort:
         self.safety = CanSafety(self, app.params, app.counters)
 
     def _host_data(self, _port):
-        self.due[0] = self._ticks()
+        self.due[1 if self.is_open else 0] = self._ticks()  # (closed: commands are read by the slow pass)
 
     @staticmethod
     def _serial_line(hal):
@@ -243,7 +254,7 @@ class CanPort:
             self.rx_tick[head] = t
             rs[RS_HEAD] = nxt
             if head == tail:
-                self.due[0] = t  # the slow pass serves the port next
+                self.due[1] = t  # the port's own pass next
 
     def _tx_end(self, f):
         ts = self.ts
@@ -283,14 +294,45 @@ class CanPort:
 
     # --- the slow pass -----------------------------------------------------------------
     def wait_us(self, now):
-        """µs until the port needs the slow pass again (-1: no need while closed)."""
+        """µs until the port needs the slow pass again (-1: no need of its own). Open,
+        the port's traffic is its own pass's (``serve``); the slow pass only for the
+        safety stop (and its usual period: the controller's state)."""
         if not self.is_open:
-            return CAN_POLL_US if self.out_n else -1  # (answers the port has not taken yet)
-        w = CAN_POLL_US
-        s = self.safety.wait_us(now)
-        if 0 <= s < w:
-            w = s
-        return w
+            return ANSWER_US if self.out_n else -1  # (answers the port has not taken yet)
+        return self.safety.wait_us(now)
+
+    def serve(self, now):
+        """The port's own pass while open (``app.due[1]``): the host's lines in, the
+        ring's frames out, the controller's finished frames counted; nothing more."""
+        port = self.port
+        if port is None:
+            return
+        if self.out_n:
+            self._flush()
+        if port.any():
+            self._read(now)
+        rs = self.rs
+        if rs[RS_TAIL] != rs[RS_HEAD]:
+            self._rx_out()
+        ts = self.ts
+        if ts[TS_REC] != ts[TS_DONE]:
+            self._tx_count()
+        if ts[TS_TAIL] != ts[TS_HEAD]:
+            self._kick()  # (the controller's queue was full)
+        if self.out_n:
+            self._flush()
+
+    def pending(self):
+        """True if ``serve`` has something to do now (a simulation skips its idle passes)."""
+        if self.out_n:
+            return True
+        port = self.port
+        if port is not None and port.any():
+            return True
+        rs = self.rs
+        ts = self.ts
+        return rs[RS_TAIL] != rs[RS_HEAD] or ts[TS_REC] != ts[TS_DONE] or (
+            not ts[TS_BUSY] and not ts[TS_HOLD] and ts[TS_TAIL] != ts[TS_HEAD])
 
     def poll(self, now):
         """Read and answer the host, the controller's state, the RX ring to the host."""
@@ -596,6 +638,7 @@ class CanPort:
         self.is_open = 1
         self.state = can.state()
         self.rs[RS_STATE_EV] = 1
+        self.due[1] = self._ticks()  # the port's own passes from now on
         self._irqo = None
         self._irqo = can.irq(self._irq_cb, trigger=can.IRQ_RX | can.IRQ_TX | can.IRQ_STATE, hard=True)
         self.safety.reset()

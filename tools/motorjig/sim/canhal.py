@@ -41,9 +41,12 @@ ports/stm32/machine_can.c):
 ``SimSlcanPort`` is the jig's third USB CDC port, where the host speaks SLCAN: the
 same device and host sides as ``hal.SimCapturePort`` (``any``/``readinto``/
 ``write`` that takes what fits now, never blocks and takes nothing while the host
-has the port closed; ``host_open``/``host_send``/``host_read``/``host_close``; the
-host takes the transmit buffer once per 1 ms USB frame). Bytes from the host wake
-the jig (``on_host_data``).
+has the port closed; ``host_open``/``host_send``/``host_read``/``host_close``).
+Full-speed USB both ways: the host takes the transmit buffer once per 1 ms USB
+frame, and what it sends reaches the device in the next frame (up to
+``USB_FRAME_BYTES`` a frame, and no more than the device's ``CDC_RX_SIZE``-byte
+receive buffer has room for: the host's OUT packets are NAKed meanwhile). Bytes
+arriving from the host call ``on_host_data`` (the bench wakes the jig).
 """
 
 import errno
@@ -52,6 +55,7 @@ from .canbus import STATE_ACTIVE, STATE_BUS_OFF, STATE_PASSIVE, STATE_WARNING
 from .hal import CDC_TX_SIZE, SimCapturePort
 
 RX_FIFO_LEN = 64  # FDCAN's RX FIFO 0 as MicroPython configures it on the H7
+CDC_RX_SIZE = 1024  # MicroPython stm32's USB CDC receive buffer (MICROPY_HW_USB_CDC_RX_DATA_SIZE)
 
 
 class SimCanIrq:
@@ -359,15 +363,45 @@ class SimCan:
 
 class SimSlcanPort(SimCapturePort):
     """The jig's SLCAN port (third USB CDC) on the bench; see ``hal.SimCapturePort``.
-    ``on_host_data`` (fn()) runs when the host's bytes arrive (the bench wakes the jig)."""
 
-    def __init__(self, clock, tx_size=CDC_TX_SIZE, **kw):
+    ``host_send`` queues the host's bytes (``host_out``); each 1 ms USB frame moves up
+    to ``frame_bytes`` of them into the device's receive buffer of ``rx_size`` bytes,
+    then ``on_host_data`` (fn()) runs (the bench wakes the jig). What the host sent
+    before closing the port still arrives."""
+
+    def __init__(self, clock, tx_size=CDC_TX_SIZE, rx_size=CDC_RX_SIZE, **kw):
         super().__init__(clock, tx_size, **kw)
+        self.rx_size = rx_size
         self.on_host_data = None
+        self.host_out = bytearray()  # sent by the host, not yet in a USB frame
+        self._out_due = None  # the time of the scheduled OUT frame, if any
 
     def host_send(self, data):
-        super().host_send(data)
-        if self.is_open and data and self.on_host_data is not None:
+        """Bytes from the host; they reach the device in the next USB frame(s). Dropped
+        while the host has the port closed."""
+        if self.is_open and data:
+            self.host_out += bytes(data)
+            self._schedule_out()
+
+    def _schedule_out(self):
+        if self._out_due is not None or not self.host_out:
+            return
+        f = self.frame_us
+        t = (self.clock.now // f + 1) * f
+        self._out_due = t
+        self.clock.at(t, self._out_frame)
+
+    def _out_frame(self):
+        self._out_due = None
+        n = min(len(self.host_out), self.frame_bytes, self.rx_size - len(self.rx))
+        if n > 0:
+            self.rx += self.host_out[:n]
+            del self.host_out[:n]
+            self._arrived()
+        self._schedule_out()
+
+    def _arrived(self):
+        if self.on_host_data is not None:
             self.on_host_data()
 
 
@@ -378,12 +412,14 @@ class DirectSlcanAdapter:
     """A plain USB SLCAN adapter straight on the CAN bus: the reference the jig is
     measured against (``SimBench(direct=True)`` / ``direct_can=True``).
 
-    An ideal one: its CPU takes no time, a line from the host is handled the moment
-    it arrives, a received frame becomes a line at once; its USB side is a
-    ``SimSlcanPort`` (the same 1 ms USB frames to the host as the jig's port) with a
-    transmit buffer that never fills. Frames go out in the order the host sent
-    them (one in the controller at a time). Commands: ``Sn``, ``O``, ``L``, ``C``,
-    ``t``/``T``/``r``/``R``, ``Zn``, ``V``, ``N``, ``F``; CR = OK, BEL = refused.
+    A real USB adapter (a CANable's kind) with a CPU that takes no time: a line from
+    the host is handled the moment its USB frame brings it, a received frame becomes
+    a line at once. Its USB side is a ``SimSlcanPort``, full-speed USB in both
+    directions as the jig's port (the host's bytes arrive in the next 1 ms frame,
+    lines go to the host once a frame), with a transmit buffer that never fills.
+    Frames go out in the order the host sent them (one in the controller at a
+    time). Commands: ``Sn``, ``O``, ``L``, ``C``, ``t``/``T``/``r``/``R``, ``Zn``,
+    ``V``, ``N``, ``F``; CR = OK, BEL = refused.
     """
 
     def __init__(self, clock, bus, name="adapter"):
