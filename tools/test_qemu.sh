@@ -63,6 +63,7 @@ module("trace_probe.py", base_path="$ROOT/host_tests")
 module("qemu_suite.py", base_path="$ROOT/tools/qemu")
 module("board_check.py", base_path="$ROOT/tools/qemu")
 module("memrx.py", base_path="$ROOT/tools/qemu")
+module("can_suite.py", base_path="$ROOT/tools/qemu")
 module("qemu_captures.py", base_path="$gen")
 EOF
 empty_micropython_lib "$OUT/no-micropython-lib"

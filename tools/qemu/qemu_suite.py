@@ -932,6 +932,16 @@ def check_board():
     return board_check.run(result, fail, instr)
 
 
+def bench_can(prices):
+    """The CAN port's figures (issue 24): tools/qemu/can_suite.py, when frozen in."""
+    try:
+        import can_suite
+    except ImportError:
+        result("can_suite not frozen in: skipped")
+        return
+    can_suite.run(result, fail, prices)
+
+
 def main(quick=False):
     del failures[:]
     print("qemu_suite on %s (%s)" % (sys.platform, sys.implementation.name))
@@ -950,5 +960,6 @@ def main(quick=False):
         probe_cross_check()
         result("bridge_probe heap with capture on: forward %+d bytes over 200 transactions (records streamed)"
                % capture_alloc())
+        bench_can(prices)
     result("%s" % ("all checks passed" if not failures else "%d FAILED" % len(failures)))
     return len(failures)
