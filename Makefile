@@ -31,6 +31,7 @@ bench: setup ## print parser, bridge, station and results-database figures (take
 	@$(PY) tools/bench_parser.py
 	@$(PY) tools/bench_bridge.py
 	@$(PY) tools/bench_trace.py
+	@$(PY) tools/bench_can.py
 	@$(PY) tools/bench_station.py
 	@$(PY) tools/bench_store.py
 
