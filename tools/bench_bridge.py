@@ -89,31 +89,33 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 # counts from `make test-qemu` (emulated M7, MicroPython v1.28 qemu port with the stm32
 # VM settings), turned into time ASSUMING 400 MHz and one instruction per cycle (the M7
 # is dual-issue but waits on flash and memory; the real ratio is not measured yet).
-# Fitted to the cut-through figures of 2026-11-25 (jig.fastpath.pump, the machine-code
-# hot path, frame pieces queued in the USART FIFO) as a pass cost plus a per-byte cost,
-# taking the line `make test-qemu` prints with the HAL calls priced as the board's
-# (board_check: machine.UART's C methods any 298, readinto 472, write 514; our viper
-# queue 646 for 1 byte / 984 for 8, drain 404):
-#   a byte on its own, one byte per pass:    3 007              = PASS + BYTE
-#   8 + 13 bytes in two bursts (two passes): 18 187             = 2 PASS + 21 BYTE
-# (firmware alone: 1 268 and 9 795). The per-byte share carries the frame events
-# (routing, the reply wait) spread over the bytes. Update after `make test-qemu`.
+# Fitted to the cut-through figures of 2026-12-02 (jig.fastpath.pump, the machine-code
+# hot path: the parser's machine inline, the bytes passed on written into the USART's
+# TDR by the pump itself) as a pass cost plus a per-byte cost, taking the line
+# `make test-qemu` prints with the HAL calls priced as the board's (board_check:
+# machine.UART's C methods any 298, readinto 472, write 514; our viper queue 646 for
+# 1 byte / 984 for 8 -- now only a frame's header and tail --, drain 404):
+#   a byte on its own, one byte per pass:    1 837              = PASS + BYTE
+#   8 + 13 bytes in two bursts (two passes): 12 260             = 2 PASS + 21 BYTE
+# (firmware alone: 691 and 7 088; before issue 26: 3 007 and 18 187 at board prices).
+# The per-byte share carries the frame events (routing, the reply wait) spread over
+# the bytes. Update after `make test-qemu`.
 # The slow pass (timeouts, scan, safety, watchdog; `make test-qemu`, capture off:
 # 18 920 instructions) is charged where it feeds the watchdog.
 # Capture on (parameter 13, records streamed to a capture port that takes them), from
-# `make test-qemu` (2026-12-01, the higher of two builds): the forwarded transaction
-# costs 22 932 instead of 18 217 at board prices, 4 715 more, spread over its 21
-# bytes as 225 a byte (charged before the bytes are acted on, although the records
+# `make test-qemu` (2026-12-02): the forwarded transaction costs 16 180 instead of
+# 12 260 at board prices, 3 920 more, spread over its 21 bytes as 187 a byte (charged
+# before the bytes are acted on, although the records
 # are written after the frames have gone: the model errs on the slow side); the slow
 # pass 23 220; each write of records to the port 9 000 (Capture.slow streaming one
 # transaction's 52 bytes of records 12 020, minus its 3 880 with nothing to stream,
 # plus 2 000 for a full 256-byte write's copy). The firmware streams in the drive's
 # turnaround (jig.capture: the stream window), so those stalls mostly cost nothing.
 M7_HZ = 400e6
-PASS_INSTR = 2366  # one main-loop pass that read input, without the bytes
-FORWARD_INSTR_PER_BYTE = 641  # each byte read (parse + forward/relay share)
+PASS_INSTR = 1385  # one main-loop pass that read input, without the bytes
+FORWARD_INSTR_PER_BYTE = 452  # each byte read (parse + forward/relay share)
 SLOW_PASS_INSTR = 18920
-CAPTURE_INSTR_PER_BYTE = 225
+CAPTURE_INSTR_PER_BYTE = 187
 CAPTURE_SLOW_PASS_INSTR = 23220
 CAPTURE_WRITE_INSTR = 9000
 
@@ -131,7 +133,7 @@ POLL_SLAVE = 2
 
 
 def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model=JIG_CPU_MODEL,
-                 stream_chunk=1, warmup=3, capture=False):
+                 stream_chunk=1, warmup=3, capture=False, pre_us=None):
     """A pyserial-style master polls GetAllStatus from driver 2 on the virtual timeline.
 
     The PC sends, waits for the complete reply frame and sends the next request at
@@ -139,10 +141,15 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
     req_bytes/rep_bytes (wire bytes), and, through the jig, req_hop_us (PC's last
     stop bit -> jig's last stop bit of the forwarded request on the driver bus) and
     rep_hop_us (driver's last stop bit -> jig's last stop bit of the relayed reply),
-    each the mean over the n polls (min and max in *_hop_min/max_us). ``capture``: the
+    each the mean over the n polls (min and max in *_hop_min/max_us), and where the hop
+    goes: req_lag_us / rep_lag_us, first start bit in -> first start bit out (the first
+    byte's own wire time, the DE pre-delay, the CPU until it is sent: ``pre_us``), the
+    rest of the hop being what the frame lost on the way (a transmitter that ran
+    dry). ``capture``: the
     jig records both buses (parameter 13) and streams the records to its capture
     port, which a host reads (``records``: how many reached it, ``lost``: how many
-    the jig could not keep). Raises RuntimeError if a poll gets no good reply.
+    the jig could not keep). ``pre_us``: the jig's DE pre-delay (parameter 6; None: its
+    default). Raises RuntimeError if a poll gets no good reply.
     """
     kw = dict(driver_ids=(POLL_SLAVE,), baud=baud, turnaround_us=DRIVER_TURNAROUND_US, record=False,
               stream_chunk=stream_chunk)
@@ -152,24 +159,29 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
         params = {P.P_FORWARD_MODE: forward_mode}
         if capture:
             params[P.P_CAPTURE] = 1
+        if pre_us is not None:
+            params[P.P_DE_PRE_US] = pre_us
         b = SimBench(jig_params=params, cpu_model=cpu_model, **kw)
         if capture:
             b.capture.host_open()
     ends = {}  # node name -> end of its last segment on the wire
+    starts = {}  # node name -> start of its first segment in this poll
 
     def seen(seg, data):
         if data:
             ends[seg.node.name] = seg.end
+            starts.setdefault(seg.node.name, seg.t0)
 
     b.up_bus.monitor = seen
     b.down_bus.monitor = seen
-    req_hops, rep_hops = [], []
+    req_hops, rep_hops, req_lags, rep_lags = [], [], [], []
     t_start = None
     wire = b""
     for i in range(warmup + n):
         if i == warmup:
             t_start = b.clock.now
         ends.clear()
+        starts.clear()
         wire, data = b.request(POLL_SLAVE, F.GET_ALL_STATUS, timeout_us=1e6)
         if data is None or data[0] != 0:
             raise RuntimeError("%d baud%s: poll %d got no good GetAllStatus reply"
@@ -177,12 +189,16 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
         if i >= warmup and not direct:
             req_hops.append(ends["jig-down"] - ends["pc"])
             rep_hops.append(ends["jig-up"] - ends["driver-%d" % POLL_SLAVE])
+            req_lags.append(starts["jig-down"] - starts["pc"])
+            rep_lags.append(starts["jig-up"] - starts["driver-%d" % POLL_SLAVE])
     period = (b.clock.now - t_start) / n
     out = dict(baud=baud, direct=direct, rate=1e6 / period, period_us=period,
                req_bytes=len(F.encode(POLL_SLAVE, F.GET_ALL_STATUS)), rep_bytes=len(wire), byte_us=10e6 / baud)
     if not direct:
         out.update(forward_mode=forward_mode,
                    req_hop_us=sum(req_hops) / n, rep_hop_us=sum(rep_hops) / n,
+                   req_lag_us=sum(req_lags) / n, rep_lag_us=sum(rep_lags) / n,
+                   pre_us=b.app.params.get(P.P_DE_PRE_US),
                    req_hop_min_us=min(req_hops), req_hop_max_us=max(req_hops),
                    rep_hop_min_us=min(rep_hops), rep_hop_max_us=max(rep_hops),
                    jig_cpu_us=b.hal.cpu_us)
@@ -206,31 +222,46 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
           % (round(cpu_model[0] * M7_HZ / 1e6), round(cpu_model[1] * M7_HZ / 1e6), M7_HZ / 1e6))
     print("   + the slow pass %d instructions)" % round(cpu_model[2] * M7_HZ / 1e6) if len(cpu_model) > 2 else "")
     direct = {baud: polling_rate(baud, direct=True, n=n) for baud in P.BAUD_RATES}
-    for title, mode, capture, model in (
-            ("cut-through (param 12 = 0)", P.CUT_THROUGH, False, cpu_model),
-            ("store-and-forward (param 12 = 1)", P.STORE_AND_FORWARD, False, cpu_model),
+    for title, mode, capture, model, pre in (
+            ("cut-through (param 12 = 0)", P.CUT_THROUGH, False, cpu_model, None),
+            ("store-and-forward (param 12 = 1)", P.STORE_AND_FORWARD, False, cpu_model, None),
             ("cut-through, recording both buses (param 13 = 1), the capture port read by a host", P.CUT_THROUGH,
-             True, capture_model)):
+             True, capture_model, None),
+            ("cut-through, DE pre-delay 1 us (param 6 = 1; default 10): what a transceiver that enables in"
+             " < 1 us allows", P.CUT_THROUGH, False, cpu_model, 1)):
+        cut = mode == P.CUT_THROUGH
         print("    %s:" % title)
         if capture:
             print("    (CPU model: + %d instructions a byte, slow pass %d, %d a write of records to the port)"
                   % (round((model[1] - cpu_model[1]) * M7_HZ / 1e6), round(model[2] * M7_HZ / 1e6),
                      round(model[3] * M7_HZ / 1e6)))
-        print("    %7s %10s %10s %7s %13s %13s %8s" % ("baud", "direct /s", "jig /s", "ratio",
-                                                   "req hop us", "reply hop us", "byte us"))
+        print("    %7s %10s %10s %7s %11s %11s %8s%s" % ("baud", "direct /s", "jig /s", "ratio", "req hop us",
+                                                     "rep hop us", "byte us",
+                                                     "  hop/byte = byte + pre + CPU + on the way" if cut else ""))
         for baud in P.BAUD_RATES:
             d = direct[baud]
             try:
-                j = polling_rate(baud, forward_mode=mode, n=n, cpu_model=model, capture=capture)
+                j = polling_rate(baud, forward_mode=mode, n=n, cpu_model=model, capture=capture, pre_us=pre)
             except RuntimeError as exc:  # a firmware that loses replies: say so, measure the rest
                 print("    %7d %10.1f  FAILED: %s" % (baud, d["rate"], exc))
                 continue
-            print("    %7d %10.1f %10.1f %6.1f%% %13.1f %13.1f %8.1f%s"
+            split = ""
+            if cut:
+                bt = j["byte_us"]
+                hop = (j["req_hop_us"] + j["rep_hop_us"]) / 2
+                lag = (j["req_lag_us"] + j["rep_lag_us"]) / 2
+                split = "  %5.2f = 1 + %.2f + %.2f + %.2f" % (hop / bt, j["pre_us"] / bt, (lag - bt - j["pre_us"]) / bt,
+                                                          (hop - lag) / bt)
+            print("    %7d %10.1f %10.1f %6.1f%% %11.1f %11.1f %8.1f%s%s"
                   % (baud, d["rate"], j["rate"], 100.0 * j["rate"] / d["rate"], j["req_hop_us"],
-                     j["rep_hop_us"], j["byte_us"],
+                     j["rep_hop_us"], j["byte_us"], split,
                      "   records %d, lost %d" % (j["records"], j["lost"]) if capture else ""))
-    print("    (hop = last stop bit of the frame on one bus -> last stop bit of the same frame")
-    print("     leaving the jig on the other; a wire would add 0, cut-through about 1-2 byte times)")
+    print("    (hop = last stop bit of the frame on one bus -> last stop bit of the same frame leaving the")
+    print("     jig on the other; a wire would add 0. Cut through, in byte times, the mean of both hops: the")
+    print("     first byte's own wire time (the jig must have it before it can send it: a header's AA goes on")
+    print("     at once, it does not wait for its CC), the DE pre-delay before its start bit, the CPU until")
+    print("     it is sent (the pass that read it, and one it may have queued behind), and what the frame")
+    print("     lost on the way after that (the transmitter running dry: 0 while the CPU keeps up))")
 
 
 def timeline(baud):

@@ -252,9 +252,8 @@ class Bridge:
         self.v = counters.v
         self.ver8 = ver8
         self.cut_through = cut_through
-        # Cut through between plain ports, the other bus is taken (DE up) as soon as a
-        # byte that can start a header is in, so the DE pre-delay runs while the rest
-        # of the header arrives (``_early``).
+        # Cut through between plain ports, the other bus is taken (DE up) and the AA
+        # sent on as soon as a byte that can start a header is in (``_early``).
         self.early_ok = cut_through and up.plain and down.plain
         self.head = 3 if ver8 else 2  # id, [sync], type
         # due[0]: tick by which the app's slow pass must run (the reply deadline).
@@ -638,10 +637,12 @@ class Bridge:
     def _early(self, st, rs, now, may):
         """After a chunk: it ended on an AA that can start a header (parser in HEADER)
         and a frame from this side would go on at its header (``may``: the PC's in
-        IDLE, a driver's while a reply is awaited) -- raise DE on the other bus now.
-        Its pre-delay runs while the CC arrives, and ``begin`` waits only the rest.
-        No header followed (the parser left HEADER without a start, or timed out
-        there: ``gap``) -- let the bus go."""
+        IDLE, a driver's while a reply is awaited) -- take the other bus now and send
+        that AA on at once (``Rs485.raise_early``): the frame then leaves the jig one
+        byte time after it arrives, not two (the AA does not wait for its CC), and
+        ``begin`` goes on from the CC. No header followed (the parser left HEADER
+        without a start, or timed out there: ``gap``) -- let the bus go: it carried a
+        lone AA, as a wire would have."""
         if st[S_STATE] == HEADER:
             if may and rs.early[0] < 0:
                 rs.raise_early()

@@ -53,6 +53,7 @@ _RX_CHUNK = const(256)  # app.RX_CHUNK
 _MASK = const(0x3FFFFFFF)
 _HALF = const(0x20000000)
 _STUFF = const(0xAA)
+_CC = const(0xCC)
 _BROADCAST_ID = const(99)
 # jig.parser (its machine runs inline here: jig.native.scan's source, the same table)
 _EV_FRAME = const(1)
@@ -228,7 +229,7 @@ def pump(ctx, passes: int) -> int:
     tmult = ptr8(tmult_buf)
     nxt = ptr8(next_buf)
     flg = ptr16(flags_buf)
-    uearly = ptr32(up_early)  # Rs485.early: tick DE went up ahead of a frame, -1: not
+    uearly = ptr32(up_early)  # Rs485.early: tick DE went up and the AA went ahead of a frame, -1: not
     dearly = ptr32(down_early)
     cs = ptr32(cs_arr)  # jig.capture's state: recording on, where each frame began
     xt = ptr32(xt_arr)  # Bridge.xt: the last forwarded requests' times
@@ -400,17 +401,19 @@ def pump(ctx, passes: int) -> int:
                         cs[_CS_START + _CH_DRV_IN] = now
                         if state == _AWAIT_PC and bs[_B_FWD] == 0:
                             cs[_CS_START + _CH_PC_OUT] = now
-                            # Rs485.begin (DE up early: only the rest of the pre-delay)
-                            wait = int(ram[_P_DE_PRE_US])
-                            t = uearly[0]
-                            if t >= 0:
+                            # Rs485.begin (taken early: the AA has gone, the CC follows)
+                            if uearly[0] >= 0:
                                 uearly[0] = -1
-                                wait -= ((int(ticks()) - t) & _MASK) - 1
+                                if uq != 0 and (ureg[0] & _ISR_TXFNF) != 0:
+                                    ureg[_TDR] = _CC  # (into the FIFO behind the AA: room for it)
+                                else:
+                                    up_queue(hdr_buf, 1, 1)
                             else:
                                 up_de(1)
-                            if wait > 0:
-                                sleep(wait)
-                            up_queue(hdr_buf, 0, 2)
+                                wait = int(ram[_P_DE_PRE_US])
+                                if wait > 0:
+                                    sleep(wait)
+                                up_queue(hdr_buf, 0, 2)
                             bs[_B_REL] = 1
                             bs[_B_CHECKED] = 0
                             t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
@@ -444,16 +447,15 @@ def pump(ctx, passes: int) -> int:
                                 hdr[4] = b1
                                 k = 5
                             cs[_CS_START + _CH_PC_OUT] = now
-                            wait = int(ram[_P_DE_PRE_US])
-                            t = uearly[0]
-                            if t >= 0:
+                            if uearly[0] >= 0:
                                 uearly[0] = -1
-                                wait -= ((int(ticks()) - t) & _MASK) - 1
+                                up_queue(hdr_buf, 1, k - 1)
                             else:
                                 up_de(1)
-                            if wait > 0:
-                                sleep(wait)
-                            up_queue(hdr_buf, 0, k)
+                                wait = int(ram[_P_DE_PRE_US])
+                                if wait > 0:
+                                    sleep(wait)
+                                up_queue(hdr_buf, 0, k)
                             bs[_B_REL] = 1
                             bs[_B_CHECKED] = 1
                             t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
@@ -490,16 +492,18 @@ def pump(ctx, passes: int) -> int:
                         # Bridge._pc_start: on to the driver bus from the header
                         cs[_CS_START + _CH_PC_IN] = now
                         cs[_CS_START + _CH_DRV_OUT] = now
-                        wait = int(ram[_P_DE_PRE_US])
-                        t = dearly[0]
-                        if t >= 0:
+                        if dearly[0] >= 0:
                             dearly[0] = -1
-                            wait -= ((int(ticks()) - t) & _MASK) - 1
+                            if dq != 0 and (dreg[0] & _ISR_TXFNF) != 0:
+                                dreg[_TDR] = _CC
+                            else:
+                                down_queue(hdr_buf, 1, 1)
                         else:
                             down_de(1)
-                        if wait > 0:
-                            sleep(wait)
-                        down_queue(hdr_buf, 0, 2)
+                            wait = int(ram[_P_DE_PRE_US])
+                            if wait > 0:
+                                sleep(wait)
+                            down_queue(hdr_buf, 0, 2)
                         bs[_B_FWD] = 1
                         bs[_B_ROUTED] = 0
                         t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
@@ -606,16 +610,15 @@ def pump(ctx, passes: int) -> int:
                         m = int(stuff(txbuf, reply_body, blen))
                         # Rs485.send
                         t_tx = int(ticks())
-                        wait = int(ram[_P_DE_PRE_US])
-                        t = uearly[0]
-                        if t >= 0:
-                            uearly[0] = -1
-                            wait -= ((int(ticks()) - t) & _MASK) - 1
+                        if uearly[0] >= 0:
+                            uearly[0] = -1  # (the reply's AA has gone)
+                            up_write(txbuf, 1, m - 1)
                         else:
                             up_de(1)
-                        if wait > 0:
-                            sleep(wait)
-                        up_write(txbuf, 0, m)
+                            wait = int(ram[_P_DE_PRE_US])
+                            if wait > 0:
+                                sleep(wait)
+                            up_write(txbuf, 0, m)
                         post = int(ram[_P_DE_POST_US])
                         if post != 0:
                             sleep(post)
@@ -644,28 +647,50 @@ def pump(ctx, passes: int) -> int:
                     else:
                         pc_event(up_parser, ev, now)
             if side == 0:
-                # Bridge._early: the PC bus taken while a reply's header may be arriving
+                # Bridge._early: an AA that may start a reply's header goes on to the PC at once
                 if dst[_S_STATE] == _HEADER:
                     if uearly[0] < 0 and bs[_B_STATE] == _AWAIT_PC and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
-                        up_de(1)
-                        uearly[0] = int(ticks())
+                        up_de(1)  # Rs485.raise_early
+                        uearly[0] = now
+                        wait = int(ram[_P_DE_PRE_US])
+                        if wait > 0:
+                            sleep(wait)
+                        if uq != 0 and (ureg[0] & _ISR_TXFNF) != 0:
+                            ureg[_TDR] = _STUFF  # (the transmitter was idle: the FIFO has room)
+                        else:
+                            up_queue(hdr_buf, 0, 1)
                         t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
                         if ((t - due[0]) & _MASK) >= _HALF:
                             due[0] = t
                 elif uearly[0] >= 0:
-                    uearly[0] = -1
+                    uearly[0] = -1  # Rs485.drop_early: no header followed
+                    up_drain()
+                    post = int(ram[_P_DE_POST_US])
+                    if post != 0:
+                        sleep(post)
                     up_de(0)
             else:
-                # Bridge._early: the driver bus taken while a PC header may be arriving
+                # Bridge._early: an AA that may start a PC header goes on to the driver bus at once
                 if ust[_S_STATE] == _HEADER:
                     if dearly[0] < 0 and bs[_B_STATE] == _IDLE and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
-                        down_de(1)
-                        dearly[0] = int(ticks())
+                        down_de(1)  # Rs485.raise_early
+                        dearly[0] = now
+                        wait = int(ram[_P_DE_PRE_US])
+                        if wait > 0:
+                            sleep(wait)
+                        if dq != 0 and (dreg[0] & _ISR_TXFNF) != 0:
+                            dreg[_TDR] = _STUFF
+                        else:
+                            down_queue(hdr_buf, 0, 1)
                         t = (now + int(ram[_P_INTERBYTE_US]) + 1) & _MASK
                         if ((t - due[0]) & _MASK) >= _HALF:
                             due[0] = t
                 elif dearly[0] >= 0:
-                    dearly[0] = -1
+                    dearly[0] = -1  # Rs485.drop_early: no header followed
+                    down_drain()
+                    post = int(ram[_P_DE_POST_US])
+                    if post != 0:
+                        sleep(post)
                     down_de(0)
             avail = 0
             if side == 0:

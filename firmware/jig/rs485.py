@@ -5,10 +5,12 @@ left the shift register (the HAL's ``write`` returns after transmit-complete, or
 we wait the computed wire time), waits the post-delay and releases DE. A frame
 that is passed on as it arrives (cut-through) is sent as ``begin``, any number of
 ``part`` calls and ``finish``: DE stays up from the first byte to the last stop
-bit of the last part. On a plain port DE may go up early (``raise_early``: the
-bridge does it when a byte that can start a header arrives); the ``begin`` that
-follows waits only what is left of the pre-delay, and ``drop_early`` lets the bus
-go if no frame follows. Where the port can queue bytes for its transmitter
+bit of the last part. On a plain port the bus may be taken early
+(``raise_early``: the bridge does it when a byte that can start a header, an AA,
+arrives on the other bus): DE up, the pre-delay, and that AA goes on at once, as
+on a wire; the ``begin`` that follows sends its header from the CC, and
+``drop_early`` lets the bus go if no header followed (the line then carried a lone
+AA, as a wire would have). Where the port can queue bytes for its transmitter
 (``port.queue``/``port.drain``: the USART's transmit FIFO on the board), the
 pieces of such a frame are queued and the CPU goes on while they go out;
 ``finish`` drains the transmitter before DE drops. So DE is never dropped with
@@ -29,9 +31,10 @@ counted. A port that declares ``echo_free`` (receiver off whenever DE is up, as
 from array import array
 
 from jig import mem
-from jig.compat import const, ticks_diff
+from jig.compat import const
 
 BITS_PER_BYTE = const(10)  # 8N1: start + 8 data + stop
+_AA = b"\xaa"  # the header's first byte, sent ahead of the rest (raise_early)
 
 
 def wire_time_us(nbytes, baud):
@@ -50,8 +53,9 @@ class Rs485:
         self.port = port
         self.echo_bytes = 0  # bytes discarded as echo
         self.t_tx_start = 0  # tick when the last ``send`` took the bus
-        # early[0]: tick at which DE went up ahead of a frame (``raise_early``), -1: it
-        # did not. An array: the machine-code pump (jig.fastpath) shares it.
+        # early[0]: tick at which DE went up ahead of a frame and its AA was sent
+        # (``raise_early``), -1: it did not. An array: the machine-code pump
+        # (jig.fastpath) shares it.
         self.early = array("i", [-1])
         self._keep = 0  # bytes still to deliver before the echo to skip
         self._skip = 0  # echo bytes still to skip
@@ -101,18 +105,17 @@ class Rs485:
 
     def begin(self, buf, off, n):
         """Take the bus (/RE off, DE up, pre-delay: software DE) and transmit the
-        first part, buf[off:off + n]. If DE went up early, only what is left of the
-        pre-delay is waited (one tick more: the ticks count whole µs)."""
+        first part, buf[off:off + n], a frame's header first. If the bus was taken
+        early (``raise_early``), the header's AA has gone: the rest follows at once."""
         if self.plain:
-            wait = self.pre_us
-            t = self.early[0]
-            if t >= 0:
+            if self.early[0] >= 0:
                 self.early[0] = -1
-                wait -= ticks_diff(self._ticks(), t) - 1
-            else:
-                self._de(1)
-            if wait > 0:
-                self._sleep(wait)
+                if n > 1:
+                    self.raw_part(buf, off + 1, n - 1)
+                return
+            self._de(1)
+            if self.pre_us:
+                self._sleep(self.pre_us)
             self.raw_part(buf, off, n)
             return
         if self.track_echo:
@@ -152,16 +155,24 @@ class Rs485:
             self._note_echo()
 
     def raise_early(self):
-        """Plain port: DE up now, ahead of a frame that may follow (its pre-delay runs
-        meanwhile); the next ``begin`` or ``drop_early`` ends it."""
+        """Plain port: an AA that may start a header came in on the other bus: take
+        this bus (DE up, the pre-delay) and send the AA on now, a byte time before its
+        CC can be in; the next ``begin`` sends the header from the CC, or
+        ``drop_early`` ends it."""
         if self.early[0] < 0:
             self._de(1)
             self.early[0] = self._ticks()
+            if self.pre_us:
+                self._sleep(self.pre_us)
+            self.raw_part(_AA, 0, 1)
 
     def drop_early(self):
-        """No frame followed an early DE: let the bus go."""
+        """No header followed the AA sent early: let the bus go (as ``finish``)."""
         if self.early[0] >= 0:
             self.early[0] = -1
+            self.drain()
+            if self.post_us:
+                self._sleep(self.post_us)
             self._de(0)
 
     def _note_echo(self):
