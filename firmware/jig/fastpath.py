@@ -240,7 +240,6 @@ def pump(ctx, passes: int) -> int:
     while passes != 0:
         if passes > 0:
             passes -= 1
-        now = -1
         # side 0: the driver bus first (a reply already in goes before a new PC request);
         # side 1: the PC bus. Each side: read what is waiting, run it through the parser's
         # machine (inline below), pass the raw bytes of a frame being cut through on to the
@@ -248,8 +247,12 @@ def pump(ctx, passes: int) -> int:
         side = 0
         avail = int(down_any())
         if avail == 0:
-            side = 1
             avail = int(up_any())
+            if avail == 0:  # an idle pass
+                if ((int(ticks()) - due[0]) & _MASK) < _HALF:
+                    return passes
+                continue
+            side = 1
         while avail != 0:
             n = avail if avail < _RX_CHUNK else _RX_CHUNK
             if side == 0:
@@ -696,8 +699,6 @@ def pump(ctx, passes: int) -> int:
             if side == 0:
                 side = 1
                 avail = int(up_any())
-        if now < 0:
-            now = int(ticks())  # (a pass that read input judges the slow pass by its last read's tick)
-        if ((now - due[0]) & _MASK) < _HALF:
+        if ((now - due[0]) & _MASK) < _HALF:  # (a pass that read input: by its last read's tick)
             return passes
     return 0
