@@ -313,9 +313,10 @@ class App:
         """The CAN port's own pass (due[1]); the next one a period on (on its grid)."""
         self.can.serve(now)
         due = self.due
-        t = ticks_add(due[1], CAN_POLL_US)
-        if ticks_diff(t, now) <= 0:
-            t = ticks_add(now, CAN_POLL_US)
+        t = (due[1] + CAN_POLL_US) & TICKS_MASK  # (ticks_add and ticks_diff inline: no calls)
+        d = (t - now) & TICKS_MASK
+        if d == 0 or d >= TICKS_HALF:  # not after now: a period from now
+            t = (now + CAN_POLL_US) & TICKS_MASK
         due[1] = t
 
     def _slow(self, now):

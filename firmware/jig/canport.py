@@ -53,10 +53,12 @@ RX_FRAMES = const(256)  # the RX ring (a power of two): ~30 ms of a 1 Mbit/s bus
 TX_FRAMES = const(64)  # the host's frames waiting for the bus (a power of two)
 STAGE = const(256)  # bytes of SLCAN lines / answers handed to the port per write
 LINE_MAX = const(31)  # "T" + 8 id + 1 dlc + 16 data + 4 stamp + CR
+LINE_MIN = const(6)  # the shortest frame line: "t" + 3 id + DLC + CR
 IN_CHUNK = const(64)  # bytes read from the host per readinto
 IN_PER_POLL = const(512)  # at most this many a pass
 OUT_PER_POLL = const(2048)  # bytes of lines handed to the port a pass, at most
 CAN_POLL_US = const(100)  # while open the port's own pass (serve) comes this often
+STALL_US = const(250000)  # a full TX FIFO that sent nothing this long: the host's frames are refused again
 ANSWER_US = const(1000)  # closed with answers the port has not taken: the slow pass this often
 WATCH_US = const(10000)  # the controller's state and error counters are read this often
 _NOT_OFF = const(-1)  # CanPort.t_bus_off: not bus-off
@@ -184,6 +186,7 @@ class CanPort:
         self._irqo = None
         self.record = getattr(getattr(app, "capture", None), "can_frame", None)  # (does nothing while not recording)
         self.lost_seen = 0  # rx lost + overruns at the last look (F's overrun bits)
+        self.t_full = -1  # tick the TX FIFO was found full with the host's bytes waiting (-1: not full)
         self.safety = CanSafety(self, app.params, app.counters)
 
     def _host_data(self, _port):
@@ -247,9 +250,7 @@ class CanPort:
             mv = lst[1]
             n = len(mv)
             self.rx_dlc[head] = n
-            base = head << 3
-            for i in range(n):
-                data[base + i] = mv[i]
+            copy(data, head << 3, mv, 0, n)
             t = self._ticks()
             self.rx_tick[head] = t
             rs[RS_HEAD] = nxt
@@ -273,11 +274,7 @@ class CanPort:
         ts = self.ts
         k = ts[TS_TAIL]
         n = self.tx_dlc[k]
-        txb = self.txb
-        data = self.tx_data
-        base = k << 3
-        for i in range(n):
-            txb[i] = data[base + i]
+        copy(self.txb, 0, self.tx_data, k << 3, n)
         ts[TS_TAIL] = (k + 1) & _TX_MASK
         ts[TS_BUSY] = 1
         r = -1
@@ -302,22 +299,20 @@ class CanPort:
         return self.safety.wait_us(now)
 
     def serve(self, now):
-        """The port's own pass while open (``app.due[1]``): the host's lines in, the
-        ring's frames out, the controller's finished frames counted; nothing more."""
-        port = self.port
-        if port is None:
-            return
+        """The port's own pass while open (``app.due[1]``): the controller's finished
+        frames counted, the host's lines in, the ring's frames out; nothing more.
+        With nothing to do: one ``any()`` and a few compares."""
+        ts = self.ts
+        if ts[TS_REC] != ts[TS_DONE]:
+            self._tx_count()  # (first: the entries it frees are room for the host's frames)
         if self.out_n:
             self._flush()
-        if port.any():
+        if self.port.any():
             self._read(now)
         rs = self.rs
         if rs[RS_TAIL] != rs[RS_HEAD]:
             self._rx_out()
-        ts = self.ts
-        if ts[TS_REC] != ts[TS_DONE]:
-            self._tx_count()
-        if ts[TS_TAIL] != ts[TS_HEAD]:
+        if not ts[TS_BUSY] and ts[TS_TAIL] != ts[TS_HEAD]:
             self._kick()  # (the controller's queue was full)
         if self.out_n:
             self._flush()
@@ -391,6 +386,7 @@ class CanPort:
             if self.t_bus_off != _NOT_OFF:  # back on the bus (after a restart's recovery)
                 self.t_bus_off = _NOT_OFF
                 self.ts[TS_HOLD] = 0
+                self.t_full = -1
             return
         self.flags |= F_BUS_ERROR
         if self.t_bus_off == _RECOVERING:
@@ -477,14 +473,38 @@ class CanPort:
 
     def _read(self, now):
         """Read the host's lines and act on them; an answer for each line must fit the
-        stage (at most 3 bytes of answer a byte of input: "V" CR -> "V1013" CR)."""
+        stage (at most 3 bytes of answer a byte of input: "V" CR -> "V1013" CR).
+
+        Push back: while frames can be queued, no more bytes are read than could
+        complete a frame line for each free TX FIFO entry (LINE_MIN bytes an entry:
+        a partial line needs at least one more byte, every other line all of its
+        own). The rest wait in the USB port, which holds the host off when its
+        buffer is full (the stm32 CDC stops acknowledging OUT packets): a host that
+        sends faster than the bus waits instead of losing frames to BEL. Only a
+        FIFO that has been full for STALL_US with nothing sent (no other node
+        acknowledges) lets the host's frames be refused again, so that its later
+        commands (C) still get through."""
         port = self.port
         r = self.reader
+        ts = self.ts
         got = 0
         while got < IN_PER_POLL:
             k = (STAGE - self.out_n) // 3
             if k > IN_CHUNK:
                 k = IN_CHUNK
+            if self.is_open and not self.listen and not ts[TS_HOLD]:
+                room = ((ts[TS_REC] - ts[TS_HEAD] - 1) & _TX_MASK) * LINE_MIN
+                if room:
+                    self.t_full = -1
+                    if room < k:
+                        k = room
+                elif port.any():
+                    self.flags |= F_TX_FULL
+                    if self.t_full < 0:
+                        self.t_full = now
+                        return
+                    if ticks_diff(now, self.t_full) < STALL_US:
+                        return
             if k <= 0 or not port.any():
                 return
             n = port.readinto(self.inv[k])
@@ -528,7 +548,12 @@ class CanPort:
             if self.is_open or r.arg < 0 or r.arg >= len(S.SLCAN_BITRATES):
                 self._put(_BEL)
             else:
-                self.bitrate = S.SLCAN_BITRATES[r.arg]
+                b = S.SLCAN_BITRATES[r.arg]
+                if b != self.bitrate:
+                    self.bitrate = b
+                    cap = getattr(self.app, "capture", None)
+                    if cap is not None:
+                        cap.hello(now)  # the recording's hello carries the CAN bitrate
                 self._put(_CR)
         elif c == 0x46:  # F
             self._status_line()
@@ -632,6 +657,7 @@ class CanPort:
         for i in range(3):
             self.base_hw[i] = 0
         self.t_bus_off = _NOT_OFF
+        self.t_full = -1
         self.can = can
         self.listen = 1 if listen_only else 0
         self.lines = 0
