@@ -16,8 +16,8 @@ The port's ``write`` never blocks: lines it does not take wait in the ring.
 
 The port's own pass: while the port is open the main loop calls ``serve`` every
 ``CAN_POLL_US`` (its tick in ``app.due[1]``; the first frame into an empty ring
-pulls it to now): the host's lines in, frames both ways -- a few compares when
-there is nothing to do, and none of the slow pass's work. On the board the host's
+pulls it to now): the host's lines in, frames both ways -- one ``any()`` and a
+few compares when there is nothing to do, and none of the slow pass's work. On the board the host's
 bytes cannot wake the loop (``USB_VCP.irq`` is a soft callback, which never runs
 inside the machine-code pump), so this period is what a host line waits for at
 most: less than a frame time at 1 Mbit/s (47-135 µs). The slow pass (``poll``)
@@ -27,8 +27,12 @@ safety stop; closed, the host's commands wait for it.
 Send: frame lines go into a FIFO of ``TX_FRAMES``. ``machine.CAN``'s transmit
 queue is a priority queue by id, so to keep the host's order at most one frame is
 in the controller at a time; the TX IRQ sends the next (copied into a staging
-buffer, passed as a preallocated memoryview of its length). A full FIFO answers
-BEL (counted). Completed frames are counted and recorded in the port's pass.
+buffer, passed as a preallocated memoryview of its length). A host that sends
+faster than the bus is held off, not refused: its bytes are read only as the FIFO
+has room for the frame lines they could hold, the rest wait in the USB port (see
+``_read``; BEL only after ``STALL_US`` of a full FIFO with nothing sent).
+Completed frames are counted and recorded in the port's pass, with the tick of
+their TX interrupt (received frames: the tick the RX interrupt put them in the ring).
 
 Bus-off is seen by ``state()`` in the slow pass and restarted after parameter 17
 ``can_bus_off_restart_ms`` (0: it stays off until the host closes and opens). The
