@@ -10,7 +10,8 @@ also runs under CPython (where ``gc.mem_alloc`` is missing: -1).
 * ``rx_alloc(n)``: heap bytes over n frames received -> SLCAN line to the host;
 * ``tx_alloc(n)``: ... over n SLCAN frame lines from the host -> frame sent, its
   TX interrupt, counted;
-* ``idle_alloc(n)``: ... over n main-loop passes with the port closed and idle.
+* ``idle_alloc(n)``: ... over n main-loop passes with the port closed and idle;
+* ``open_idle_alloc(n)``: ... over n of the open port's own passes with nothing to do.
 Each returns (bytes, ok) where ok says the frames went where they should.
 """
 
@@ -216,3 +217,18 @@ def idle_alloc(n=2000):
 
     used = heap_used(one, n)
     return used, r.app.can.is_open == 0
+
+
+def open_idle_alloc(n=2000):
+    r = CanRig()
+    due = r.app.due
+    passes = [0]
+
+    def one():
+        t = due[1]
+        r.step(100)  # CAN_POLL_US: the port's own pass, nothing to do
+        if due[1] != t:
+            passes[0] += 1
+
+    used = heap_used(one, n)
+    return used, r.app.can.is_open == 1 and passes[0] >= n

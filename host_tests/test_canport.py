@@ -363,6 +363,13 @@ def test_read_can_counters_decoded_and_reset_by_reset_counters():
     assert 2 + 4 * (diag.N_WIRE) <= F.MAX_DATA and 2 + 4 * diag.N_CAN_WIRE <= F.MAX_DATA
 
 
+def test_the_ports_local_counter_constants_are_the_counters_modules():
+    from jig import canport
+
+    for name in ("CC_RX", "CC_TX", "CC_RX_LOST", "CC_RX_OVERRUNS", "CC_TX_FAILED", "CC_LINES"):
+        assert getattr(canport, "_" + name) == getattr(K, name), name
+
+
 def test_can_counter_names_cover_the_slcan_error_kinds_and_are_documented():
     assert diag.CAN_WIRE_NAMES[-len(S.ERR_NAMES):] == tuple("slcan_" + n for n in S.ERR_NAMES)
     assert len(set(diag.CAN_WIRE_NAMES)) == diag.N_CAN_WIRE
@@ -598,7 +605,8 @@ def test_jigctl_stats_prints_a_can_port_block():
 # --- no allocation: the steady state in the MicroPython VM --------------------------------
 def test_no_heap_per_frame_either_way_on_micropython():
     """A frame from the bus to the host, a line from the host to the bus (with its TX
-    interrupt), and idle passes with the port closed allocate nothing on MicroPython
+    interrupt), idle passes with the port closed and the open port's own idle passes
+    allocate nothing on MicroPython
     (the WebAssembly VM: the IRQ handler runs synchronously there, as a hard IRQ must:
     with no allocation)."""
     import os
@@ -611,16 +619,18 @@ def test_no_heap_per_frame_either_way_on_micropython():
         pytest.skip("node or the MicroPython WebAssembly package is missing (tools/setup.sh)")
     code = ("import sys\nsys.path.append('/data')\nimport can_probe as c\n"
             "print(c.rx_alloc(300))\nprint(c.tx_alloc(300))\nprint(c.idle_alloc(2000))\n"
+            "print(c.open_idle_alloc(2000))\n"
             "print(c.heap_used(lambda: bytearray(16), 10) > 0)\nprint(sys.implementation.name)\n")
     r = subprocess.run(["node", os.path.join(here, "wasm", "run_vm.mjs"),
                         "--file", "bridge_probe.py=" + os.path.join(here, "bridge_probe.py"),
                         "--file", "can_probe.py=" + os.path.join(here, "can_probe.py"), code],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == ["(0,", "True)", "(0,", "True)", "(0,", "True)", "True", "micropython"]
+    assert r.stdout.split() == ["(0,", "True)"] * 4 + ["True", "micropython"]
 
 
 def test_can_probe_under_cpython():
     import can_probe
 
     assert can_probe.rx_alloc(20)[1] and can_probe.tx_alloc(20)[1] and can_probe.idle_alloc(50)[1]
+    assert can_probe.open_idle_alloc(50)[1]
