@@ -169,10 +169,11 @@ def counts_of(r):
     return d
 
 
-def replay(cap, cut=-1, bytewise=False):
+def replay(cap, cut=-1, bytewise=False, reader_class=SlcanReader):
     """Feed the capture burst by burst at its times (each burst in one call, cut in
-    two at stream offset ``cut``, or byte by byte); returns (events, counters)."""
-    r = SlcanReader()
+    two at stream offset ``cut``, or byte by byte) to a new ``reader_class()`` (an
+    engine's reader, slcan.reader_class); returns (events, counters)."""
+    r = reader_class()
     events = []
     offset = 0
     for t, data in cap.bursts:
@@ -215,18 +216,18 @@ def check(cap, events, counts):
     return problems
 
 
-def report(cap, every_split=False):
+def report(cap, every_split=False, reader_class=SlcanReader):
     """Lines that say what the replay gave: the events, the counters, whether the
     other feeding strategies agree and the sidecar is met."""
-    events, counts = replay(cap)
+    events, counts = replay(cap, reader_class=reader_class)
     out = ["capture " + cap.name]
     for e in events:
         out.append("  " + e)
     out.append("  counts " + " ".join("%s=%d" % (k, counts[k]) for k in sorted(counts)))
-    same = replay(cap, bytewise=True) == (events, counts)
+    same = replay(cap, bytewise=True, reader_class=reader_class) == (events, counts)
     if every_split:
         for cut in range(len(cap.stream()) + 1):
-            if replay(cap, cut=cut) != (events, counts):
+            if replay(cap, cut=cut, reader_class=reader_class) != (events, counts):
                 same = False
                 break
     out.append("  strategies " + ("all same" if same else "differ"))

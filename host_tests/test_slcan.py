@@ -27,12 +27,19 @@ from hypothesis import strategies as st
 import slcan_replay as sr
 from jig import slcan
 from jig.compat import TICKS_PERIOD
-from jig.slcan import (ERR_NAMES, EV_BAD, EV_CMD, EV_NONE, LINE_TIMEOUT_US, MAX_LINE, SKIP, START, SlcanReader,
-                       encode_frame)
+from jig.slcan import (ERR_NAMES, EV_BAD, EV_CMD, EV_NONE, LINE_TIMEOUT_US, MAX_LINE, S_STATE, SKIP, START,
+                       SlcanReader, encode_frame)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CAPTURES = sorted(glob.glob(os.path.join(ROOT, "host_tests", "captures", "slcan", "*.slcan")))
+ENGINES = ("table", "viper")
 SETTINGS = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@pytest.fixture(params=ENGINES)
+def Reader(request):
+    """The reader class of each engine (viper: jig.slcanfast's source as plain Python)."""
+    return slcan.reader_class(request.param)
 
 
 def feed_all(r, data, now=-1, chunk=None):
@@ -128,14 +135,16 @@ def test_there_are_captures_of_every_kind():
     assert set("tTrROLCSsFVNZ") <= seen
 
 
+@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("path", CAPTURES, ids=[os.path.basename(p) for p in CAPTURES])
-def test_capture_whole_halved_and_bytewise(path):
+def test_capture_whole_halved_and_bytewise(path, engine):
     cap = sr.load(path)
-    events, counts = sr.replay(cap)
+    cls = slcan.reader_class(engine)
+    events, counts = sr.replay(cap, reader_class=cls)
     assert sr.check(cap, events, counts) == []
-    assert sr.replay(cap, bytewise=True) == (events, counts)
+    assert sr.replay(cap, bytewise=True, reader_class=cls) == (events, counts)
     for cut in range(len(cap.stream()) + 1):
-        assert sr.replay(cap, cut=cut) == (events, counts), "cut at %d" % cut
+        assert sr.replay(cap, cut=cut, reader_class=cls) == (events, counts), "cut at %d" % cut
 
 
 def test_capture_01_is_what_python_can_writes():
@@ -179,8 +188,8 @@ def test_capture_01_is_what_python_can_writes():
 
 # --- the feed and gap contract -----------------------------------------------------
 
-def test_feed_stops_after_each_line_and_fills_the_fields():
-    r = SlcanReader()
+def test_feed_stops_after_each_line_and_fills_the_fields(Reader):
+    r = Reader()
     data = b"t1232CAFE\rT1ABCDEF01r7FF8\rS5\rs0A1b\rZ1\r"
     i = r.feed(data, 0, len(data), -1)
     assert (r.ev, i) == (EV_CMD, 10)
@@ -197,34 +206,34 @@ def test_feed_stops_after_each_line_and_fills_the_fields():
     i = r.feed(data, i, len(data), -1)
     assert (chr(r.cmd), r.arg, i) == ("Z", 1, len(data))
     assert r.feed(data, i, len(data), -1) == len(data) and r.ev == EV_NONE
-    assert r.lines == 5 and r.refused == 1
+    assert r.lines == 5 and r.refused_lines() == 1
 
 
-def test_a_refused_line_answers_at_its_cr_and_the_next_byte_starts_afresh():
-    r = SlcanReader()
+def test_a_refused_line_answers_at_its_cr_and_the_next_byte_starts_afresh(Reader):
+    r = Reader()
     data = b"t12G4567\rO\r"
     i = r.feed(data, 0, 4, -1)  # the fault is found at 'G' ...
-    assert r.ev == EV_NONE and r.state == SKIP and i == 4
+    assert r.ev == EV_NONE and r.st[S_STATE] == SKIP and i == 4
     i = r.feed(data, i, len(data), -1)  # ... and answered at the CR
-    assert r.ev == EV_BAD and ERR_NAMES[r.err] == "hex" and i == 9 and r.state == START
+    assert r.ev == EV_BAD and ERR_NAMES[r.err] == "hex" and i == 9 and r.st[S_STATE] == START
     r.feed(data, i, len(data), -1)
     assert r.ev == EV_CMD and chr(r.cmd) == "O"
 
 
-def test_extended_ids_never_grow_past_29_bits():
+def test_extended_ids_never_grow_past_29_bits(Reader):
     # The first of 8 digits decides the range: nothing bigger than 0x1FFFFFFF is ever
     # accumulated (a MicroPython small int holds 30 bits).
     for line, kind in ((b"T1FFFFFFF0\r", None), (b"T2000000000\r", "id_range"), (b"t7FF0\r", None),
                        (b"t8000\r", "id_range"), (b"tF000\r", "id_range")):
-        r = SlcanReader()
+        r = Reader()
         ev = feed_all(r, line)
         assert ev == (["bad " + kind] if kind else [sr.event(r)])
         if not kind:
             assert r.can_id in (0x1FFFFFFF, 0x7FF)
 
 
-def test_overlong_is_decided_by_length_alone():
-    r = SlcanReader()
+def test_overlong_is_decided_by_length_alone(Reader):
+    r = Reader()
     assert feed_all(r, b"x" * MAX_LINE + b"\r") == ["bad unknown"]
     assert feed_all(r, b"x" * (MAX_LINE + 1) + b"\r") == ["bad overlong"]
     assert feed_all(r, b"T1FFFFFFF8" + b"A" * 16 + b"\r") == ["T 1FFFFFFF 8 " + "AA" * 8]
@@ -233,19 +242,19 @@ def test_overlong_is_decided_by_length_alone():
     assert feed_all(r, b"?" + b"z" * 500 + b"\rV\r", chunk=7) == ["bad overlong", "V"]
 
 
-def test_gap_drops_a_stale_partial_line_across_the_tick_wrap():
-    r = SlcanReader()
+def test_gap_drops_a_stale_partial_line_across_the_tick_wrap(Reader):
+    r = Reader()
     t0 = TICKS_PERIOD - 100
     assert r.feed(b"t123", 0, 4, t0) == 4 and r.ev == EV_NONE
     assert r.gap((t0 + LINE_TIMEOUT_US) % TICKS_PERIOD) == 0
     assert r.gap((t0 + LINE_TIMEOUT_US + 1) % TICKS_PERIOD) == 1
-    assert r.ev == EV_BAD and ERR_NAMES[r.err] == "missing_cr" and r.state == START
+    assert r.ev == EV_BAD and ERR_NAMES[r.err] == "missing_cr" and r.st[S_STATE] == START
     assert r.gap(t0 + 10 * LINE_TIMEOUT_US) == 0  # nothing pending: nothing to drop
-    assert r.refused == 1
+    assert r.refused_lines() == 1
 
 
-def test_feed_drops_the_stale_line_before_new_bytes():
-    r = SlcanReader(line_timeout_us=5000)
+def test_feed_drops_the_stale_line_before_new_bytes(Reader):
+    r = Reader(line_timeout_us=5000)
     r.feed(b"t0F01", 0, 5, 0)
     data = b"C\r"
     i = r.feed(data, 0, 2, 5001)  # nothing consumed: the stale line is refused first
@@ -258,18 +267,18 @@ def test_feed_drops_the_stale_line_before_new_bytes():
     assert r.ev == EV_BAD and ERR_NAMES[r.err] == "dlc"
 
 
-def test_a_refused_line_that_goes_quiet_counts_its_first_fault():
-    r = SlcanReader(line_timeout_us=1000)
+def test_a_refused_line_that_goes_quiet_counts_its_first_fault(Reader):
+    r = Reader(line_timeout_us=1000)
     r.feed(b"Z7", 0, 2, 0)
     assert r.gap(2000) and ERR_NAMES[r.err] == "argument" and err_count(r, "argument") == 1
     assert err_count(r, "missing_cr") == 0
 
 
-def test_reset_forgets_the_partial_line_and_keeps_counters():
-    r = SlcanReader()
+def test_reset_forgets_the_partial_line_and_keeps_counters(Reader):
+    r = Reader()
     feed_all(r, b"?\rt12")
     r.reset()
-    assert r.state == START and feed_all(r, b"4\rO\r") == ["bad unknown", "O"] and r.refused == 2
+    assert r.st[S_STATE] == START and feed_all(r, b"4\rO\r") == ["bad unknown", "O"] and r.refused_lines() == 2
 
 
 # --- properties ----------------------------------------------------------------------
@@ -365,8 +374,8 @@ def check_accounting(data):
     events = feed_all(r, data)
     # Every CR-terminated non-empty line gives exactly one answer at its CR; a line that
     # lost its CR (missing_cr) is refused on top.
-    assert r.lines + r.refused - err_count(r, "missing_cr") == len(segments(data))
-    assert len(events) == r.lines + r.refused
+    assert r.lines + r.refused_lines() - err_count(r, "missing_cr") == len(segments(data))
+    assert len(events) == r.lines + r.refused_lines()
     assert sum(1 for e in events if not e.startswith("bad")) == r.lines
     return events
 
@@ -405,7 +414,7 @@ def test_every_line_agrees_with_the_reference_grammar(data):
 def test_good_lines_after_a_refused_line_are_read(garbage, good):
     r = SlcanReader()
     feed_all(r, garbage + b"\r")
-    assert r.state == START
+    assert r.st[S_STATE] == START
     expected = [reference(seg) for seg in segments(good)]
     assert feed_all(r, good) == expected
 
@@ -428,9 +437,9 @@ def test_encode_frame_lines():
     assert len(cases[-1][1]) == 31  # the longest line encode_frame writes
 
 
-def test_encoded_lines_read_back():
+def test_encoded_lines_read_back(Reader):
     out = bytearray(32)
-    r = SlcanReader()
+    r = Reader()
     for can_id, ext, rtr, data in ((0x7FF, 0, 0, b"\x00\x11\x22\x33\x44\x55\x66\x77"), (0x1234567, 1, 0, b"\x80"),
                                    (0x100, 0, 1, b"\x00\x00\x00")):
         end = encode_frame(out, 0, can_id, ext, rtr, data, len(data), -1)

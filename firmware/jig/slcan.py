@@ -2,7 +2,7 @@
 
 The host (python-can's ``slcan`` interface, Linux's ``slcand``, CANable-style
 tools) speaks to the jig's third USB CDC port in lines ending in CR. ``SlcanReader``
-reads them with the state machine below, one byte at a time, and ``encode_frame``
+reads them with the state machine below, and ``encode_frame``
 writes a received CAN frame as the ``t``/``T``/``r``/``R`` line the host expects.
 
 The table is the machine (``docs/slcan-states.md`` is generated from it by
@@ -32,11 +32,27 @@ alone (python-can sends one after ``Sn``) and an LF in START (CRLF line ends) ar
 ignored. Nothing is allocated in ``feed``, ``gap`` or ``encode_frame``: ids up to
 0x1FFFFFFF, arguments and timestamps are small integers on MicroPython, the data
 goes into the preallocated ``data``.
+
+Two engines run this one table and must agree byte for byte, state for state
+(host_tests/test_slcan.py feeds random and mutated streams through both):
+
+* ``viper``: ``jig.slcanfast.feed``, machine code, the default where the port has
+  a native emitter (the board: a 22-byte ``t`` line with 8 data bytes is read in
+  ~4 000 instructions, where the table engine as bytecode took ~55 000). It runs
+  the counted fields' self-loops (hex digits of the id and the data) as runs
+  without the table, every other byte through it. Under CPython its source runs
+  as plain Python (``reader_class("viper")``) for the host tests.
+* ``table``: ``scan_py``, every byte through the table; ``TableReader``, the
+  default on CPython and on MicroPython builds without a native emitter (the
+  WebAssembly VM).
+
+Everything that changes while a line is read lives in one integer array ``st``
+(indices ``S_*``), the line's fields are stored on the reader when it ends.
 """
 
 from array import array
 
-from jig.compat import const, ticks_diff
+from jig.compat import IS_MICROPYTHON, const, ticks_diff
 
 # CAN bitrates of S0..S8 (python-can's table: S7 = 750 k; its S9 = 83.3 k is refused).
 SLCAN_BITRATES = (10000, 20000, 50000, 100000, 125000, 250000, 500000, 750000, 1000000)
@@ -210,209 +226,184 @@ def byte_class(b):
     return K_OTHER
 
 
+# Indices into SlcanReader.st, the engines' whole state (an integer array: on
+# MicroPython an array store costs a fraction of an attribute store, and the viper
+# engine can only reach integers and buffers).
+S_STATE = const(0)
+S_N = const(1)  # digits read in the counted field
+S_NEED = const(2)  # digits it needs
+S_POS = const(3)  # the line's length so far
+S_ACC = const(4)  # the value being accumulated (id, BTR)
+S_EV = const(5)  # why the engine returned (EV_*)
+S_ERR = const(6)  # the fault found in the line (ERR_*)
+S_CMD = const(7)  # the line's command byte
+S_ID = const(8)
+S_EXT = const(9)
+S_RTR = const(10)
+S_DLC = const(11)
+S_ARG = const(12)
+S_LINES = const(13)  # good lines
+S_T_LAST = const(14)  # tick (µs) of the last call that brought bytes
+S_TIMEOUT = const(15)  # line timeout, µs
+S_SIZE = const(16)
+
+_TICKS_MASK = const(0x3FFFFFFF)
+# HEXVAL's first byte in TABLES, after the STEP bytes of the 11 states.
+HEX_AT = const(2816)
+
+
 def _tables():
-    """STEP[state << 8 | byte] = action << 4 | next state; HEXVAL[byte] = the digit's value."""
-    step = bytearray(len(TRANSITIONS) << 8)
+    """STEP[state << 8 | byte] = action << 4 | next state (bytes 0..2815), then
+    HEXVAL[byte] = the hex digit's value, 0xFF for a byte that is none (bytes
+    2816..3071): the tables every engine reads, in one buffer the viper engine can
+    index."""
+    t = bytearray(HEX_AT + 256)
     for s in range(len(TRANSITIONS)):
         for b in range(256):
             action, nxt = TRANSITIONS[s][byte_class(b)]
-            step[(s << 8) | b] = (action << 4) | nxt
-    hexval = bytearray(256)
+            t[(s << 8) | b] = (action << 4) | nxt
+    for b in range(256):
+        t[HEX_AT + b] = 0xFF
     for v in range(16):
-        hexval[_HEX_DIGITS[v]] = v
-        hexval[b"0123456789abcdef"[v]] = v
-    return step, hexval
+        t[HEX_AT + _HEX_DIGITS[v]] = v
+        t[HEX_AT + b"0123456789abcdef"[v]] = v
+    return t
 
 
-STEP, HEXVAL = _tables()
+TABLES = _tables()
+STEP = memoryview(TABLES)[0:HEX_AT]
+HEXVAL = memoryview(TABLES)[HEX_AT:HEX_AT + 256]
 
 
-class SlcanReader:
-    """Incremental SLCAN line reader (see the module docstring and docs/slcan-states.md).
+def scan_py(st, buf, i, n, data, counts, tables, now):
+    """The portable engine (``table``): the contract of jig.slcanfast.scan.
 
-    ``feed(buf, i, n, now)`` consumes buf[i:n] up to the end of one line and returns
-    the offset after the last byte consumed; then ``ev`` says what happened. For
-    EV_CMD: ``cmd`` (the command's byte), and for frames ``can_id``, ``ext``,
-    ``rtr``, ``dlc``, ``data`` (bytearray(8), dlc bytes valid), for S/Z/s ``arg``
-    (the digit; the BTR value 0xXXYY). For EV_BAD: ``err`` (index into ERR_NAMES and
-    ``counts``). ``lines`` counts good lines. The fields stay valid until the next
-    ``feed``.
+    Runs the table over buf[i:n] until a line ends or the input is used up and
+    returns the offset after the last byte consumed (a ``missing_cr`` line leaves
+    the letter that ended it unconsumed); st[S_EV] says why it returned. The
+    fields go to st, the data bytes to ``data``, a refused line's count to
+    ``counts``. ``now`` (µs, or -1 for no timing) first drops a partial line whose
+    last bytes came more than st[S_TIMEOUT] earlier (then nothing is consumed).
     """
-
-    def __init__(self, line_timeout_us=LINE_TIMEOUT_US):
-        self.line_timeout_us = line_timeout_us
-        self.counts = array("i", [0] * len(ERR_NAMES))
-        self.lines = 0
-        self.data = bytearray(8)
-        self.ev = EV_NONE
-        self.err = 0
-        self.cmd = 0
-        self.can_id = 0
-        self.ext = 0
-        self.rtr = 0
-        self.dlc = 0
-        self.arg = 0
-        self.t_last = 0
-        # The partial line: state, digits read and needed in the counted field, the
-        # line's length so far, the value being accumulated.
-        self._state = START
-        self._n = 0
-        self._need = 0
-        self._pos = 0
-        self._acc = 0
-
-    def reset(self):
-        """Forget a partial line (counters are kept)."""
-        self._state = START
-        self.ev = EV_NONE
-
-    @property
-    def refused(self):
-        c = self.counts
-        total = 0
-        for k in range(len(ERR_NAMES)):
-            total += c[k]
-        return total
-
-    @property
-    def state(self):
-        return self._state
-
-    def gap(self, now):
-        """Drop a partial line whose last byte came more than line_timeout_us before
-        ``now``: refused (EV_BAD) as missing_cr, or as the fault already found in it.
-        Returns 1 if a line was dropped, else 0."""
-        state = self._state
-        if state == START or ticks_diff(now, self.t_last) <= self.line_timeout_us:
-            return 0
-        if state != SKIP:
-            self.err = ERR_MISSING_CR
-        self.counts[self.err] += 1
-        self._state = START
-        self.ev = EV_BAD
-        return 1
-
-    def feed(self, buf, i, n, now):
-        """Consume buf[i:n] until a line ends or the input is used up; ``now`` is the
-        tick (µs) the bytes arrived at, or -1 for no timing. Returns the offset after
-        the last byte consumed (a ``missing_cr`` line leaves the letter that ended it
-        unconsumed)."""
-        self.ev = EV_NONE
-        if now >= 0:
-            if self.gap(now):
-                return i
-            if n > i:
-                self.t_last = now
-        state = self._state
-        nn = self._n
-        need = self._need
-        pos = self._pos
-        acc = self._acc
-        step = STEP
-        hexval = HEXVAL
-        while i < n:
-            if state == SKIP:
-                # TRANSITIONS: every byte but CR is dropped and stays in SKIP.
-                while i < n and buf[i] != 13:
-                    i += 1
-                    pos += 1
-                if pos > MAX_LINE:
-                    self.err = ERR_OVERLONG
-                if i >= n:
-                    break
-            b = buf[i]
-            i += 1
-            pos += 1
-            code = step[(state << 8) | b]
-            action = code >> 4
-            state = code & 15
-            if action == A_DATA:
-                v = hexval[b]
-                if nn & 1:
-                    self.data[nn >> 1] |= v
-                else:
-                    self.data[nn >> 1] = v << 4
-                nn += 1
-                if nn < need:
-                    state = DATA
-            elif action == A_ID:
-                v = hexval[b]
-                if nn == 0 and v > (7 if need == 3 else 1):
-                    self.err = ERR_ID
-                    state = SKIP
-                    continue
-                acc = (acc << 4) | v
-                nn += 1
-                if nn < need:
-                    state = ID
-                else:
-                    self.can_id = acc
-            elif action == A_DONE:
-                self.lines += 1
-                self.ev = EV_CMD
+    st[S_EV] = EV_NONE
+    state = st[S_STATE]
+    if now >= 0:
+        if state != START and ticks_diff(now, st[S_T_LAST]) > st[S_TIMEOUT]:
+            if state != SKIP:
+                st[S_ERR] = ERR_MISSING_CR
+            counts[st[S_ERR]] += 1
+            st[S_STATE] = START
+            st[S_EV] = EV_BAD
+            return i
+        if n > i:
+            st[S_T_LAST] = now & _TICKS_MASK
+    nn = st[S_N]
+    need = st[S_NEED]
+    pos = st[S_POS]
+    acc = st[S_ACC]
+    ev = EV_NONE
+    while i < n:
+        if state == SKIP:
+            # TRANSITIONS: every byte but CR is dropped and stays in SKIP.
+            while i < n and buf[i] != 13:
+                i += 1
+                pos += 1
+            if pos > MAX_LINE:
+                st[S_ERR] = ERR_OVERLONG
+            if i >= n:
                 break
-            elif action == A_NONE:
-                pass
-            elif action == A_FRAME:
-                self.cmd = b
-                self.ext = 1 if (b == 0x54 or b == 0x52) else 0  # T R
-                self.rtr = 1 if (b == 0x72 or b == 0x52) else 0  # r R
-                need = 8 if self.ext else 3
-                nn = 0
-                acc = 0
+        b = buf[i]
+        i += 1
+        pos += 1
+        code = tables[(state << 8) | b]
+        action = code >> 4
+        state = code & 15
+        if action == A_DATA:
+            v = tables[HEX_AT + b]
+            if nn & 1:
+                data[nn >> 1] |= v
+            else:
+                data[nn >> 1] = v << 4
+            nn += 1
+            if nn < need:
+                state = DATA
+        elif action == A_ID:
+            v = tables[HEX_AT + b]
+            if nn == 0 and v > (7 if need == 3 else 1):
+                st[S_ERR] = ERR_ID
+                state = SKIP
+                continue
+            acc = (acc << 4) | v
+            nn += 1
+            if nn < need:
+                state = ID
+            else:
+                st[S_ID] = acc
+        elif action == A_DONE:
+            st[S_LINES] += 1
+            ev = EV_CMD
+            break
+        elif action == A_NONE:
+            pass
+        elif action == A_FRAME:
+            st[S_CMD] = b
+            ext = 1 if (b == 0x54 or b == 0x52) else 0  # T R
+            st[S_EXT] = ext
+            st[S_RTR] = 1 if (b == 0x72 or b == 0x52) else 0  # r R
+            need = 8 if ext else 3
+            nn = 0
+            acc = 0
+            pos = 1
+        elif action == A_DLC:
+            dlc = b - 0x30
+            st[S_DLC] = dlc
+            nn = 0
+            need = dlc << 1
+            if st[S_RTR] or dlc == 0:
+                state = FRAME_END
+        elif action == A_CMD:
+            st[S_CMD] = b
+            st[S_ARG] = 0
+            nn = 0
+            need = 4
+            acc = 0
+            pos = 1
+        elif action == A_ARG:
+            st[S_ARG] = b - 0x30
+        elif action == A_BTR:
+            acc = (acc << 4) | tables[HEX_AT + b]
+            nn += 1
+            if nn < need:
+                state = BTR
+            else:
+                st[S_ARG] = acc
+        elif action == A_REFUSE:
+            counts[st[S_ERR]] += 1
+            ev = EV_BAD
+            break
+        else:  # A_ERR + ERR_x
+            err = action - A_ERR
+            st[S_ERR] = err
+            if err == ERR_UNKNOWN:
+                st[S_CMD] = b
                 pos = 1
-            elif action == A_DLC:
-                dlc = b - 0x30
-                self.dlc = dlc
-                nn = 0
-                need = dlc << 1
-                if self.rtr or dlc == 0:
-                    state = FRAME_END
-            elif action == A_CMD:
-                self.cmd = b
-                self.arg = 0
-                nn = 0
-                need = 4
-                acc = 0
-                pos = 1
-            elif action == A_ARG:
-                self.arg = b - 0x30
-            elif action == A_BTR:
-                acc = (acc << 4) | hexval[b]
-                nn += 1
-                if nn < need:
-                    state = BTR
-                else:
-                    self.arg = acc
-            elif action == A_REFUSE:
-                self.counts[self.err] += 1
-                self.ev = EV_BAD
+            if state == START:  # found at the CR, or the CR is missing: refused now
+                if err == ERR_MISSING_CR:
+                    i -= 1  # the letter starts the next line
+                counts[err] += 1
+                ev = EV_BAD
                 break
-            else:  # A_ERR + ERR_x
-                err = action - A_ERR
-                self.err = err
-                if err == ERR_UNKNOWN:
-                    self.cmd = b
-                    pos = 1
-                if state == START:  # found at the CR, or the CR is missing: refused now
-                    if err == ERR_MISSING_CR:
-                        i -= 1  # the letter starts the next line
-                    self.counts[err] += 1
-                    self.ev = EV_BAD
-                    break
-        self._state = state
-        self._n = nn
-        self._need = need
-        self._pos = pos
-        self._acc = acc
-        return i
+    st[S_STATE] = state
+    st[S_N] = nn
+    st[S_NEED] = need
+    st[S_POS] = pos
+    st[S_ACC] = acc
+    st[S_EV] = ev
+    return i
 
 
-def encode_frame(out, off, can_id, ext, rtr, data, dlc, stamp_ms):
-    """Write a received frame as an SLCAN line into ``out`` at ``off``: t/T/r/R, the id
-    (3 or 8 hex digits), the DLC (0..8), the data (not for RTR), a 4-hex-digit
-    timestamp in ms (0..59 999: ``stamp_ms % 60000``) if ``stamp_ms >= 0``, CR.
-    Returns the offset after the CR (at most off + 31). Nothing is allocated."""
+def encode_py(out, off, can_id, ext, rtr, data, dlc, stamp_ms):
+    """The portable encode_frame (the contract of jig.slcanfast.encode_frame)."""
     h = _HEX_DIGITS
     if ext:
         out[off] = 0x52 if rtr else 0x54  # R T
@@ -442,3 +433,147 @@ def encode_frame(out, off, can_id, ext, rtr, data, dlc, stamp_ms):
         off += 4
     out[off] = 13
     return off + 1
+
+
+def _load_fast():
+    """jig.slcanfast as machine code, or None where it cannot run as such (CPython;
+    the WebAssembly build rejects viper at compile time)."""
+    if not IS_MICROPYTHON:
+        return None
+    try:
+        from jig import slcanfast
+
+        return slcanfast
+    except Exception:  # SyntaxError/ViperTypeError/ImportError: no native emitter here
+        return None
+
+
+FAST = _load_fast()
+
+
+class TableReader:
+    """Incremental SLCAN line reader (see the module docstring and docs/slcan-states.md).
+
+    ``feed(buf, i, n, now)`` consumes buf[i:n] up to the end of one line and returns
+    the offset after the last byte consumed; then ``ev`` says what happened. For
+    EV_CMD: ``cmd`` (the command's byte), and for frames ``can_id``, ``ext``,
+    ``rtr``, ``dlc``, ``data`` (bytearray(8), dlc bytes valid), for S/Z/s ``arg``
+    (the digit; the BTR value 0xXXYY). For EV_BAD: ``err`` (index into ERR_NAMES and
+    ``counts``; ``refused_lines()`` their sum). ``lines`` counts good lines. The
+    fields stay valid until the next ``feed``. The partial line is in the integer
+    array ``st`` (``st[S_STATE]``: the table's state).
+
+    This class runs the portable engine (``scan_py``); ``SlcanReader`` is the
+    reader of the engine the port can run best (``reader_class``).
+
+    No properties: on MicroPython a class with one makes every attribute store on
+    its instances look the class up first (5 times the cost), and ``feed`` stores
+    the fields of each line.
+    """
+
+    ENGINE = "table"
+
+    def __init__(self, line_timeout_us=LINE_TIMEOUT_US):
+        self.st = array("i", bytes(4 * S_SIZE))
+        self.st[S_TIMEOUT] = line_timeout_us
+        self.counts = array("i", [0] * len(ERR_NAMES))
+        self.data = bytearray(8)
+        self.tables = TABLES
+        self.ev = EV_NONE
+        self.err = 0
+        self.cmd = 0
+        self.can_id = 0
+        self.ext = 0
+        self.rtr = 0
+        self.dlc = 0
+        self.arg = 0
+        self.lines = 0
+
+    def reset(self):
+        """Forget a partial line (counters are kept)."""
+        self.st[S_STATE] = START
+        self.ev = EV_NONE
+
+    def refused_lines(self):
+        """Refused lines, all kinds together."""
+        c = self.counts
+        total = 0
+        for k in range(len(ERR_NAMES)):
+            total += c[k]
+        return total
+
+    def gap(self, now):
+        """Drop a partial line whose last byte came more than st[S_TIMEOUT] µs before
+        ``now``: refused (EV_BAD) as missing_cr, or as the fault already found in it.
+        Returns 1 if a line was dropped, else 0."""
+        st = self.st
+        if st[S_STATE] == START or ticks_diff(now, st[S_T_LAST]) <= st[S_TIMEOUT]:
+            return 0
+        self.feed(_EMPTY, 0, 0, now)  # the engine drops it (both have the same rule)
+        return 1
+
+    def feed(self, buf, i, n, now):
+        """Consume buf[i:n] until a line ends or the input is used up; ``now`` is the
+        tick (µs) the bytes arrived at, or -1 for no timing. Returns the offset after
+        the last byte consumed (a ``missing_cr`` line leaves the letter that ended it
+        unconsumed)."""
+        st = self.st
+        i = scan_py(st, buf, i, n, self.data, self.counts, TABLES, now)
+        ev = st[S_EV]
+        self.ev = ev
+        if ev == EV_CMD:
+            self.cmd = st[S_CMD]
+            self.can_id = st[S_ID]
+            self.ext = st[S_EXT]
+            self.rtr = st[S_RTR]
+            self.dlc = st[S_DLC]
+            self.arg = st[S_ARG]
+            self.lines = st[S_LINES]
+        elif ev == EV_BAD:
+            self.err = st[S_ERR]
+            self.cmd = st[S_CMD]
+        return i
+
+
+_EMPTY = b""
+
+
+def _viper_class(fast):
+    class ViperReader(TableReader):
+        """TableReader with jig.slcanfast.feed as its feed (the same contract)."""
+
+        ENGINE = "viper"
+        feed = fast.feed
+
+    return ViperReader
+
+
+def reader_class(engine=None):
+    """The reader class of an engine: "viper" (jig.slcanfast: machine code where the
+    port has a native emitter; on CPython its source as plain Python, for the host
+    tests) or "table" (``TableReader``); None: the default here (``SlcanReader``)."""
+    if engine is None:
+        return SlcanReader
+    if engine == "table":
+        return TableReader
+    if engine != "viper":
+        raise ValueError("engine: viper or table")
+    if FAST is not None:
+        return SlcanReader
+    if IS_MICROPYTHON:
+        raise ValueError("no native emitter here: the table engine only")
+    from jig import slcanfast  # CPython: the viper source as plain Python
+
+    return _viper_class(slcanfast)
+
+
+# The reader the firmware uses: machine code where the port can run it.
+SlcanReader = _viper_class(FAST) if FAST is not None else TableReader
+
+# encode_frame(out, off, can_id, ext, rtr, data, dlc, stamp_ms) writes a received
+# frame as an SLCAN line into ``out`` at ``off``: t/T/r/R, the id (3 or 8 hex digits),
+# the DLC (0..8), the data (not for RTR), a 4-hex-digit timestamp in ms (0..59 999:
+# ``stamp_ms % 60000``) if ``stamp_ms >= 0``, CR; returns the offset after the CR (at
+# most off + 31) and allocates nothing. Machine code where the port has a native
+# emitter, else encode_py.
+encode_frame = FAST.encode_frame if FAST is not None else encode_py
