@@ -382,7 +382,8 @@ class Bridge:
             self._end_relay(True)
         if bs[B_STATE] == AWAIT_INT:
             return
-        cs[_CS_START + _CH_DRV_OUT] = now
+        if self.down.early[0] < 0:  # (else its AA went at once, stamped then)
+            cs[_CS_START + _CH_DRV_OUT] = now
         self.down.begin(self.hdr, 0, 2)
         bs[B_FWD] = 1
         bs[B_ROUTED] = 0
@@ -418,7 +419,8 @@ class Bridge:
             if slave == _STUFF:
                 hdr[3] = slave
                 k = 4
-            self.cs[_CS_START + _CH_DRV_OUT] = now
+            if self.down.early[0] < 0:
+                self.cs[_CS_START + _CH_DRV_OUT] = now
             self.down.begin(hdr, 0, k)
             bs[B_FWD] = 1
             self._watch_line(now)
@@ -646,9 +648,17 @@ class Bridge:
         if st[S_STATE] == HEADER:
             if may and rs.early[0] < 0:
                 rs.raise_early()
+                # the copy's start for its record: its AA handed to the transmitter (after the pre-delay)
+                self.cs[_CS_START + (_CH_DRV_OUT if rs is self.down else _CH_PC_OUT)] = self._ticks()
                 self._watch_line(now)
         elif rs.early[0] >= 0:
+            self._drop_early(rs)
+
+    def _drop_early(self, rs):
+        """No header followed the AA sent on early: let rs go (no copy to record)."""
+        if rs.early[0] >= 0:
             rs.drop_early()
+            self.cs[_CS_START + (_CH_DRV_OUT if rs is self.down else _CH_PC_OUT)] = -1
 
     def _watch_line(self, now):
         """A frame is being cut through: the slow pass must look at the line within the
@@ -801,7 +811,7 @@ class Bridge:
             else:
                 self._down_drop(st, p.body, now)
         if st[S_STATE] == HUNT:
-            (self.down if from_pc else self.up).drop_early()  # a lone AA, then silence
+            self._drop_early(self.down if from_pc else self.up)  # a lone AA, then silence
             return True
         return False
 
@@ -822,7 +832,8 @@ class Bridge:
         cs[_CS_START + _CH_DRV_IN] = now
         if bs[B_STATE] != AWAIT_PC or bs[B_FWD]:
             return
-        cs[_CS_START + _CH_PC_OUT] = now
+        if self.up.early[0] < 0:  # (else its AA went at once, stamped then)
+            cs[_CS_START + _CH_PC_OUT] = now
         self.up.begin(self.hdr, 0, 2)
         bs[B_REL] = 1
         bs[B_CHECKED] = 0
@@ -857,7 +868,8 @@ class Bridge:
         if b1 == _STUFF:
             hdr[4] = b1
             k = 5
-        self.cs[_CS_START + _CH_PC_OUT] = now
+        if self.up.early[0] < 0:
+            self.cs[_CS_START + _CH_PC_OUT] = now
         self.up.begin(hdr, 0, k)
         bs[B_REL] = 1
         bs[B_CHECKED] = 1

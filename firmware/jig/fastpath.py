@@ -403,8 +403,7 @@ def pump(ctx, passes: int) -> int:
                         # Bridge._down_start: to the PC at once while its reply is awaited
                         cs[_CS_START + _CH_DRV_IN] = now
                         if state == _AWAIT_PC and bs[_B_FWD] == 0:
-                            cs[_CS_START + _CH_PC_OUT] = now
-                            # Rs485.begin (taken early: the AA has gone, the CC follows)
+                            # Rs485.begin (taken early: the AA has gone and was stamped, the CC follows)
                             if uearly[0] >= 0:
                                 uearly[0] = -1
                                 if uq != 0 and (ureg[0] & _ISR_TXFNF) != 0:
@@ -412,6 +411,7 @@ def pump(ctx, passes: int) -> int:
                                 else:
                                     up_queue(hdr_buf, 1, 1)
                             else:
+                                cs[_CS_START + _CH_PC_OUT] = now
                                 up_de(1)
                                 wait = int(ram[_P_DE_PRE_US])
                                 if wait > 0:
@@ -449,11 +449,11 @@ def pump(ctx, passes: int) -> int:
                             if b1 == _STUFF:
                                 hdr[4] = b1
                                 k = 5
-                            cs[_CS_START + _CH_PC_OUT] = now
                             if uearly[0] >= 0:
                                 uearly[0] = -1
                                 up_queue(hdr_buf, 1, k - 1)
                             else:
+                                cs[_CS_START + _CH_PC_OUT] = now
                                 up_de(1)
                                 wait = int(ram[_P_DE_PRE_US])
                                 if wait > 0:
@@ -494,7 +494,6 @@ def pump(ctx, passes: int) -> int:
                     if ev == _EV_START and bs[_B_REL] == 0 and state != _AWAIT_INT:
                         # Bridge._pc_start: on to the driver bus from the header
                         cs[_CS_START + _CH_PC_IN] = now
-                        cs[_CS_START + _CH_DRV_OUT] = now
                         if dearly[0] >= 0:
                             dearly[0] = -1
                             if dq != 0 and (dreg[0] & _ISR_TXFNF) != 0:
@@ -502,6 +501,7 @@ def pump(ctx, passes: int) -> int:
                             else:
                                 down_queue(hdr_buf, 1, 1)
                         else:
+                            cs[_CS_START + _CH_DRV_OUT] = now
                             down_de(1)
                             wait = int(ram[_P_DE_PRE_US])
                             if wait > 0:
@@ -658,6 +658,7 @@ def pump(ctx, passes: int) -> int:
                         wait = int(ram[_P_DE_PRE_US])
                         if wait > 0:
                             sleep(wait)
+                        cs[_CS_START + _CH_PC_OUT] = int(ticks())  # (the copy's start: its AA handed over)
                         if uq != 0 and (ureg[0] & _ISR_TXFNF) != 0:
                             ureg[_TDR] = _STUFF  # (the transmitter was idle: the FIFO has room)
                         else:
@@ -667,6 +668,7 @@ def pump(ctx, passes: int) -> int:
                             due[0] = t
                 elif uearly[0] >= 0:
                     uearly[0] = -1  # Rs485.drop_early: no header followed
+                    cs[_CS_START + _CH_PC_OUT] = -1
                     up_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
@@ -681,6 +683,7 @@ def pump(ctx, passes: int) -> int:
                         wait = int(ram[_P_DE_PRE_US])
                         if wait > 0:
                             sleep(wait)
+                        cs[_CS_START + _CH_DRV_OUT] = int(ticks())  # (the copy's start: its AA handed over)
                         if dq != 0 and (dreg[0] & _ISR_TXFNF) != 0:
                             dreg[_TDR] = _STUFF
                         else:
@@ -690,6 +693,7 @@ def pump(ctx, passes: int) -> int:
                             due[0] = t
                 elif dearly[0] >= 0:
                     dearly[0] = -1  # Rs485.drop_early: no header followed
+                    cs[_CS_START + _CH_DRV_OUT] = -1
                     down_drain()
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
