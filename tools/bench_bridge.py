@@ -250,8 +250,8 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
                 bt = j["byte_us"]
                 hop = (j["req_hop_us"] + j["rep_hop_us"]) / 2
                 lag = (j["req_lag_us"] + j["rep_lag_us"]) / 2
-                split = "  %5.2f = 1 + %.2f + %.2f + %.2f" % (hop / bt, j["pre_us"] / bt, (lag - bt - j["pre_us"]) / bt,
-                                                          (hop - lag) / bt)
+                parts = [hop / bt, j["pre_us"] / bt, (lag - bt - j["pre_us"]) / bt, (hop - lag) / bt]
+                split = "  %5.2f = 1 + %.2f + %.2f + %.2f" % tuple(max(0.0, x) for x in parts)  # (no -0.00)
             print("    %7d %10.1f %10.1f %6.1f%% %11.1f %11.1f %8.1f%s%s"
                   % (baud, d["rate"], j["rate"], 100.0 * j["rate"] / d["rate"], j["req_hop_us"],
                      j["rep_hop_us"], j["byte_us"], split,
