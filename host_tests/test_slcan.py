@@ -12,7 +12,14 @@
   result, good lines after a refused one are read, and every line agrees with an
   independent reference of the grammar;
 * encode_frame: exact lines, and round trips through python-can's own slcan line
-  parsing and writing (python-can's slcan bus on a loop:// serial port).
+  parsing and writing (python-can's slcan bus on a loop:// serial port);
+* the two engines (jig.slcanfast's viper source run as plain Python, and the table
+  engine): the contract tests and the captures run on both; hypothesis feeds random
+  and mutated streams, cut anywhere, timed across the line timeout and the tick
+  wrap, through both and compares offsets, events, fields, counts and the partial
+  line after every call; the viper constants mirror jig.slcan's; the runs of hex
+  digits it reads without the table are the table's self-loops; the viper encoder
+  writes the portable one's lines. (tools/slcan_qemu.py runs the machine code.)
 """
 
 import glob
@@ -419,6 +426,114 @@ def test_good_lines_after_a_refused_line_are_read(garbage, good):
     assert feed_all(r, good) == expected
 
 
+# --- the two engines ---------------------------------------------------------------
+
+def test_viper_constants_mirror_the_reader():
+    """viper folds only its own module's constants: they must equal jig.slcan's."""
+    from jig import compat, slcanfast
+
+    names = [k[1:] for k in vars(slcanfast) if k.startswith("_") and k[1:2].isupper() and k[1:] not in ("MASK", "HALF")]
+    assert len(names) > 40
+    for name in names:
+        assert getattr(slcanfast, "_" + name) == getattr(slcan, name), name
+    assert slcanfast._MASK == compat.TICKS_PERIOD - 1 and slcanfast._HALF == compat.TICKS_PERIOD // 2
+    assert slcan.S_SIZE == max(getattr(slcan, k) for k in dir(slcan) if k.startswith("S_") and k != "S_SIZE") + 1
+
+
+def test_the_runs_are_the_tables_self_loops():
+    """The viper engine reads the id's and the data's hex digits without the table:
+    in ID and DATA exactly the bytes with a HEXVAL <= 15 are the field's digits,
+    which stay until the last one and then go on to DLC / FRAME_END."""
+    for state, action, nxt in ((slcan.ID, slcan.A_ID, slcan.DLC), (slcan.DATA, slcan.A_DATA, slcan.FRAME_END)):
+        for b in range(256):
+            code = slcan.STEP[(state << 8) | b]
+            is_digit = slcan.HEXVAL[b] <= 15
+            assert (code >> 4 == action) == is_digit, (slcan.STATE_NAMES[state], b)
+            if is_digit:
+                assert code & 15 == nxt
+            else:
+                assert slcan.HEXVAL[b] == 0xFF
+    assert action in slcan.COUNTED
+
+
+def snapshot(r):
+    """Everything a reader shows, and its whole partial line."""
+    return (r.ev, r.err, r.cmd, r.can_id, r.ext, r.rtr, r.dlc, r.arg, r.lines, tuple(r.st), tuple(r.counts),
+            bytes(r.data))
+
+
+@st.composite
+def schedule(draw):
+    """A stream cut into pieces, each arriving at a time (or -1: no timing) after an
+    optional gap() of the main loop; gaps around the 1 ms line timeout."""
+    data = draw(st.one_of(noise, mutated(), st.lists(st.one_of(noise, good_stream), max_size=4).map(b"".join)))
+    cuts = sorted(set(draw(st.lists(st.integers(0, len(data)), max_size=12))) | {len(data)})
+    pieces = []
+    a = 0
+    for b in cuts:
+        delay = draw(st.one_of(st.integers(0, 1200), st.sampled_from([999, 1000, 1001, 5000])))
+        pieces.append((a, b, delay, draw(st.booleans()), draw(st.integers(0, 9)) == 0))
+        a = b
+    return data, pieces
+
+
+@SETTINGS
+@given(schedule())
+def test_the_engines_agree_call_for_call(plan):
+    """Random and mutated streams, any cuts, line timeouts across the tick wrap: the
+    viper engine (its source as plain Python) and the table engine give the same
+    offsets, events, fields, counts and partial-line state after every call."""
+    data, pieces = plan
+    a_r = slcan.reader_class("table")(line_timeout_us=1000)
+    b_r = slcan.reader_class("viper")(line_timeout_us=1000)
+    assert type(a_r).feed is not type(b_r).feed
+    now = TICKS_PERIOD - 3000
+    for start, end, delay, call_gap, untimed in pieces:
+        now = (now + delay) % TICKS_PERIOD
+        t = -1 if untimed else now
+        if call_gap:
+            assert a_r.gap(now) == b_r.gap(now)
+            assert snapshot(a_r) == snapshot(b_r)
+        i = start
+        while i < end:
+            j = a_r.feed(data, i, end, t)
+            assert b_r.feed(data, i, end, t) == j
+            assert snapshot(a_r) == snapshot(b_r), (data, i, end)
+            assert j > i or a_r.ev != EV_NONE  # progress: a line ended or bytes were used
+            i = j
+    assert a_r.refused_lines() == b_r.refused_lines()
+
+
+def test_the_engines_agree_on_every_split_of_every_line_kind():
+    lines = (b"t18181122334455667788\r", b"T1ABCDEF081122334455667788\r", b"r7FF8\r", b"R000000000\r", b"t0000\r",
+             b"s0A1b\r", b"S8\r", b"Z1\r", b"O\r", b"t12G4567\r", b"T2000000000\r", b"t1234aabbccdd\r",
+             b"t123811223344556677889\r", b"T1FFFFFFF8" + b"A" * 17 + b"\r", b"t1231Ft123\r", b"\n\r?\r")
+    for line in lines:
+        for cut in range(len(line) + 1):
+            readers = [slcan.reader_class(e)() for e in ENGINES]
+            for r in readers:
+                r.feed(line, 0, cut, -1)
+            assert snapshot(readers[0]) == snapshot(readers[1]), (line, cut)
+            i = cut
+            while i < len(line):
+                j = readers[0].feed(line, i, len(line), -1)
+                assert readers[1].feed(line, i, len(line), -1) == j
+                assert snapshot(readers[0]) == snapshot(readers[1]), (line, cut, i)
+                i = j
+
+
+def test_default_reader_and_engine_names():
+    assert slcan.SlcanReader is slcan.TableReader  # CPython: no native emitter
+    assert slcan.reader_class() is slcan.SlcanReader and slcan.reader_class("table") is slcan.TableReader
+    assert slcan.reader_class("viper").ENGINE == "viper" and slcan.TableReader.ENGINE == "table"
+    assert slcan.encode_frame is slcan.encode_py
+    with pytest.raises(ValueError):
+        slcan.reader_class("bulk")
+    # No properties on the reader (see TableReader): every attribute is a plain one.
+    for cls in (slcan.TableReader, slcan.reader_class("viper")):
+        assert not [k for c in cls.__mro__ for k, v in vars(c).items() if isinstance(v, property)]
+
+
 # --- encode_frame ------------------------------------------------------------------
 
 def test_encode_frame_lines():
@@ -498,3 +613,16 @@ def test_python_can_lines_are_read(loop_bus, msg):
     assert (r.can_id, r.ext, r.rtr, r.dlc) == (ident, int(ext), int(rtr), dlc)
     if not rtr:
         assert bytes(r.data[:dlc]) == data
+
+
+@settings(max_examples=300, deadline=None)
+@given(message, st.one_of(st.just(-1), st.integers(0, 2 ** 30 - 1)), st.integers(0, 9))
+def test_the_viper_encoder_writes_the_portable_encoders_lines(msg, stamp, off):
+    from jig import slcanfast
+
+    ext, rtr, ident, data, dlc = msg
+    a = bytearray(b"\xee" * 48)
+    b = bytearray(b"\xee" * 48)
+    end = slcan.encode_py(a, off, ident, int(ext), int(rtr), data, dlc, stamp)
+    assert slcanfast.encode_frame(b, off, ident, int(ext), int(rtr), data, dlc, stamp) == end
+    assert a == b and end - off <= 31
