@@ -11,10 +11,11 @@ then on the PC bus, through the parser into the bridge -- but the frame events o
 a forwarded transaction are acted on here, in machine code, on the bridge's state
 array ``Bridge.bs``:
 
-* a PC frame starts out on the driver bus at its header, routes at its id (to a
-  driver, a broadcast, or the tail stub when it is for the jig), and its end
-  starts the reply wait;
-* a driver frame starts out to the PC at its header while a reply is awaited,
+* a PC frame starts out on the driver bus at its first byte (the AA that can start
+  a header goes on at once, the CC when it is in), routes at its id (to a driver,
+  a broadcast, or the tail stub when it is for the jig), and its end starts the
+  reply wait;
+* a driver frame starts out to the PC the same way while a reply is awaited,
   matches (or is cut short) at its first two body bytes, and its end is the reply.
 
 Every other event -- a local frame, a drop, a reply to the jig's own request, a
