@@ -4,7 +4,8 @@ A ``[wiring]`` table, which a test plan file contains too (so a plan or a
 wiring-only file will do)::
 
     [wiring]
-    slave = 2                 # optional: the drive wired to the jig
+    slave = 2                 # optional: the Plus-R drive wired to the jig
+    # node = 5                # or: the CANopen (CiA 402) drive of node id 5 (not with slave)
     [[wiring.relay]]          # jig relay k = the jig's output bit k (SetIOOutput on slave 1)
     relay = 0
     drive_input = 0           # the drive input bit it drives (§7.2)
@@ -13,6 +14,10 @@ wiring-only file will do)::
     jig_input = 0
     drive_output = 15         # §7.1
     name = "user out 0"
+
+Wired to a CiA 402 drive (``node``), ``drive_input`` is a bit of its digital inputs
+0x60FD (0 negative limit, 1 positive limit, 2 home switch, 16-31 vendor inputs) and
+``drive_output`` a bit of its digital outputs 0x60FE:1 (16-31 vendor outputs).
 
 ``WIRING_SCHEMA`` describes every key (type, range, meaning); the parser checks
 against it and nothing else, so a docs generator can render the same table. Unknown
@@ -49,34 +54,51 @@ Field = namedtuple("Field", "key kind lo hi required meaning")
 WIRING_SCHEMA = {
     "wiring": (
         Field("slave", "integer", 0, 15, False,
-              "the drive wired to the jig (default: the plan's [drive] slave, else the bench's first driver)"),
+              "the Plus-R drive wired to the jig (default: the plan's [drive] slave, else the bench's first driver)"),
+        Field("node", "integer", 1, 127, False,
+              "instead of slave: the CiA 402 drive of this CANopen node id wired to the jig (default for a "
+              "protocol = \"cia402\" plan: its [drive] node_id)"),
         Field("relay", "tables", None, None, False, "a jig relay wired to a drive input"),
         Field("sense", "tables", None, None, False, "a drive output wired to a jig input"),
     ),
     "wiring.relay": (
         Field("relay", "integer", 0, 15, True, "jig relay k = the jig's output bit k (SetIOOutput on slave 1)"),
         Field("drive_input", "integer", 0, 31, True,
-              "the drive input bit it drives (§7.2: 0 Limit+, 1 Limit-, 2 Origin, 13 Stop, 26-31 User IN 0-5)"),
+              "the drive input bit it drives (Plus-R §7.2: 0 Limit+, 1 Limit-, 2 Origin, 13 Stop, 26-31 User IN 0-5; "
+              "CiA 402 0x60FD: 0 negative limit, 1 positive limit, 2 home switch, 16-31 vendor inputs)"),
         Field("name", "string", None, None, False, "a label (test plans may name the relay by it)"),
     ),
     "wiring.sense": (
         Field("jig_input", "integer", 0, 15, True, "jig input k = the jig's input bit k (GetIOInput on slave 1)"),
         Field("drive_output", "integer", 0, 31, True,
-              "the drive output bit that reaches it (§7.1: 2 Alarm, 3 Run/Stop, 15-23 User OUT 0-8)"),
+              "the drive output bit that reaches it (Plus-R §7.1: 2 Alarm, 3 Run/Stop, 15-23 User OUT 0-8; "
+              "CiA 402 0x60FE:1: 0 brake, 16-31 vendor outputs)"),
         Field("name", "string", None, None, False, "a label (test plans may name the input by it)"),
     ),
 }
 
 
 class Wiring:
-    """``slave`` (None: not given), ``relays`` ((relay, drive_input, name), ...),
-    ``senses`` ((jig_input, drive_output, name), ...); name is "" when not given."""
+    """``slave`` (the Plus-R drive; None: not given), ``node`` (the CiA 402 drive's
+    CANopen node id; None: not given; never both), ``relays`` ((relay, drive_input,
+    name), ...), ``senses`` ((jig_input, drive_output, name), ...); name is "" when not
+    given."""
 
-    def __init__(self, slave=None, relays=(), senses=(), source="<wiring>"):
+    def __init__(self, slave=None, relays=(), senses=(), source="<wiring>", node=None):
+        if slave is not None and node is not None:
+            raise ValueError("a wiring connects one drive: slave %r or node %r, not both" % (slave, node))
         self.slave = slave
+        self.node = node
         self.relays = tuple(relays)
         self.senses = tuple(senses)
         self.source = source
+
+    @property
+    def drive(self):
+        """Who is wired, for people: "slave 2", "CAN node 5" or "" (not given)."""
+        if self.node is not None:
+            return "CAN node %d" % self.node
+        return "" if self.slave is None else "slave %d" % self.slave
 
     @property
     def drive_input_mask(self):
@@ -128,6 +150,8 @@ class Wiring:
         return lines
 
     def __repr__(self):
+        if self.node is not None:
+            return "Wiring(node=%r, relays=%r, senses=%r)" % (self.node, self.relays, self.senses)
         return "Wiring(slave=%r, relays=%r, senses=%r)" % (self.slave, self.relays, self.senses)
 
 
@@ -170,11 +194,21 @@ def _check(source, path, table, section):
     return out
 
 
-def parse_wiring(table, source="<wiring>", default_slave=None):
-    """A ``Wiring`` from the already parsed ``[wiring]`` table (a dict). ``default_slave``:
-    the slave when the table names none (a plan's [drive] slave). WiringError on any problem."""
+def parse_wiring(table, source="<wiring>", default_slave=None, default_node=None):
+    """A ``Wiring`` from the already parsed ``[wiring]`` table (a dict). When the table
+    names neither ``slave`` nor ``node``: ``default_node`` (a CiA 402 plan's [drive]
+    node_id) if given, else ``default_slave`` (a Plus-R plan's [drive] slave).
+    WiringError on any problem."""
     top = _check(source, "wiring", table, "wiring")
-    slave = top["slave"] if top["slave"] is not None else default_slave
+    slave, node = top["slave"], top["node"]
+    if slave is not None and node is not None:
+        raise WiringError(source, "wiring.node", "a wiring connects one drive: give slave (Plus-R) or node "
+                                                 "(CiA 402), not both")
+    if slave is None and node is None:
+        if default_node is not None:
+            node = default_node
+        else:
+            slave = default_slave
     relays, senses = [], []
     for key, section, out, own, other in (("relay", "wiring.relay", relays, "relay", "drive_input"),
                                           ("sense", "wiring.sense", senses, "jig_input", "drive_output")):
@@ -195,12 +229,13 @@ def parse_wiring(table, source="<wiring>", default_slave=None):
                                       % (name, key, names[name]))
                 names[name] = i
             out.append((k, v[other], name))
-    return Wiring(slave, relays, senses, source)
+    return Wiring(slave, relays, senses, source, node)
 
 
 def load_wiring(path):
-    """The wiring of a TOML file: its ``[wiring]`` table, with its ``[drive] slave`` (a test
-    plan's) as the default slave. WiringError (naming the file) on any problem."""
+    """The wiring of a TOML file: its ``[wiring]`` table, with a test plan's ``[drive]
+    slave`` as the default slave, or for a ``protocol = "cia402"`` plan its ``[drive]
+    node_id`` as the default node. WiringError (naming the file) on any problem."""
     source = str(path)
     if tomllib is None:
         raise WiringError(source, "", "reading TOML needs Python 3.11+ (tomllib) or the tomli package "
@@ -214,10 +249,15 @@ def load_wiring(path):
         raise WiringError(source, "", "not valid TOML: %s" % exc) from None
     if "wiring" not in data:
         raise WiringError(source, "", "no [wiring] table")
-    slave = None
+    slave = node = None
     drive = data.get("drive")
-    if isinstance(drive, dict) and "slave" in drive:
+    if isinstance(drive, dict) and drive.get("protocol") == "cia402":
+        if "node_id" in drive:
+            node = drive["node_id"]
+            if not isinstance(node, int) or isinstance(node, bool) or not 1 <= node <= 127:
+                raise WiringError(source, "drive.node_id", "expected an integer 1..127, got %r" % (node,))
+    elif isinstance(drive, dict) and "slave" in drive:
         slave = drive["slave"]
         if not isinstance(slave, int) or isinstance(slave, bool) or not 0 <= slave <= 15:
             raise WiringError(source, "drive.slave", "expected an integer 0..15, got %r" % (slave,))
-    return parse_wiring(data["wiring"], source, slave)
+    return parse_wiring(data["wiring"], source, slave, node)

@@ -9,7 +9,8 @@ keeps serving until Ctrl-C (or --duration seconds). Each driver is Ver6 or Ver8 
 --drivers 2,3:v8. --wiring connects the jig's relays and inputs to a drive's I/O,
 --fault makes drives fail the way real ones do. --can-nodes 5,6 adds a CAN bus with
 simulated CiA 402 drives and serves the jig's SLCAN port (python-can's slcan interface,
-jigctl can) on a TCP port and a pty of its own.
+jigctl can) on a TCP port and a pty of its own; a wiring with `node = 5` wires the jig
+to CAN node 5's digital inputs and outputs instead of a Plus-R drive.
 """
 
 import argparse
@@ -122,12 +123,13 @@ def _fault_help():
         from .cia402 import FAULTS as CAN_FAULTS
     except ImportError:
         CAN_FAULTS = {}
-    lines.append("CAN node faults (--can-nodes; --fault can:[ID:]NAME[=VALUE]; without ID: every CAN node):")
+    lines.append("CAN node faults (--can-nodes; --fault can:[ID:]NAME[=VALUE]; without ID: the wired node, else every CAN node):")
     for name, (value, default, what) in CAN_FAULTS.items():
         spec = "can:" + name + ("=" + value if value else "")
         text = what + (" (default %s)" % default if default is not None and "default" not in what else "")
         lines.append(textwrap.fill(text, 96, initial_indent="  %-22s " % spec, subsequent_indent=" " * 25))
-    lines.append("e.g. --can-nodes 5,6 --fault can:5:following-error=20000 --fault can:missed-heartbeat")
+    lines.append("e.g. --can-nodes 5,6 --fault can:5:following-error=20000 --fault can:missed-heartbeat"
+                 " --fault can:5:param=0x6065=500")
     lines.append("wiring file: a [wiring] table (a test plan or a wiring-only file), see docs/sim.md")
     return "\n".join(lines)
 
@@ -155,7 +157,8 @@ def parse_args(argv):
                     help="create no pseudo-terminals (neither the PC side's nor the capture or SLCAN port's)")
     ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (default: run until Ctrl-C)")
     ap.add_argument("--wiring", metavar="FILE",
-                    help="wire the jig's relays and inputs to a drive's I/O: a TOML file with a [wiring] table")
+                    help="wire the jig's relays and inputs to a drive's I/O: a TOML file with a [wiring] table"
+                         " (slave = N: a Plus-R drive of --drivers; node = N: a CiA 402 node of --can-nodes)")
     ap.add_argument("--fault", action="append", default=[], metavar="SPEC",
                     help="make a drive fail: [ID:]NAME[=VALUE], repeatable (the list below)")
     return ap.parse_args(argv)
@@ -173,6 +176,9 @@ def check_setup(args):
         if wiring.slave is not None and wiring.slave not in args.drivers:
             raise ValueError("--wiring: %s: wiring.slave %d is not one of the --drivers (%s)"
                              % (args.wiring, wiring.slave, ",".join(str(i) for i in args.drivers)))
+        if wiring.node is not None and wiring.node not in args.can_nodes:
+            raise ValueError("--wiring: %s: wiring.node %d is not one of the --can-nodes (%s)"
+                             % (args.wiring, wiring.node, ",".join(str(i) for i in args.can_nodes) or "none"))
     faults = []
     for spec in args.fault:
         if spec.strip().startswith(CAN_FAULT_PREFIX):
@@ -212,7 +218,10 @@ def describe_setup(sim, out=print):
     if sim.wiring is None:
         out("  wiring: none")
     else:
-        out("  wiring (%s): drive %d" % (sim.wiring.source, sim.wired_slave))
+        if sim.wired_node is not None:
+            out("  wiring (%s): CAN node %d (0x60FD inputs, 0x60FE:1 outputs)" % (sim.wiring.source, sim.wired_node))
+        else:
+            out("  wiring (%s): drive %d" % (sim.wiring.source, sim.wired_slave))
         for line in sim.wiring.describe() or ["(no wires)"]:
             out("    " + line)
     active = ["driver %d: %s" % (i, ", ".join(d.active_faults())) for i, d in sim.drivers.items() if d.active_faults()]

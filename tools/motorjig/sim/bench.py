@@ -18,8 +18,10 @@ deadline is due.
 
 ``wiring`` (a ``motorjig.wiring.Wiring`` or a TOML file with a ``[wiring]`` table)
 connects the jig's relays to one drive's inputs and that drive's outputs to the
-jig's inputs, evaluated whenever either side reads them; ``faults`` and
-``set_fault`` make drives fail (``SimDriver.set_fault``).
+jig's inputs, evaluated whenever either side reads them: a Plus-R drive's (its
+``slave``) or a CAN node's (its ``node``: the relays drive 0x60FD's bits, 0x60FE:1's
+bits reach the jig's inputs); ``faults`` and ``set_fault`` make drives fail
+(``SimDriver.set_fault``, ``can:NAME``: the CAN node's).
 
 The jig's capture port (``jig.capture``: its recording of both buses) is
 ``SimHAL.capture``; ``SimBench.capture_start`` / ``capture_read`` / ``capture_stop``
@@ -257,6 +259,7 @@ class SimBench:
         self._sync = 0
         self.wiring = None
         self.wired_slave = None
+        self.wired_node = None
         self._make_can(can_nodes, can_bitrate, can_node_factory, bool(can) or direct_can, direct or direct_can)
         if direct:
             if jig_params or any(cpu_model) or wiring is not None:
@@ -307,6 +310,9 @@ class SimBench:
         """Wire the jig's relays to the drive's inputs and its outputs to the jig's inputs."""
         if not isinstance(wiring, Wiring):
             wiring = load_wiring(wiring)
+        if wiring.node is not None:
+            self._connect_node(wiring)
+            return
         slave = wiring.slave if wiring.slave is not None else next(iter(self.drivers))
         if slave not in self.drivers:
             raise ValueError("%s: wiring.slave %d is not a driver on this bench (drivers: %s)"
@@ -318,6 +324,25 @@ class SimBench:
         hal.output_hooks.append(drive.update)  # the drive's past ran with the relays as they were
         self.wiring = wiring
         self.wired_slave = slave
+
+    def _connect_node(self, wiring):
+        """The same wiring to CAN node ``wiring.node``: relays -> its digital inputs 0x60FD,
+        its digital outputs 0x60FE:1 -> the jig's inputs."""
+        node = self.can_nodes.get(wiring.node)
+        if node is None or not hasattr(node, "connect_inputs"):
+            raise ValueError("%s: wiring.node %d is not a CiA 402 node on this bench (CAN nodes: %s)"
+                             % (wiring.source, wiring.node, ", ".join(str(i) for i in self.can_nodes) or "none"))
+        hal = self.hal
+        node.connect_inputs(lambda: wiring.drive_inputs(hal.outputs), wiring.drive_input_mask)
+        hal.input_source = lambda: wiring.jig_inputs(node.out_bits())
+
+        def relays_change():
+            node.update()  # the node's past ran with the relays as they were
+            self.clock.after(0.0, node.inputs_changed)  # once they have changed: limits, TPDOs
+
+        hal.output_hooks.append(relays_change)
+        self.wiring = wiring
+        self.wired_node = wiring.node
 
     def write_params(self, settings):
         """Store a parameter file (as SaveAllParameters would) for the next boot."""
@@ -351,8 +376,8 @@ class SimBench:
 
     def set_fault(self, name, value=None, slave=None):
         """``SimDriver.set_fault`` on driver ``slave``; None: the wired drive, else every driver.
-        A name ``can:NAME`` goes to the CAN node ``slave`` (None: every CAN node) as the
-        node's ``set_fault(NAME, value)``."""
+        A name ``can:NAME`` goes to the CAN node ``slave`` (None: the wired node, else every
+        CAN node) as the node's ``set_fault(NAME, value)``."""
         if name.startswith(CAN_FAULT_PREFIX):
             name = name[len(CAN_FAULT_PREFIX):]
             if slave is not None:
@@ -360,6 +385,8 @@ class SimBench:
                     raise ValueError("no CAN node %d on this bench (CAN nodes: %s)"
                                      % (slave, ", ".join(str(i) for i in self.can_nodes) or "none"))
                 targets = [self.can_nodes[slave]]
+            elif self.wired_node is not None:
+                targets = [self.can_nodes[self.wired_node]]
             else:
                 targets = list(self.can_nodes.values())
                 if not targets:

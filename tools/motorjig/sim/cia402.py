@@ -23,7 +23,13 @@ by ``COMMANDS``, states shown by ``STATES``), with quick stop (0x605A), halt (bi
 8) and fault reaction (0x605E); profile position (set-point handshake bits 4/5/6,
 acknowledge bit 12, target reached bit 10 with 0x6067/0x6068, following error bit
 13 and 0x6065/0x6066), profile velocity (0x60FF), homing (0x6098 methods 19-22 on
-the rotary axis' origin flag, 35/37 here; 0x6099, 0x609A).
+the rotary axis' origin flag, 35/37 here; 0x6099, 0x609A). Digital inputs 0x60FD
+(bit 0 negative limit, 1 positive limit, 2 home switch, 16-31 vendor inputs; the
+bench's wiring connects the jig's relays to them: ``connect_inputs``): a limit
+switch active in the direction of motion stops the axis with the quick stop
+deceleration 0x6085 and shows as internal limit active (statusword bit 11).
+Digital outputs 0x60FE:1 masked by 0x60FE:2 (``out_bits``, the wiring's side
+towards the jig's inputs).
 
 Faults of a failing drive: ``set_fault(name, value)`` with the names of ``FAULTS``;
 ``clear_faults()``.
@@ -34,6 +40,7 @@ import re
 import struct
 
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
+from canopen.objectdictionary.datatypes import INTEGER_TYPES, SIGNED_TYPES
 
 from motorjig.can import EDS_PATH
 
@@ -93,6 +100,7 @@ ABORT_NAMES = {
 SIG_SAVE = 0x65766173  # "save"
 NOT_STORED = (0x1003, 0x1010, 0x1011, 0x6040)  # writable objects that 0x1010 does not save
 SIG_LOAD = 0x64616F6C  # "load"
+DYNAMIC = (0x1001, 0x6041, 0x603F, 0x6061, 0x6062, 0x6064, 0x606C, 0x60F4, 0x60FD)  # what _refresh computes
 
 # EMCY error codes the drive raises, and the error register (0x1001) bits they set
 EMCY_RESET = 0x0000
@@ -212,17 +220,65 @@ FAULTS = {
                             "homing error bit 13"),
     "missed-heartbeat": ("", None, "the drive stops producing its heartbeat (0x1017) while set"),
     "sdo-abort": ("CODE", ABORT_GENERAL, "every SDO request is answered with abort CODE (default 0x08000000)"),
+    "param": ("INDEX[:SUB]=VALUE", None, "object INDEX:SUB (an integer in the EDS) reads VALUE, now and after a "
+                                        "reset (its saved value too; the drive uses it): a parameter off the golden "
+                                        "set (repeatable; a write by SDO replaces it)"),
 }
 FAULT_ALIASES = {"step-out": "following-error"}  # the Plus-R drive's name for the same failure
 _SWITCHES = ("no-origin", "missed-heartbeat")
 
 
+def _param_value(value):
+    """``"0x6081:0=1234"`` / ``"0x6081=1234"`` / ``((index, sub), value)`` -> ((index, sub), value)."""
+    if isinstance(value, tuple) and len(value) == 2 and isinstance(value[0], tuple):
+        (index, sub), v = value
+        return (int(index), int(sub)), int(v)
+    text = str(value)
+    obj, eq, v = text.rpartition("=")
+    if not eq:
+        raise ValueError("param: expected INDEX[:SUB]=VALUE, e.g. 0x6081:0=1234, got %r" % (value,))
+    index, colon, sub = obj.partition(":")
+    try:  # index and sub-index in hex, as the EDS writes them
+        return (int(index, 16), int(sub, 16) if colon else 0), int(v, 0)
+    except ValueError:
+        raise ValueError("param: expected INDEX[:SUB]=VALUE (INDEX, SUB hex), e.g. 0x6081:0=1234, got %r"
+                         % (value,)) from None
+
+
+def check_param(variables, key, value):
+    """ValueError unless object ``key`` of ``variables`` ({(index, sub): ODVariable}) is an
+    integer object that can hold ``value``."""
+    var = variables.get(key)
+    where = "param: 0x%04X:%02X" % key
+    if var is None:
+        raise ValueError("%s is not in the EDS" % where)
+    if key[0] in NOT_STORED or key[0] in DYNAMIC:
+        raise ValueError("%s is a command or a value the drive computes, not a parameter" % where)
+    if var.data_type not in INTEGER_TYPES:
+        raise ValueError("%s is not an integer object" % where)
+    bits = 8 * var.STRUCT_TYPES[var.data_type].size
+    lo, hi = (-(1 << bits - 1), (1 << bits - 1) - 1) if var.data_type in SIGNED_TYPES else (0, (1 << bits) - 1)
+    if var.min is not None:
+        lo = max(lo, var.min)
+    if var.max is not None:
+        hi = min(hi, var.max)
+    if not lo <= value <= hi:
+        raise ValueError("%s must be %d..%d, got %d" % (where, lo, hi, value))
+
+
 def parse_fault(name, value=None):
     """(name, checked value) of a fault of ``FAULTS`` (None: its default); numbers may be
-    text. ValueError with a one-line reason otherwise."""
+    text. ValueError with a one-line reason otherwise. ``param``'s value is ((index,
+    sub), value), checked against the EDS by the node."""
     name = FAULT_ALIASES.get(name, name)
     if name not in FAULTS:
         raise ValueError("unknown fault %r (known: %s)" % (name, ", ".join(FAULTS)))
+    if name == "param":
+        if value is None:
+            raise ValueError("param: needs a value: param=INDEX[:SUB]=VALUE")
+        key, v = _param_value(value)
+        check_param(_eds_variables(), key, v)
+        return name, (key, v)
     if name in _SWITCHES:
         if value in (None, True, False):
             return name, value is not False
@@ -245,6 +301,29 @@ def parse_fault(name, value=None):
     return name, v
 
 
+def od_variables(od):
+    """{(index, sub): ODVariable} of an object dictionary."""
+    out = {}
+    for index in od:
+        obj = od[index]
+        if isinstance(obj, (ODRecord, ODArray)):
+            for sub in obj:
+                out[(index, sub)] = obj[sub]
+        elif isinstance(obj, ODVariable):
+            out[(index, 0)] = obj
+    return out
+
+
+_EDS_VARIABLES = []
+
+
+def _eds_variables():
+    """The project EDS's objects (read once): what ``parse_fault`` checks ``param`` against."""
+    if not _EDS_VARIABLES:
+        _EDS_VARIABLES.append(od_variables(import_od(EDS_PATH, 1)))
+    return _EDS_VARIABLES[0]
+
+
 def _relative(raw, node_id):
     """A '$NODEID+0x180'-style EDS default for this node id."""
     rest = re.sub(r"\+?\$NODEID\+?", "", raw.replace(" ", "").upper())
@@ -265,14 +344,7 @@ class Cia402Node:
         self.boot_us = boot_us
         self.sdo_timeout_us = sdo_timeout_ms * 1000.0
         self.od = import_od(eds, None if node_id == UNCONFIGURED else node_id)
-        self.vars = {}  # (index, sub) -> ODVariable
-        for index in self.od:
-            obj = self.od[index]
-            if isinstance(obj, (ODRecord, ODArray)):
-                for sub in obj:
-                    self.vars[(index, sub)] = obj[sub]
-            elif isinstance(obj, ODVariable):
-                self.vars[(index, 0)] = obj
+        self.vars = od_variables(self.od)  # (index, sub) -> ODVariable
         self.serial = SERIAL_BASE + node_id if serial is None else serial
         self.stored = {}  # (index, sub) -> value saved by 0x1010 (what a reset loads)
         if heartbeat_ms is not None:
@@ -289,6 +361,8 @@ class Cia402Node:
         self.origin_pos = 2500  # the home switch: a flag a quarter turn on from power-up
         self.origin_width = 500
         self.inputs = 0  # digital input bits set from outside (limits, vendor bits), OR-ed in
+        self.wire_source = None  # fn() -> input bits from the jig's relays (the bench's wiring)
+        self.wire_mask = 0  # the input bits wired to the jig (only their wire drives them)
         self._tick_due = False
         # faults
         self.step_out_pps = None
@@ -298,6 +372,8 @@ class Cia402Node:
         self.no_origin = False
         self.missed_heartbeat = False
         self.sdo_abort_code = None
+        self.param_faults = {}  # (index, sub) -> the value set_fault forced
+        self._param_saved = {}  # (index, sub) -> (present value, stored value or None) before it
         # LSS
         self.lss_mode = 0  # 0 waiting, 1 configuration
         self.lss_pending_id = node_id
@@ -374,6 +450,7 @@ class Cia402Node:
         self.pp_ack = False
         self.pp_done_t = self.clock.now
         self.internal_limit = False
+        self.limit_stopped = False  # the last move was stopped by a limit switch
         self.homing = None  # None, "search", "found", "attained", "error", "interrupted"
         self.homing_from = 0.0
         self._fe_since = None
@@ -1071,6 +1148,7 @@ class Cia402Node:
     def _move(self, target, speed, direction, acc, dec):
         self.motion.start(target, speed, direction, ramp_ms(speed, acc), ramp_ms(speed, dec), 1)
         self.t_motion = self.t_move_start = self._now()
+        self._check_limit_switches()  # towards an active limit switch: stopped at once
 
     def _mode_bits(self, old, cw):
         """Bits 4-8 of the controlword in OPERATION ENABLED."""
@@ -1102,6 +1180,7 @@ class Cia402Node:
             self._homing_start()
 
     def _pp_start(self, target):
+        self.limit_stopped = False
         lo, hi = self.values[(0x607D, 1)], self.values[(0x607D, 2)]
         self.internal_limit = not lo <= target <= hi
         target = min(max(target, lo), hi)
@@ -1141,6 +1220,8 @@ class Cia402Node:
         v = self.values
         target = 0 if self.halted else v[(0x60FF, 0)]
         d = 1 if target > 0 else -1
+        if self.digital_inputs() & (IN_LIMIT_PLUS if d > 0 else IN_LIMIT_MINUS):
+            target = 0  # held by the limit switch
         if target == 0 or (m.moving and (m.direction != d or m.target is not None)):
             self._stop(v[(0x6084, 0)])
         elif not m.moving or m.stopping or m.vmax != abs(target):
@@ -1154,9 +1235,9 @@ class Cia402Node:
             return
         speed = self.values[(0x6099, 1)]
         acc = self.values[(0x609A, 0)]
-        self._move(None, speed, direction, acc, acc)
         self.homing = "search"
         self.homing_from = self.mech
+        self._move(None, speed, direction, acc, acc)
         self._check_home_switch()
 
     def _home_here(self):
@@ -1165,6 +1246,29 @@ class Cia402Node:
         self.actual_offset = 0.0
         self.pp_target = int(self.motion.pos)
         self.homing = "attained"
+
+    def _check_limit_switches(self):
+        """A limit switch active in the direction of motion stops the axis with the quick
+        stop deceleration 0x6085 (a homing there fails): the move is over, not a fault."""
+        m = self.motion
+        if not m.moving:
+            return
+        bits = self.digital_inputs()
+        if not bits & (IN_LIMIT_PLUS if m.direction > 0 else IN_LIMIT_MINUS):
+            return
+        if self.homing == "search":
+            self.homing = "error"
+        if self.mode == MODE_PP and self.pp_active:
+            self.pp_active = False
+            self.pp_buffer = None
+            self.pp_restart = False
+            self.pp_done_t = self._now()
+        self.limit_stopped = True
+        self._stop(self.values[(0x6085, 0)])
+
+    def limit_active(self):
+        """A limit switch input reads active (statusword bit 11, internal limit active)."""
+        return bool(self.digital_inputs() & (IN_LIMIT_PLUS | IN_LIMIT_MINUS))
 
     def _check_home_switch(self):
         if self.homing != "search":
@@ -1202,6 +1306,7 @@ class Cia402Node:
             moved = math.copysign(self.step_out_pps * dt, dp)
             self.actual_offset -= dp - moved
         self.mech += moved
+        self._check_limit_switches()
         self._check_home_switch()
         if m.moving and self.overcurrent_ms is not None and self.t_motion - self.t_move_start >= self.overcurrent_ms * 1000.0:
             self.fault(EMCY_OVERCURRENT, ERR_CURRENT)
@@ -1258,11 +1363,34 @@ class Cia402Node:
             v = math.copysign(self.step_out_pps, v)
         return int(round(v))
 
+    def connect_inputs(self, source, mask):
+        """Wire the input bits in ``mask`` to ``source()`` (the jig's relays through the
+        bench's wiring), read whenever the drive looks at its inputs. A wired bit reads
+        only its wire: the drive's own home switch is not connected if bit 2 is wired."""
+        self.wire_source = source
+        self.wire_mask = mask
+
     def digital_inputs(self):
-        bits = self.inputs
+        """0x60FD: the bits set from outside (``inputs``) OR the physical ones (the home
+        switch, the wires to the jig) less the dead ones."""
+        physical = 0
         if not self.no_origin and at_origin(self.mech, self.origin_pos, self.origin_width, self.rev_pulses):
-            bits |= IN_HOME
-        return bits & ~self.dead_inputs & 0xFFFFFFFF
+            physical |= IN_HOME
+        physical &= ~self.wire_mask
+        if self.wire_source is not None:
+            physical |= self.wire_source() & self.wire_mask
+        return (self.inputs | (physical & ~self.dead_inputs)) & 0xFFFFFFFF
+
+    def inputs_changed(self):
+        """Something outside changed the inputs (a relay): event-driven TPDOs (0x60FD),
+        a limit switch stopping the axis."""
+        self.update()
+        self._check_limit_switches()
+        self._after_change()
+
+    def out_bits(self):
+        """The digital outputs as they reach the wires: 0x60FE:1 masked by 0x60FE:2."""
+        return self.values[(0x60FE, 1)] & self.values[(0x60FE, 2)]
 
     def statusword(self):
         self.update()
@@ -1271,6 +1399,8 @@ class Cia402Node:
             sw |= SW_VOLTAGE_ENABLED
         if self.state != OPERATION_ENABLED:
             return sw
+        if self.limit_active():
+            sw |= SW_INTERNAL_LIMIT
         m = self.motion
         if self.mode == MODE_PP:
             window = self.values[(0x6065, 0)]
@@ -1283,7 +1413,7 @@ class Cia402Node:
             if not m.moving:
                 actual = m.pos + self.actual_offset
                 settled = self.clock.now - self.pp_done_t >= self.values[(0x6068, 0)] * 1000.0
-                if (self.halted and self.pp_active) or (
+                if (self.halted and self.pp_active) or (not self.pp_active and self.limit_stopped) or (
                         not self.pp_active and settled and abs(self.pp_target - actual) <= self.values[(0x6067, 0)]):
                     sw |= SW_TARGET_REACHED
         elif self.mode == MODE_PV:
@@ -1323,6 +1453,22 @@ class Cia402Node:
             self.missed_heartbeat = v
         elif name == "sdo-abort":
             self.sdo_abort_code = v
+        elif name == "param":
+            key, value = v
+            check_param(self.vars, key, value)
+            self._param_saved.setdefault(key, (self.values[key], self.stored.get(key)))
+            self.param_faults[key] = value
+            self._force(key, value, value)
+
+    def _force(self, key, value, stored):
+        """Object ``key`` reads ``value`` now and ``stored`` after a reset (None: its default)."""
+        if stored is None:
+            self.stored.pop(key, None)
+        else:
+            self.stored[key] = stored
+        self.values[key] = value
+        self._written(key[0], key[1], value)
+        self._after_change()
 
     def active_faults(self):
         """The faults that are on, as NAME[=VALUE]."""
@@ -1340,6 +1486,7 @@ class Cia402Node:
             out.append("missed-heartbeat")
         if self.sdo_abort_code is not None:
             out.append("sdo-abort=0x%08X" % self.sdo_abort_code)
+        out += ["param=0x%04X:%02X=%d" % (k + (v,)) for k, v in sorted(self.param_faults.items())]
         return out
 
     def clear_faults(self):
@@ -1352,6 +1499,10 @@ class Cia402Node:
         self.no_origin = False
         self.missed_heartbeat = False
         self.sdo_abort_code = None
+        saved, self._param_saved = self._param_saved, {}
+        self.param_faults = {}
+        for key, (value, stored) in saved.items():
+            self._force(key, value, stored)
 
     @property
     def nmt_state(self):
