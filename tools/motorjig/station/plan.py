@@ -7,6 +7,13 @@ does not have, a wiring reference that is not wired. Nothing here touches the bu
 what only the drive can tell (its variant, its slave type) is checked by the run's
 pre-flight before anything moves (``motorjig.station.runner``).
 
+A plan is for one protocol (``[drive] protocol``, ``schema.PROTOCOL_KINDS``): a Plus-R drive
+(``plan.drive.protocol == "plusr"``: ``slave``, ``variants``, ``slave_type``) or a CiA 402 drive
+(``"cia402"``: ``node_id``, ``bitrate``, ``eds`` and its object dictionary ``od``, read once
+here with python-canopen). A step kind or key the protocol lacks is refused; for a CiA 402
+drive every object a step writes and every entry of a parameter set is checked against the
+EDS (exists, data type, limits, writable where it is written).
+
 Repeats and sweeps are expanded here: ``repeat = 3`` gives three steps, a sweep key
 given as a list gives one step per value, each with a unique name
 (``move_speed_20000``; an unnamed step of a kind that came before: ``move_2``), so every
@@ -21,6 +28,7 @@ import os
 import re
 
 from motorjig import paramset
+from motorjig.commands import UsageError
 from motorjig.station import schema as S
 from motorjig.tomlsource import SourceError, dotted, read_toml
 
@@ -28,14 +36,31 @@ PlanError = SourceError
 
 
 class Drive:
-    """The drive a plan is for; ``protocol``: the variants it may speak, e.g. (6,) or (6, 8)."""
+    """A Plus-R drive (``protocol`` "plusr"); ``variants``: the protocol variants it may speak, e.g.
+    (6,) or (6, 8)."""
 
-    def __init__(self, slave, protocol, slave_type, jig_id):
-        self.slave, self.protocol, self.slave_type, self.jig_id = slave, protocol, slave_type, jig_id
+    protocol = "plusr"
+
+    def __init__(self, slave, variants, slave_type, jig_id):
+        self.slave, self.variants, self.slave_type, self.jig_id = slave, variants, slave_type, jig_id
 
     def as_dict(self):
-        return {"slave": self.slave, "protocol": list(self.protocol), "slave_type": self.slave_type,
-                "jig_id": self.jig_id}
+        return {"protocol": self.protocol, "slave": self.slave, "variant": list(self.variants),
+                "slave_type": self.slave_type, "jig_id": self.jig_id}
+
+
+class Cia402Drive:
+    """A CiA 402 drive (``protocol`` "cia402") at ``node_id`` on the CAN bus at ``bitrate``;
+    ``eds``: its EDS (absolute path), ``od``: the canopen ObjectDictionary read from it."""
+
+    protocol = "cia402"
+
+    def __init__(self, node_id, bitrate, eds, od, jig_id):
+        self.node_id, self.bitrate, self.eds, self.od, self.jig_id = node_id, bitrate, eds, od, jig_id
+
+    def as_dict(self):
+        return {"protocol": self.protocol, "node_id": self.node_id, "bitrate": self.bitrate,
+                "eds": os.path.basename(self.eds), "jig_id": self.jig_id}
 
 
 class Step:
@@ -43,7 +68,7 @@ class Step:
 
     def __init__(self, kind, name, args, index):
         self.kind, self.name, self.args, self.index = kind, name, args, index
-        self.paramset = None  # parameters steps: the paramset.ParamSet of args["file"]
+        self.paramset = None  # parameters steps: the ParamSet (Plus-R) or ParamSet402 (CiA 402) of args["file"]
 
     def __repr__(self):
         return "Step(%s %r)" % (self.kind, self.name)
@@ -64,7 +89,7 @@ class Plan:
         self.wiring = wiring
         self.steps = steps
         self.hash = digest
-        self.paramsets = paramsets  # path -> paramset.ParamSet
+        self.paramsets = paramsets  # path -> paramset.ParamSet / paramset402.ParamSet402
 
 
 class _Checker:
@@ -151,13 +176,15 @@ def bounds_text(lo, hi):
     return "≥ %s" % lo if lo is not None else "≤ %s" % hi
 
 
-def _wiring(ck, data, drive_slave):
+def _wiring(ck, data, drive):
     if "wiring" not in data:
         return None
     from motorjig.wiring import WiringError, parse_wiring
 
     try:
-        return parse_wiring(data["wiring"], source=ck.path, default_slave=drive_slave)
+        if drive.protocol == "cia402":
+            return parse_wiring(data["wiring"], source=ck.path, default_node=drive.node_id)
+        return parse_wiring(data["wiring"], source=ck.path, default_slave=drive.slave)
     except WiringError as exc:
         # exc.key is a dotted path such as "wiring.relay[1].drive_input": find its line
         parts = tuple(name or int(idx) for name, idx in re.findall(r"([A-Za-z_]+)|\[(\d+)\]", exc.key or ""))
@@ -186,20 +213,24 @@ def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
             raise ck.error(step_path + ("distance",), "a move of distance 0 tests nothing")
     elif kind == "parameters":
         path = os.path.join(plan_dir, args["file"])
-        try:
-            ps = paramsets[path] = paramset.load(path)
-        except SourceError as exc:
-            if exc.line is None and exc.key == "" and not os.path.exists(path):
-                raise ck.error(step_path + ("file",), "parameter-set file %s not found" % path) from None
-            raise
+        if not os.path.exists(path):
+            raise ck.error(step_path + ("file",), "parameter-set file %s not found" % path)
+        if drive.protocol == "cia402":
+            from motorjig.can import paramset402
+
+            paramsets[path] = paramset402.load(path, drive.od, os.path.basename(drive.eds),
+                                               writable=args["mode"] == "apply")
+            return
+        ps = paramsets[path] = paramset.load(path)
         if ps.slave_type is not None and ps.slave_type != drive.slave_type:
             raise ck.error(step_path + ("file",), "%s is a parameter set of slave type %d, the plan's drive is "
                                                   "type %d" % (args["file"], ps.slave_type, drive.slave_type))
     elif kind == "limit-sensor":
         relay = _wired(ck, wiring, step_path + ("relay",), args["relay"], "relay")
         if relay[1] not in (0, 1):
+            limits = "0 limit +, 1 limit -" if drive.protocol == "plusr" else "0x60FD bit 0 negative, 1 positive limit"
             raise ck.error(step_path + ("relay",), "relay %d drives drive input %d, not a limit input "
-                                                   "(0 limit +, 1 limit -)" % (relay[0], relay[1]))
+                                                   "(%s)" % (relay[0], relay[1], limits))
     elif kind == "io":
         if wiring is None or not (wiring.relays or wiring.senses):
             raise ck.error(step_path, "an io step needs a [wiring] with relays or senses")
@@ -208,11 +239,37 @@ def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
                 _wired(ck, wiring, step_path + (key, i), ref, which)
 
 
-def _expand(ck, kind, name, explicit, args, index, out, owners):
+def _check_objects(ck, step_path, keys, args, drive):
+    """A CiA 402 step's values that are written to objects (``Key.obj``): the EDS has each object,
+    writable, and every value (each of a sweep) fits its data type and limits."""
+    from motorjig.can import objects as O
+
+    for k in keys:
+        if k.obj is None or args.get(k.name) is None:
+            continue
+        index, sub = k.obj if isinstance(k.obj, tuple) else (k.obj, 0)
+        label = "0x%04X:%02X" % (index, sub) if isinstance(k.obj, tuple) else "0x%04X" % index
+        try:
+            var = O.find(drive.od, "0x%04X:%d" % (index, sub), os.path.basename(drive.eds)).var
+        except UsageError as exc:
+            raise ck.error(step_path + (k.name,), "the drive cannot take %s: %s" % (
+                k.name, str(exc).split(" (--force")[0])) from None
+        if var is None or var.access_type not in ("rw", "rwr", "rww", "wo"):
+            raise ck.error(step_path + (k.name,), "%s is not writable in %s" % (label, os.path.basename(drive.eds)))
+        low, high = O.type_range(var)
+        values = args[k.name] if isinstance(args[k.name], list) else [args[k.name]]
+        for i, v in enumerate(values):
+            if low is not None and not low <= v <= high:
+                where = step_path + ((k.name, i) if isinstance(args[k.name], list) else (k.name,))
+                raise ck.error(where, "%d is outside %s %s's limits in %s: %d..%d" % (
+                    v, label, var.name, os.path.basename(drive.eds), low, high))
+
+
+def _expand(ck, kind, name, explicit, args, index, out, owners, protocol="plusr"):
     """The step runs of one plan step, appended to ``out``. ``owners``: every step-run name so far
     -> (plan step index, explicit). A name given in the plan (``explicit``) must be free; a default
     name (the kind) that is taken is numbered (servo, servo_2)."""
-    sweeps = [k for k, v in args.items() if isinstance(v, list) and S.kind_keys(kind)[k].sweep]
+    sweeps = [k for k, v in args.items() if isinstance(v, list) and S.kind_keys(kind, protocol)[k].sweep]
     combos = itertools.product(*[args[k] for k in sweeps]) if sweeps else [()]
     for combo in combos:
         a = dict(args)
@@ -240,6 +297,69 @@ def _same_name(ck, name, first, second):
                                                                       second))
 
 
+_PROTOCOL_NAMES = {"plusr": "Plus-R", "cia402": "CiA 402"}
+
+
+def _drive(ck, d, plan_dir):
+    """The plan's Drive or Cia402Drive from its [drive] table, and the EDS's bytes (b"" for Plus-R)."""
+    if not isinstance(d, dict):
+        raise ck.error(("drive",), "expected a table")
+    protocol = d.get("protocol", "plusr")
+    table = dict(d)
+    if protocol not in S.PROTOCOLS:
+        old = S.PROTOCOL_DRIVE_KEYS["plusr"][1]  # variant: the old spelling protocol = 6 | 8 | [6, 8]
+        try:
+            variants = ck.value(protocol, old, ("drive", "protocol"))
+        except PlanError:
+            raise ck.error(("drive", "protocol"), "expected %s, 6, 8 or [6, 8], got %r" % (
+                " or ".join('"%s"' % p for p in S.PROTOCOLS), protocol)) from None
+        if "variant" in d:
+            raise ck.error(("drive", "variant"), "the variants are given twice: as protocol = %r and here" % (
+                protocol,))
+        protocol = "plusr"
+        table["protocol"], table["variant"] = protocol, list(variants)
+    own = S.PROTOCOL_DRIVE_KEYS[protocol]
+    for name in table:
+        for other in S.PROTOCOLS:
+            if other != protocol and name in {k.name for k in S.PROTOCOL_DRIVE_KEYS[other]}:
+                raise ck.error(("drive", name), "'%s' is a key of protocol = \"%s\" drives; this plan's drive is "
+                                                "protocol = \"%s\" (its keys: %s)" % (
+                    name, other, protocol, ", ".join(k.name for k in S.DRIVE_KEYS + own)))
+    v = ck.table(table, ("drive",), S.DRIVE_KEYS + own, "[drive]")
+    if protocol == "plusr":
+        drive = Drive(v["slave"], v["variant"], v["slave_type"], v["jig_id"])
+        if drive.slave in (drive.jig_id, 99):
+            raise ck.error(("drive", "slave"), "slave %d is the jig or the broadcast id, not a drive" % drive.slave)
+        return drive, b""
+    from motorjig.can import EDS_PATH
+    from motorjig.can import objects as O
+
+    eds = os.path.normpath(os.path.join(plan_dir, v["eds"])) if v["eds"] is not None else EDS_PATH
+    try:
+        od = O.load_eds(eds)
+        with open(eds, "rb") as f:
+            eds_raw = f.read()
+    except (UsageError, OSError) as exc:
+        raise ck.error(("drive", "eds"), str(exc).rstrip(".")) from None
+    return Cia402Drive(v["node_id"], v["bitrate"], eds, od, v["jig_id"]), eds_raw
+
+
+def _check_wired_drive(ck, wiring, drive):
+    """The fixture must be wired to the plan's drive: its slave (Plus-R) or CAN node (CiA 402)."""
+    node = getattr(wiring, "node", None)
+    if drive.protocol == "plusr":
+        if node is not None:
+            raise ck.error(("wiring", "node"), "the fixture is wired to CAN node %d, the plan tests the Plus-R "
+                                               "drive at slave %d" % (node, drive.slave))
+        if wiring.slave != drive.slave:
+            raise ck.error(("wiring", "slave"), "the fixture is wired to slave %s, the plan tests slave %d"
+                           % (wiring.slave, drive.slave))
+    elif node != drive.node_id:
+        where, what = (("wiring", "slave"), "Plus-R slave %s" % wiring.slave) if node is None else (
+            ("wiring", "node"), "CAN node %s" % node)
+        raise ck.error(where, "the fixture is wired to %s, the plan tests CAN node %d" % (what, drive.node_id))
+
+
 def load_plan(path):
     """Read, check and expand one plan file."""
     data, lines, raw = read_toml(path)
@@ -253,19 +373,16 @@ def load_plan(path):
     if "plan" not in data:
         raise ck.error((), "no [plan] table (it needs at least name and version)")
     settings = ck.table(data["plan"], ("plan",), S.PLAN_KEYS, "[plan]")
-    d = ck.table(data.get("drive", {}), ("drive",), S.DRIVE_KEYS, "[drive]")
-    drive = Drive(d["slave"], d["protocol"], d["slave_type"], d["jig_id"])
-    if drive.slave in (drive.jig_id, 99):
-        raise ck.error(("drive", "slave"), "slave %d is the jig or the broadcast id, not a drive" % drive.slave)
-    wiring = _wiring(ck, data, drive.slave)
-    if wiring is not None and wiring.slave != drive.slave:
-        raise ck.error(("wiring", "slave"), "the fixture is wired to slave %s, the plan tests slave %d"
-                       % (wiring.slave, drive.slave))
+    plan_dir = os.path.dirname(os.path.abspath(path))
+    drive, eds_raw = _drive(ck, data.get("drive", {}), plan_dir)
+    wiring = _wiring(ck, data, drive)
+    if wiring is not None:
+        _check_wired_drive(ck, wiring, drive)
     steps_data = data.get("steps")
     if not isinstance(steps_data, list) or not steps_data:
         raise ck.error(("steps",), "no steps (add [[steps]] tables)")
     steps, owners, named, paramsets = [], {}, {}, {}
-    plan_dir = os.path.dirname(os.path.abspath(path))
+    kinds = S.kinds(drive.protocol)
     for i, sd in enumerate(steps_data):
         sp = ("steps", i)
         if not isinstance(sd, dict):
@@ -273,11 +390,19 @@ def load_plan(path):
         kind = sd.get("kind")
         if kind is None:
             raise ck.error(sp, "a step needs 'kind' (one of %s)" % ", ".join(S.KINDS))
-        if kind not in S.KINDS:
-            hint = difflib.get_close_matches(str(kind), list(S.KINDS), 1)
+        if kind not in kinds:
+            others = [p for p in S.PROTOCOLS if p != drive.protocol and kind in S.kinds(p)]
+            if others:
+                raise ck.error(sp + ("kind",), "a %s drive has no step kind %r (only protocol = \"%s\" drives "
+                                               "do; this plan's kinds: %s)" % (
+                    _PROTOCOL_NAMES[drive.protocol], kind, others[0], ", ".join(kinds)))
+            hint = difflib.get_close_matches(str(kind), list(kinds), 1)
             raise ck.error(sp + ("kind",), "unknown step kind %r%s (known: %s)" % (
-                kind, "; did you mean '%s'?" % hint[0] if hint else "", ", ".join(S.KINDS)))
-        args = ck.table(sd, sp, S.COMMON_STEP_KEYS + S.KINDS[kind].keys, "a %s step" % kind)
+                kind, "; did you mean '%s'?" % hint[0] if hint else "", ", ".join(kinds)))
+        keys = S.COMMON_STEP_KEYS + kinds[kind].keys
+        args = ck.table(sd, sp, keys, "a %s step" % kind)
+        if drive.protocol == "cia402":
+            _check_objects(ck, sp, keys, args, drive)
         _check_step(ck, sp, kind, args, plan_dir, drive, wiring, paramsets)
         first = len(steps)
         name = (args["name"] or kind).replace(" ", "_")
@@ -285,11 +410,12 @@ def load_plan(path):
             if name in named:
                 raise _same_name(ck, name, named[name], i)
             named[name] = i
-        _expand(ck, kind, name, args["name"] is not None, args, i, steps, owners)
+        _expand(ck, kind, name, args["name"] is not None, args, i, steps, owners, drive.protocol)
         if kind == "parameters":
             for st in steps[first:]:
                 st.paramset = paramsets[os.path.join(plan_dir, args["file"])]
     digest = hashlib.sha256(raw)
+    digest.update(eds_raw)
     for ps_path in sorted(paramsets):
         digest.update(paramsets[ps_path].raw)
     return Plan(path, settings, drive, wiring, steps, digest.hexdigest(), paramsets)
