@@ -68,7 +68,7 @@ def _t(number, source, target, command=None, condition=""):
 
 
 TRANSITIONS = (
-    _t(1, NOT_READY, SWITCH_ON_DISABLED, None, "the drive has initialised after power-on (0: power-on)"),
+    _t(1, NOT_READY, SWITCH_ON_DISABLED, None, "the drive has initialised (after power-on, transition 0)"),
     _t(2, SWITCH_ON_DISABLED, READY, SHUTDOWN),
     _t(3, READY, SWITCHED_ON, SWITCH_ON),
     _t(4, SWITCHED_ON, OPERATION_ENABLED, ENABLE_OPERATION),
