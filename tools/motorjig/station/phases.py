@@ -110,15 +110,15 @@ def measures_identify(step, plan):
 
 
 def run_identify(test, bus, step, ctx):
-    m, s, a = bus.master, bus.slave, step.args
-    info = m.get_slave_info(s)
-    test.measurements["slave_type"] = info.type
-    test.measurements["slave_name"] = info.version
-    test.measurements["name_ok"] = re.search(a["name_pattern"], info.version) is not None
+    d, a = bus.drive, step.args
+    info = d.identify()
+    test.measurements["slave_type"] = info["slave_type"]
+    test.measurements["slave_name"] = info["slave_name"]
+    test.measurements["name_ok"] = re.search(a["name_pattern"], info["slave_name"]) is not None
     if a["motor_pattern"] is not None:
-        motor = m.get_motor_info(s)
-        test.measurements["motor_name"] = motor.text
-        test.measurements["motor_ok"] = re.search(a["motor_pattern"], motor.text) is not None
+        motor = d.motor()
+        test.measurements["motor_name"] = motor
+        test.measurements["motor_ok"] = re.search(a["motor_pattern"], motor) is not None
 
 
 def _param_names(step):
@@ -151,10 +151,9 @@ def measures_servo(step, plan):
 
 
 def run_servo(test, bus, step, ctx):
-    m, s = bus.master, bus.slave
-    m.servo_enable(s, step.args["on"])
-    test.measurements["servo_on"] = m.get_axis_status(s).servo_on
-    test.measurements["alarm"] = _alarm_code(m, s)
+    d = bus.drive
+    test.measurements["servo_on"] = d.enable(step.args["on"])["servo_on"]
+    test.measurements["alarm"] = d.fault()
 
 
 def measures_alarm_reset(step, plan):
@@ -162,9 +161,10 @@ def measures_alarm_reset(step, plan):
 
 
 def run_alarm_reset(test, bus, step, ctx):
-    m, s = bus.master, bus.slave
-    m.alarm_reset(s, servo=ctx.drive_is_servo)
-    test.measurements["alarm"] = _alarm_code(m, s)
+    d = bus.drive
+    d.is_servo = ctx.drive_is_servo
+    d.fault_reset()
+    test.measurements["alarm"] = d.fault()
 
 
 def _move_plan(m, s, a):
@@ -525,11 +525,37 @@ def phase_timeout(step):
     return max(DEFAULT_PHASE_TIMEOUT_S, own)
 
 
+def _step_functions(step, plan):
+    """(measurements, run) of a step: this module's for a Plus-R drive, ``phases_cia402``'s for a
+    CiA 402 drive, there with the EMCY rule around it (an EMCY during the step fails it)."""
+    kind = step.kind.replace("-", "_")
+    if getattr(plan.drive, "protocol", None) != "cia402" or kind == "prompt":
+        return globals()["measures_" + kind](step, plan), globals()["run_" + kind]
+    from motorjig.station import phases_cia402 as P
+
+    inner = getattr(P, "run_" + kind)
+
+    if step.kind in P.OWN_EMCY_KINDS:
+        return getattr(P, "measures_" + kind)(step, plan), inner
+
+    def run(test, bus, step, ctx):
+        n0 = len(bus.drive.emcys)
+        try:
+            inner(test, bus, step, ctx)
+        except Exception:
+            emcy = P.emcy_since(bus.drive, n0)
+            if emcy == "none":
+                raise
+            test.measurements["emcy"] = emcy  # the drive's fault is the verdict, not what it broke
+            return
+        test.measurements["emcy"] = P.emcy_since(bus.drive, n0)
+
+    return getattr(P, "measures_" + kind)(step, plan) + [P.measures_emcy()], run
+
+
 def build_phase(step, plan, ctx):
     """One OpenHTF phase for one expanded plan step."""
-    kind = step.kind.replace("-", "_")
-    measures = globals()["measures_" + kind](step, plan)
-    run = globals()["run_" + kind]
+    measures, run = _step_functions(step, plan)
 
     def phase(test, bus):
         if getattr(ctx, "aborted", False):  # an Abort that came before OpenHTF could deliver it

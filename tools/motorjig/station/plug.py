@@ -42,10 +42,11 @@ import time
 from openhtf import plugs
 from openhtf.util import configuration
 
-from jig.params import P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
-from jig.safety import ACTION_EMERGENCY_STOP, ACTION_EMERGENCY_STOP_SERVO_OFF
+from jig.params import P_CAN_SAFETY, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
+from jig.safety import ACTION_EMERGENCY_STOP, ACTION_EMERGENCY_STOP_SERVO_OFF, CAN_SAFETY_QUICK_STOP
 from motorjig.errors import JigError
 from motorjig.master import Master
+from motorjig.station.drive_plusr import PlusRDrive
 
 CONF = configuration.CONF
 _LOG = logging.getLogger(__name__)
@@ -59,7 +60,13 @@ for _name, _doc, _default in (
         ("motorjig_on_end", "stop-servo-off or none: what a test that did not pass does to the axis",
          "stop-servo-off"),
         ("motorjig_safety_window_ms", "the jig's master-silence safety stop during a run, ms (0: not armed)",
-         1000)):
+         1000),
+        ("motorjig_protocol", "the drive's protocol: plusr (on motorjig_port) or cia402 (on motorjig_can_port)",
+         "plusr"),
+        ("motorjig_can_port", "the jig's SLCAN port (device or pyserial URL) of a CiA 402 drive", None),
+        ("motorjig_node_id", "the CiA 402 drive's node id", 5),
+        ("motorjig_bitrate", "the CAN bitrate, bit/s", 500000),
+        ("motorjig_eds", "the CiA 402 drive's EDS (default: the one the project ships)", None)):
     if _name not in CONF._declarations:  # a re-import (tests) must not declare twice
         CONF.declare(_name, _doc, default_value=_default)
 
@@ -102,8 +109,9 @@ class SafetyNet:
     starts the heartbeat; ``disarm()`` stops it and restores them. Either raises JigError
     when the jig does not answer (the caller decides what that means for the run)."""
 
-    def __init__(self, master, jig_id, window_ms, servo_off):
+    def __init__(self, master, jig_id, window_ms, servo_off, can_drive=None):
         self.m = master
+        self.can_drive = can_drive  # a CiA 402 drive: the jig's CAN safety stop too (parameter 18)
         self.jig_id = jig_id
         self.window_ms = int(window_ms)
         self.action = ACTION_EMERGENCY_STOP_SERVO_OFF if servo_off else ACTION_EMERGENCY_STOP
@@ -120,6 +128,9 @@ class SafetyNet:
             # A jig from before "servo off" (action 2): EmergencyStop alone still stops the axis.
             self.action = ACTION_EMERGENCY_STOP
             m.set_parameter(j, P_SAFETY_ACTION, self.action)
+        if self.can_drive is not None:
+            saved += (m.get_parameter(j, P_CAN_SAFETY),)
+            m.set_parameter(j, P_CAN_SAFETY, CAN_SAFETY_QUICK_STOP)
         self.saved = saved  # from here on disarm() has something to put back
         self.stops_before = self.stops()
         m.set_parameter(j, P_SAFETY_TIMEOUT_MS, self.window_ms)
@@ -130,6 +141,12 @@ class SafetyNet:
     def _beat(self):
         period = self.window_ms / 4000.0
         while not self._stop.wait(period / 2):
+            d = self.can_drive
+            if d is not None and time.monotonic() - d.last_sent >= period:
+                try:
+                    d.keep_alive()  # the CAN port's own silence window
+                except Exception:  # a lost connection: the jig's stop will act, which is the point
+                    pass
             if time.monotonic() - self.m.last_request < period:
                 continue  # the phases keep the jig's window open themselves
             try:
@@ -159,20 +176,43 @@ class SafetyNet:
         self.stop_heartbeat()
         if self.saved is None:
             return
-        timeout_ms, action = self.saved
+        timeout_ms, action = self.saved[:2]
         self.m.set_parameter(self.jig_id, P_SAFETY_TIMEOUT_MS, timeout_ms)
         self.m.set_parameter(self.jig_id, P_SAFETY_ACTION, action)
+        if len(self.saved) > 2:
+            self.m.set_parameter(self.jig_id, P_CAN_SAFETY, self.saved[2])
         self.saved = None
 
 
+_ODS = {}  # EDS path -> its ObjectDictionary (a run's phases share one plug; a test runs many runs)
+
+
+def object_dictionary(path):
+    import canopen
+
+    from motorjig.can import EDS_PATH
+
+    path = path or EDS_PATH
+    if path not in _ODS:
+        _ODS[path] = canopen.import_od(path)
+    return _ODS[path]
+
+
 class MotorJigPlug(plugs.BasePlug):
-    """The bus, the drive under test (``slave``) and the jig (``jig_id``)."""
+    """The bus, the drive under test (``slave``; ``drive``: the station.drive interface to it) and
+    the jig (``jig_id``). A CiA 402 drive (``motorjig_protocol`` "cia402") is on the jig's SLCAN
+    port (``motorjig_can_port``), the jig itself still on ``motorjig_port``."""
 
     def __init__(self):
         if not CONF.motorjig_port:
             raise JigError("no port: set motorjig_port (jigctl test --port ...)")
         self.master = TimedMaster(CONF.motorjig_port, baud=CONF.motorjig_baud,
                                   timeout=CONF.motorjig_timeout_ms / 1000.0)
+        self.protocol = CONF.motorjig_protocol
+        if self.protocol == "cia402":
+            self.drive = self._open_cia402()
+        else:
+            self.drive = PlusRDrive(self.master, CONF.motorjig_slave, CONF.motorjig_jig_id)
         self.slave = CONF.motorjig_slave
         self.jig_id = CONF.motorjig_jig_id
         self.on_end = CONF.motorjig_on_end
@@ -180,6 +220,22 @@ class MotorJigPlug(plugs.BasePlug):
         self.aborted = False
         self.safety = None  # the SafetyNet while armed (arm_safety_net)
         self.trace_period_us = None  # the jig samples the moving steps at this period (None: this PC does)
+
+    def _open_cia402(self):
+        from motorjig.station.drive_cia402 import Cia402Drive
+
+        if not CONF.motorjig_can_port:
+            self.master.close()
+            raise JigError("no CAN port: set motorjig_can_port (jigctl test --can-port ...)")
+        d = Cia402Drive(CONF.motorjig_can_port, CONF.motorjig_node_id, CONF.motorjig_bitrate,
+                        object_dictionary(CONF.motorjig_eds), self.master, CONF.motorjig_jig_id)
+        try:
+            d.open()
+        except BaseException:
+            d.close()
+            self.master.close()
+            raise
+        return d
 
     def note_failure(self):
         self.failed = True
@@ -194,7 +250,8 @@ class MotorJigPlug(plugs.BasePlug):
         window_ms = CONF.motorjig_safety_window_ms if window_ms is None else window_ms
         if not window_ms:
             return None
-        net = SafetyNet(self.master, self.jig_id, window_ms, servo_off=self.on_end != "none")
+        net = SafetyNet(self.master, self.jig_id, window_ms, servo_off=self.on_end != "none",
+                        can_drive=self.drive if self.protocol == "cia402" else None)
         self.safety = net
         net.arm()
         return net
@@ -203,7 +260,13 @@ class MotorJigPlug(plugs.BasePlug):
         try:
             if self.on_end != "none" and (self.failed or self.aborted):
                 self.make_safe(emergency=self.aborted)
+            elif self.on_end != "none" and self.protocol == "cia402":
+                self._disable()  # a CiA 402 run always ends with the operation disabled
         finally:
+            try:
+                self.drive.close()
+            except Exception as exc:
+                _LOG.error("closing the drive's connection failed: %s", exc)
             try:
                 if self.safety is not None:
                     try:
@@ -213,8 +276,17 @@ class MotorJigPlug(plugs.BasePlug):
             finally:
                 self.master.close()
 
+    def _disable(self):
+        try:
+            self.drive.enable(False)
+        except Exception as exc:  # the gentle way failed: quick stop and disable voltage
+            _LOG.error("disabling the drive failed: %s", exc)
+            self.make_safe(emergency=True)
+
     def make_safe(self, emergency=False):
-        make_safe(self.master, self.slave, emergency)
+        """Stop the axis and switch it off (Plus-R: MoveStop/EmergencyStop and servo off; CiA 402:
+        quick stop and disable voltage); the problems met, as texts."""
+        return self.drive.make_safe(emergency)
 
 
 def make_safe(m, s, emergency=False):

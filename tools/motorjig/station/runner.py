@@ -54,7 +54,7 @@ class RunContext:
         self.out = _never_fails(out)
         self._confirm = confirm
         self.on_event = on_event
-        self.drive_is_servo = plan.drive.slave_type in SERVO_TYPES
+        self.drive_is_servo = getattr(plan.drive, "slave_type", None) in SERVO_TYPES
         self.record = None
         self.files = {}
         self._t_step = 0.0
@@ -162,9 +162,9 @@ def check_drive(m, drive, steps=()):
     variant = m.detect_variant(s)
     if variant is None:
         raise PreflightError("slave %d does not answer (check the cable, --port, --baud and [drive] slave)" % s)
-    if variant not in drive.protocol:
+    if variant not in drive.variants:
         raise PreflightError("the plan is for a %s drive, but slave %d answers as Ver%d: nothing was moved"
-                             % (" or ".join("Ver%d" % v for v in drive.protocol), s, variant))
+                             % (" or ".join("Ver%d" % v for v in drive.variants), s, variant))
     # detect_variant noted the drive's variant: from here on its frames go in it, no probing; the
     # jig (slave 1) and any other slave are framed in their own variant, detected at first contact
     info = m.get_slave_info(s)
@@ -200,6 +200,8 @@ def _preflight(plan, serial, ctx):
             test.dut_id = serial  # first: a refused drive's record still names it
         if ctx.aborted:
             raise PreflightError("aborted before the first step")
+        if bus.protocol == "cia402":
+            return _preflight_cia402(test, bus, plan, serial, ctx)
         variant, info = check_drive(bus.master, plan.drive, plan.steps)
         s = bus.slave
         test.test_record.metadata["drive"] = {"slave": s, "protocol": variant, "slave_type": info.type,
@@ -213,6 +215,29 @@ def _preflight(plan, serial, ctx):
         bus.master.roundtrips.clear()
 
     return preflight
+
+
+def _preflight_cia402(test, bus, plan, serial, ctx):
+    """The CiA 402 drive's preflight: the plug has opened it (node answers, trace TPDOs mapped);
+    its device profile must be 402. The records name it, its EDS and its identity."""
+    d = bus.drive
+    device_type = d.read(0x1000)
+    if device_type & 0xFFFF != 402:
+        raise PreflightError("node %d has device profile %d (0x1000 = 0x%08X), not CiA 402: nothing was moved"
+                             % (d.node_id, device_type & 0xFFFF, device_type))
+    ident = {"vendor_id": d.read(0x1018, 1), "product_code": d.read(0x1018, 2), "revision": d.read(0x1018, 3),
+             "serial": d.read(0x1018, 4)}
+    test.test_record.metadata["drive"] = dict(
+        protocol="cia402", node_id=d.node_id, bitrate=d.bitrate, eds=getattr(plan.drive, "eds", None),
+        device_type=device_type, **ident)
+    if not serial:
+        test.dut_id = "node%d-%08X-%08X" % (d.node_id, ident["product_code"], ident["serial"])
+    if plan.reset_jig_counters:
+        bus.master.reset_counters(bus.jig_id)
+    _arm_safety_net(test, bus, ctx)
+    test.test_record.metadata["sampling"] = {"by": "drive", "period_us": int(round(d.period * 1e6)),
+                                             "dated_by": "jig"}
+    bus.master.roundtrips.clear()
 
 
 def _choose_sampling(test, bus, plan):
@@ -335,13 +360,20 @@ def _store(ctx, db, record):
 
 
 def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, out_dir=".", out=print,
-             confirm=None, timeout_ms=100, on_event=None, on_start=None, db=None, safety_window_ms=1000):
-    """Run ``plan`` on the drive behind ``port``; returns the RunContext (``record``, ``files``).
+             confirm=None, timeout_ms=100, on_event=None, on_start=None, db=None, safety_window_ms=1000,
+             can_port=None):
+    """Run ``plan`` on the drive behind ``port`` (a CiA 402 plan: the jig on ``port``, the drive on
+    the jig's SLCAN port ``can_port``); returns the RunContext (``record``, ``files``).
     ``db``: the results database to store the run in (None: none), see ``station.store``."""
     ctx = RunContext(plan, out, confirm, on_event)
-    load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": plan.drive.slave,
+    cia402 = is_cia402(plan)
+    load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": getattr(plan.drive, "slave", 2),
             "motorjig_jig_id": plan.drive.jig_id, "motorjig_timeout_ms": timeout_ms,
-            "motorjig_on_end": plan.on_end, "motorjig_safety_window_ms": safety_window_ms}
+            "motorjig_on_end": plan.on_end, "motorjig_safety_window_ms": safety_window_ms,
+            "motorjig_protocol": "cia402" if cia402 else "plusr", "motorjig_can_port": can_port}
+    if cia402:
+        load.update(motorjig_node_id=plan.drive.node_id, motorjig_bitrate=plan.drive.bitrate,
+                    motorjig_eds=getattr(plan.drive, "eds", None))
     if station:
         load["station_id"] = station
     CONF.load(**load)
@@ -364,7 +396,10 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
         ctx.test = None
         threading.excepthook = hook
         if (ctx.aborted or (ctx.record or {}).get("outcome") == "ABORTED") and plan.on_end != "none":
-            _emergency_stop(port, baud, plan.drive.slave, timeout_ms)
+            if cia402:
+                _emergency_stop_cia402(can_port, plan)
+            else:
+                _emergency_stop(port, baud, plan.drive.slave, timeout_ms)
         _restore_signals(handlers)
     return ctx
 
@@ -452,6 +487,20 @@ def _emergency_stop(port, baud, slave, timeout_ms):
             make_safe(m, slave, emergency=True)
     except (JigError, OSError):
         pass  # the port cannot be opened any more: the record says how the run ended
+
+
+def is_cia402(plan):
+    return getattr(plan.drive, "protocol", None) == "cia402"
+
+
+def _emergency_stop_cia402(can_port, plan):
+    """After an abort: quick stop and disable voltage once more, on a CAN connection of its own."""
+    from motorjig.station.drive_cia402 import make_safe_on
+    from motorjig.station.plug import object_dictionary
+
+    if can_port:
+        make_safe_on(can_port, plan.drive.node_id, plan.drive.bitrate,
+                     getattr(plan.drive, "od", None) or object_dictionary(getattr(plan.drive, "eds", None)))
 
 
 def summary(ctx):

@@ -1,0 +1,70 @@
+"""The drive interface the station's steps speak to, whatever the drive's protocol.
+
+A step kind (``station.phases``) does its work through one ``Drive`` object, the plug's
+``bus.drive``, never through a protocol's own client: ``PlusRDrive``
+(``station.drive_plusr``: the Plus-R drive behind the jig's PC port, today's ``Master``
+calls) and ``Cia402Drive`` (``station.drive_cia402``: a CiA 402 drive on the jig's CAN
+port through python-canopen). A third protocol (Modbus RTU drives, EtherCAT CoE) is one
+more module with these methods, not a rewrite of the steps.
+
+Every implementation has:
+
+* ``protocol``: "plusr" or "cia402"; ``label``: the drive as the records name it
+  ("slave 2", "node 5");
+* ``identify()`` -> {name: value} of what the drive says it is;
+* ``enable(on)`` -> {"state", "transitions": [(name, seconds)]}: switched on (operation
+  enabled) or off; ``fault_reset()``; ``fault()`` -> the drive's fault code (0: none);
+* ``quick_stop()`` / ``halt()``: stop a motion (the protocol's emergency and ramped stops);
+* ``bus_health()`` -> {name: value} of the bus's counters over the run;
+* ``make_safe(emergency=False)`` -> the problems met (texts): stop the axis and switch it
+  off, trying each action whatever the one before did (the end of every run that did not
+  pass, and every interrupted one);
+* ``close()``.
+
+The moving steps sample the axis through a trace (``station.sampling``): rows of
+(t on the jig's clock, command/demand, actual, velocity) and the instants of the step's
+commands on the same clock.
+"""
+
+
+class DriveFault(Exception):
+    """The drive reported a fault during a step (a CiA 402 EMCY): the step fails with the code
+    and its meaning, ``code`` and ``text``."""
+
+    def __init__(self, code, text):
+        super().__init__(text)
+        self.code, self.text = code, text
+
+
+class Drive:
+    """The interface (see the module's doc); implementations override every method."""
+
+    protocol = ""
+    label = ""
+
+    def identify(self):
+        raise NotImplementedError
+
+    def enable(self, on):
+        raise NotImplementedError
+
+    def fault_reset(self):
+        raise NotImplementedError
+
+    def fault(self):
+        raise NotImplementedError
+
+    def quick_stop(self):
+        raise NotImplementedError
+
+    def halt(self):
+        raise NotImplementedError
+
+    def bus_health(self):
+        raise NotImplementedError
+
+    def make_safe(self, emergency=False):
+        raise NotImplementedError
+
+    def close(self):
+        pass
