@@ -2,7 +2,8 @@
 
 Subcommands: ``scan`` (which node ids answer, with device type, name and identity),
 ``nmt`` (start/stop/pre-operational/reset a node or all), ``sdo read|write`` (typed from
-an EDS), ``dump`` (a live line per frame, optionally logged by python-can), ``lss``
+an EDS), ``sdo dump|load`` (a node's settings as a CiA 402 parameter-set file, the format
+of ``motorjig.can.paramset402`` and of a CiA 402 plan's golden set), ``dump`` (a live line per frame, optionally logged by python-can), ``lss``
 (fast scan, node id, bit timing, store). Every input is checked before the port is
 opened; failures are one sentence and an exit status like the rest of jigctl: 2 bad
 input, 3 port (missing, or not an SLCAN port), 4 no answer, 5 a node refused (SDO abort,
@@ -21,6 +22,7 @@ from canopen.lss import LssError
 
 from motorjig.can import EDS_PATH, cia301
 from motorjig.can import objects as O
+from motorjig.can import paramset402
 from motorjig.can.dump import FrameText, check_log_path, run_dump
 from motorjig.can.port import DEFAULT_BITRATE, SLCAN_BITRATES, bus_session, network_session
 from motorjig.commands import EXIT_COMM, EXIT_OK, EXIT_PORT, EXIT_STATUS, UsageError, fail
@@ -92,6 +94,18 @@ def add_can_arguments(sp, common):
     w.add_argument("object", help=obj_help)
     w.add_argument("value", help="integers in decimal or 0x hex, true/false, a float, text, or hex bytes")
     w.add_argument("--force", action="store_true", help=force_help)
+    d = add(ssub, "dump", cmd_sdo_dump, "read a node's settings into a CiA 402 parameter-set file on stdout (the "
+                                        "format of a CiA 402 plan's golden set): jigctl can sdo dump 5 > set.toml")
+    d.add_argument("node", help="node id 1..127")
+    d.add_argument("--objects", metavar="LIST",
+                   help="comma-separated INDEX[:SUB] or names (a record: its read-write sub-indexes); default: every "
+                        "object the EDS lets one read and write at 0x1017 and from 0x2000 on, except the "
+                        "controlword, the mode, the targets and the outputs")
+    ld = add(ssub, "load", cmd_sdo_load, "write a CiA 402 parameter-set file's objects to a node (each checked "
+                                         "against the EDS first), optionally store them (0x1010:01 \"save\")")
+    ld.add_argument("node", help="node id 1..127")
+    ld.add_argument("file", help="the parameter-set file (jigctl can sdo dump's format)")
+    ld.add_argument("--store", action="store_true", help="then store them in the node: 0x1010:01 = \"save\"")
 
     p = add(sub, "dump", cmd_dump, "a live line per frame like candump, with its CANopen meaning; Ctrl-C ends it")
     p.add_argument("--count", "-n", type=int, help="stop after this many frames")
@@ -407,6 +421,76 @@ def cmd_sdo_write(args):
     _out(args, "node %d %s := %s" % (nid, t.label, shown),
          {"node": nid, "index": t.index, "subindex": t.sub, "name": O.object_name(t.var, t.container) or None,
           "raw": data.hex(), "written": True})
+    return EXIT_OK
+
+
+# sdo dump / load ------------------------------------------------------------------------
+DRIVE_OBJECTS = paramset402.DRIVE_KEYS  # [drive] key -> (index, sub) a parameter set names its drive by
+
+
+def _drive_identity(node):
+    """The [drive] values of a node ({key: int or None}) and its 0x1008 name (None if it aborted);
+    NoAnswer when it does not answer the first (0x1000, which every CANopen node has)."""
+    _sdo(node, "read", "0x1000:00 Device type", lambda: node.sdo.upload(0x1000, 0))
+    ident = {k: _u32(_try_upload(node, index, sub)) for k, (index, sub) in DRIVE_OBJECTS.items()}
+    name = _try_upload(node, 0x1008, 0)
+    return ident, (name.decode("ascii", "replace").rstrip("\x00") if name is not None else None)
+
+
+def cmd_sdo_dump(args):
+    nid = node_id(args.node)
+    od, eds_name = _eds(args)
+    objs = paramset402.select(od, args.objects, eds_name) if args.objects else paramset402.default_objects(od)
+    rate, url = bitrate(args), port_of(args)
+    values = []
+    with network_session(url, rate) as network:
+        node = _remote(network, nid, od, timeout_s(args))
+        ident, name = _drive_identity(node)
+        for index, sub, var in objs:
+            t = O.Target(index, sub, var)
+            raw = _sdo(node, "read", t.label, lambda: node.sdo.upload(index, sub))
+            try:
+                values.append((index, sub, var, O.decode(var, raw)))
+            except ValueError as exc:
+                raise Refused("node %d answered %s with %s: %s" % (nid, t.label, raw.hex(" ").upper(), exc)) from None
+    if args.json:
+        print(json.dumps({"node": nid, "drive": ident, "name": name, "objects": [
+            {"index": i, "subindex": s, "name": O.object_name(v), "value": O.jsonable(val)}
+            for i, s, v, val in values]}, indent=2))
+    else:
+        sys.stdout.write(paramset402.dumps(values, nid, ident, name))
+    return EXIT_OK
+
+
+def cmd_sdo_load(args):
+    from motorjig.tomlsource import SourceError
+
+    nid = node_id(args.node)
+    od, eds_name = _eds(args)
+    try:
+        ps = paramset402.load(args.file, od, eds_name, writable=True)
+    except SourceError as exc:
+        raise UsageError(str(exc).rstrip(".")) from None
+    rate, url = bitrate(args), port_of(args)
+    with network_session(url, rate) as network:
+        node = _remote(network, nid, od, timeout_s(args))
+        if ps.drive:
+            ident, _ = _drive_identity(node)
+            for k, want in ps.drive.items():
+                if ident[k] != want:
+                    index, sub = DRIVE_OBJECTS[k]
+                    raise UsageError("%s is for a drive of %s 0x%08X, node %d has %s (0x%04X:%d): nothing was written"
+                                     % (args.file, k, want, nid, _hex32(ident[k]), index, sub))
+        for e in ps.entries:
+            _sdo(node, "write", e.label, lambda: node.sdo.download(e.index, e.sub, O.encode(e.var, e.value)))
+        if args.store:
+            save = int.from_bytes(b"save", "little").to_bytes(4, "little")
+            _sdo(node, "write", "0x1010:01 Store parameters (save)", lambda: node.sdo.download(0x1010, 1, save))
+    n = len(ps.entries)
+    _out(args, "node %d: %d object%s from %s written%s" % (
+        nid, n, "" if n == 1 else "s", args.file,
+        " and stored (0x1010:01 \"save\")" if args.store else " (--store, or 0x1010:01 = save, keeps them)"),
+         {"node": nid, "file": args.file, "written": n, "stored": args.store})
     return EXIT_OK
 
 

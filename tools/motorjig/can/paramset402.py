@@ -109,6 +109,8 @@ def select(od, text, eds_name="the EDS"):
         if not part:
             raise UsageError("an empty entry in the object list %r" % text)
         t = O.find(od, part, eds_name)
+        if t.container is not None and t.var is not None and t.sub not in t.container.subindices:
+            raise UsageError("0x%04X %s has no sub-index %d in %s" % (t.index, t.container.name, t.sub, eds_name))
         if t.var is None:
             members = [v for v in O.members(t.container) if v.access_type in ("rw", "rwr", "rww")]
             if not members:
@@ -192,6 +194,8 @@ def load(path, od, eds_name="the EDS", writable=False):
             t = O.find(od, object_key(key), eds_name)
         except UsageError as exc:
             raise bad(str(exc).split(" (--force")[0]) from None
+        if t.container is not None and t.sub not in t.container.subindices:
+            raise bad("0x%04X %s has no sub-index %d in %s" % (t.index, t.container.name, t.sub, eds_name))
         if t.var is None:
             raise bad("0x%04X %s has sub-indexes: give one, e.g. \"0x%04X:%02X\"" % (
                 t.index, t.container.name, t.index, max(1, min(t.container.subindices or [1]))))

@@ -1,0 +1,266 @@
+"""Plans for CiA 402 drives: `[drive] protocol = "cia402"` loads with the EDS's object dictionary,
+plans written before it still load as Plus-R plans, and every kind of bad CiA 402 plan is refused
+by `jigctl test --check` with one sentence naming the file, the line and the key -- before
+anything touches the bus."""
+
+import os
+
+import pytest
+
+from motorjig import cli
+from motorjig.can import EDS_PATH, paramset402
+from motorjig.can import objects as O
+from motorjig.station import plan as P
+from motorjig.station import schema
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PLANS = os.path.join(ROOT, "plans")
+
+GOOD = """\
+[plan]
+name = "t"
+version = "1"
+
+[drive]
+protocol = "cia402"
+node_id = 5
+
+[[steps]]
+kind = "servo"
+on = true
+
+[[steps]]
+kind = "move"
+distance = 1000
+speed = 5000
+"""
+
+PARAMS_STEP = '\n[[steps]]\nkind = "parameters"\nfile = "set.toml"\nmode = "%s"\n'
+
+
+def check(capsys, path):
+    capsys.readouterr()
+    rc = cli.main(["test", "--check", str(path)])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def write(tmp_path, text, name="plan.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def refused(capsys, tmp_path, text, line, key, words, path=None):
+    """--check exits 2 with one sentence: file:line: key: ... words ... (file: the plan, or ``path``)."""
+    plan = write(tmp_path, text)
+    rc, out, err = check(capsys, plan)
+    assert rc == 2, (out, err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    prefix = "jigctl: %s:%d: %s: " % (path or plan, line, key)
+    assert err.startswith(prefix), (prefix, err)
+    for w in words:
+        assert w in err, (w, err)
+    return err
+
+
+def with_set(tmp_path, objects, mode="verify"):
+    (tmp_path / "set.toml").write_text("[objects]\n" + objects)
+    return GOOD + PARAMS_STEP % mode
+
+
+# --- what loads ------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["cia402-smoke.toml", "cia402-eol.toml"])
+def test_shipped_cia402_plans_check_out(capsys, name):
+    rc, out, err = check(capsys, os.path.join(PLANS, name))
+    assert rc == 0, err
+    assert "is valid" in out
+
+
+def test_a_cia402_plan_carries_its_drive_and_the_eds_object_dictionary():
+    plan = P.load_plan(os.path.join(PLANS, "cia402-eol.toml"))
+    d = plan.drive
+    assert (d.protocol, d.node_id, d.bitrate, d.eds, d.jig_id) == ("cia402", 5, 500000, EDS_PATH, 1)
+    assert d.od[0x6041].name == "Statusword" and 0x6099 in d.od
+    moves = [s for s in plan.steps if s.name.startswith("move_speed_")]
+    assert [s.args["speed"] for s in moves] == [5000, 20000, 50000]
+    assert all(s.args["accel"] == 500000 for s in moves)
+    ps = next(s for s in plan.steps if s.kind == "parameters").paramset
+    assert isinstance(ps, paramset402.ParamSet402)
+    assert ps.values[(0x6065, 0)] == 1000 and ps.values[(0x6099, 1)] == 5000
+    assert ps.drive["product_code"] == 0x402
+    assert plan.wiring.node == 5 and [r[1] for r in plan.wiring.relays] == [1, 0, 16]
+
+
+def test_the_golden_set_is_the_simulated_drives_defaults():
+    """cia402-eol verifies what a healthy bench drive has: every golden value is the EDS default."""
+    od = O.load_eds(EDS_PATH)
+    ps = paramset402.load(os.path.join(PLANS, "cia402-golden.toml"), od, writable=True)
+    for e in ps.entries:
+        assert e.var.default == e.value, e.label
+
+
+def test_old_plans_protocol_numbers_load_as_plusr_variants(tmp_path):
+    plusr = GOOD.replace('protocol = "cia402"\nnode_id = 5', "slave = 2\nprotocol = [8, 6]")
+    d = P.load_plan(write(tmp_path, plusr)).drive
+    assert (d.protocol, d.variants, d.slave) == ("plusr", (6, 8), 2)
+    d = P.load_plan(write(tmp_path, plusr.replace("protocol = [8, 6]", 'protocol = "plusr"\nvariant = 8'))).drive
+    assert (d.protocol, d.variants) == ("plusr", (8,))
+    d = P.load_plan(write(tmp_path, plusr.replace("protocol = [8, 6]\n", ""))).drive
+    assert (d.protocol, d.variants) == ("plusr", (6,))
+
+
+def test_the_hash_covers_the_eds(tmp_path):
+    eds = tmp_path / "drive.eds"
+    eds.write_bytes(open(EDS_PATH, "rb").read())
+    text = GOOD.replace("node_id = 5", 'node_id = 5\neds = "drive.eds"')
+    first = P.load_plan(write(tmp_path, text)).hash
+    eds.write_bytes(open(EDS_PATH, "rb").read().replace(b"DefaultValue=1000", b"DefaultValue=999", 1))
+    assert P.load_plan(write(tmp_path, text)).hash != first
+
+
+def test_a_parameter_set_may_name_objects(tmp_path):
+    text = with_set(tmp_path, '"Profile velocity" = 20000\n"0x6099:Speed during search for zero" = 500\n'
+                              '"0x607D:02" = 100000\n"0x6065:0" = 10\n')
+    ps = P.load_plan(write(tmp_path, text)).steps[-1].paramset
+    assert ps.values == {(0x6081, 0): 20000, (0x6099, 2): 500, (0x607D, 2): 100000, (0x6065, 0): 10}
+
+
+def test_a_parameter_set_round_trips_through_its_text(tmp_path):
+    od = O.load_eds(EDS_PATH)
+    objs = paramset402.default_objects(od)
+    values = [(i, s, v, (v.default or 0) + 1 if O.type_info(v)[2] == "uint" and i != 0x60FE else v.default)
+              for i, s, v in objs]
+    path = tmp_path / "set.toml"
+    path.write_text(paramset402.dumps(values, 5, {"device_type": 0x20192, "vendor_id": None}, "drive"))
+    ps = paramset402.load(str(path), od, writable=True)
+    assert ps.values == {(i, s): v for i, s, _, v in values}
+    assert ps.drive == {"device_type": 0x20192}
+    assert (0x6040, 0) not in ps.values and (0x6041, 0) not in ps.values  # commands and status: not settings
+
+
+# --- what --check refuses ----------------------------------------------------------
+def test_an_object_not_in_the_eds(capsys, tmp_path):
+    refused(capsys, tmp_path, with_set(tmp_path, '"0x6081" = 1\n"0x6999" = 5\n'), 3, "objects.0x6999",
+            ["0x6999 is not an object in motorjig-cia402.eds"], path=tmp_path / "set.toml")
+
+
+def test_a_sub_index_not_in_the_eds(capsys, tmp_path):
+    refused(capsys, tmp_path, with_set(tmp_path, '"0x6099:03" = 5\n'), 2, "objects.0x6099:03",
+            ["has no sub-index 3"], path=tmp_path / "set.toml")
+
+
+def test_a_read_only_object_in_apply(capsys, tmp_path):
+    refused(capsys, tmp_path, with_set(tmp_path, '"0x6065" = 1000\n"Statusword" = 7\n', "apply"), 3,
+            "objects.Statusword", ["0x6041:00 Statusword is read-only", "cannot be written"],
+            path=tmp_path / "set.toml")
+
+
+def test_a_read_only_object_may_be_verified(tmp_path):
+    ps = P.load_plan(write(tmp_path, with_set(tmp_path, '"0x2000" = 10000\n'))).steps[-1].paramset
+    assert ps.values == {(0x2000, 0): 10000}
+
+
+def test_a_value_of_the_wrong_type(capsys, tmp_path):
+    refused(capsys, tmp_path, with_set(tmp_path, '"0x6065" = "1000"\n'), 2, "objects.0x6065",
+            ["expected an integer (UNSIGNED32)", "'1000'"], path=tmp_path / "set.toml")
+
+
+def test_a_value_out_of_the_types_range(capsys, tmp_path):
+    refused(capsys, tmp_path, with_set(tmp_path, '"0x6098" = 200\n'), 2, "objects.0x6098",
+            ["200 is out of range for INTEGER8: -128..127"], path=tmp_path / "set.toml")
+
+
+def test_a_value_out_of_the_eds_limits(capsys, tmp_path):
+    refused(capsys, tmp_path, with_set(tmp_path, '"0x6083" = 0\n'), 2, "objects.0x6083",
+            ["0 is out of range", "1..4294967295"], path=tmp_path / "set.toml")
+
+
+def test_a_step_value_out_of_the_eds_limits(capsys, tmp_path):
+    eds = tmp_path / "drive.eds"
+    eds.write_text(open(EDS_PATH).read().replace("[6081]\n", "[6081]\nHighLimit=100000\n"))
+    text = GOOD.replace("node_id = 5", 'node_id = 5\neds = "drive.eds"').replace(
+        "speed = 5000", "speed = [5000, 200000]")
+    refused(capsys, tmp_path, text, 17, "steps[1].speed[1]", ["200000 is outside 0x6081 Profile velocity's limits",
+                                                               "0..100000"])
+
+
+def test_a_step_object_the_eds_lacks(capsys, tmp_path):
+    eds = tmp_path / "drive.eds"
+    eds.write_text(open(EDS_PATH).read().replace("[6098]\n", "[5098]\n").replace("6098=", "5098="))
+    text = GOOD.replace("node_id = 5", 'node_id = 5\neds = "drive.eds"') + '\n[[steps]]\nkind = "home"\nmethod = 19\n'
+    refused(capsys, tmp_path, text, 21, "steps[2].method", ["0x6098 is not an object in drive.eds"])
+
+
+@pytest.mark.parametrize("node", [0, 128])
+def test_a_node_id_out_of_range(capsys, tmp_path, node):
+    refused(capsys, tmp_path, GOOD.replace("node_id = 5", "node_id = %d" % node), 7, "drive.node_id",
+            ["must be between 1 and 127", repr(node)])
+
+
+def test_a_missing_node_id(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("node_id = 5\n", ""), 5, "drive", ["needs the key 'node_id'"])
+
+
+def test_a_bitrate_the_slcan_port_cannot_set(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("node_id = 5", "node_id = 5\nbitrate = 400000"), 8, "drive.bitrate",
+            ["expected one of", "500000", "400000"])
+
+
+def test_a_missing_eds(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("node_id = 5", 'node_id = 5\neds = "nowhere.eds"'), 8, "drive.eds",
+            ["nowhere.eds does not exist"])
+
+
+def test_a_step_kind_the_protocol_does_not_have(capsys, tmp_path):
+    plusr = GOOD.replace('protocol = "cia402"\nnode_id = 5', "slave = 2")
+    refused(capsys, tmp_path, plusr + '\n[[steps]]\nkind = "lss"\n', 18, "steps[2].kind",
+            ["a Plus-R drive has no step kind 'lss'", 'protocol = "cia402"'])
+
+
+def test_a_plusr_key_in_a_cia402_step(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("speed = 5000", "speed = 5000\naccel_ms = 50"), 17, "steps[1].accel_ms",
+            ["unknown key in a move step", "did you mean 'accel'?"])
+
+
+def test_a_plusr_drive_key_in_a_cia402_plan(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace("node_id = 5", "node_id = 5\nslave = 2"), 8, "drive.slave",
+            ['a key of protocol = "plusr" drives', 'protocol = "cia402"'])
+
+
+def test_a_protocol_that_is_neither(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD.replace('"cia402"', '"canopen"'), 6, "drive.protocol",
+            ['"plusr" or "cia402", 6, 8 or [6, 8]', "'canopen'"])
+
+
+def test_a_fixture_wired_to_another_node(capsys, tmp_path):
+    text = GOOD + '\n[wiring]\nnode = 6\n[[wiring.relay]]\nrelay = 0\ndrive_input = 1\n'
+    refused(capsys, tmp_path, text, 19, "wiring.node", ["wired to CAN node 6", "tests CAN node 5"])
+
+
+def test_a_limit_step_on_a_relay_wired_to_no_limit_input(capsys, tmp_path):
+    text = GOOD + ('\n[wiring]\n[[wiring.relay]]\nrelay = 0\ndrive_input = 16\nname = "in"\n'
+                   '\n[[steps]]\nkind = "limit-sensor"\nrelay = "in"\n')
+    refused(capsys, tmp_path, text, 26, "steps[2].relay", ["not a limit input", "0x60FD bit 0 negative"])
+
+
+# --- the schema and its reference ------------------------------------------------------
+def test_every_protocol_has_its_kinds_and_the_docs_show_them():
+    assert set(schema.PROTOCOL_KINDS) == set(schema.PROTOCOLS) == {"plusr", "cia402"}
+    cia402 = {k.name for k in schema.PROTOCOL_KINDS["cia402"]}
+    assert cia402 == set(schema.KINDS) | {"lss"}
+    with open(os.path.join(ROOT, "docs", "station.md")) as f:
+        text = f.read()
+    for kind in cia402 - {"prompt"}:
+        assert '`kind = "%s"` (cia402)' % kind in text
+    assert '#### `protocol = "cia402"`' in text
+
+
+def test_the_step_objects_are_in_the_shipped_eds():
+    od = O.load_eds(EDS_PATH)
+    for k in schema.PROTOCOL_KINDS["cia402"]:
+        for key in k.keys:
+            if key.obj is not None:
+                index, sub = key.obj if isinstance(key.obj, tuple) else (key.obj, 0)
+                var = O.find(od, "0x%04X:%d" % (index, sub)).var
+                assert var.access_type in ("rw", "rww"), (k.name, key.name)
