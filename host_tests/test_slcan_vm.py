@@ -1,5 +1,7 @@
 """The SLCAN reader on a real MicroPython VM (the WebAssembly build, run by Node).
 
+* the VM has no native emitter: jig.slcan runs its table engine there (the viper
+  module does not compile);
 * every captured SLCAN stream (host_tests/captures/slcan) replays on MicroPython
   exactly as on CPython, event by event, fed whole and byte by byte, and meets its
   sidecar;
@@ -33,7 +35,14 @@ import sys
 sys.path.insert(0, '/data')
 import slcan_replay as sr
 from jig import compat
+from jig import slcan
 print("@@env", sys.implementation.name, compat.IS_MICROPYTHON)
+try:
+    from jig import slcanfast
+    why = "imported"
+except Exception as e:
+    why = type(e).__name__
+print("@@engine", slcan.SlcanReader.ENGINE, slcan.encode_frame is slcan.encode_py, slcan.FAST is None, why)
 caps = [sr.load('/data/' + n) for n in %r]
 print("@@report")
 for cap in caps:
@@ -91,6 +100,14 @@ def vm_output():
 
 def test_vm_is_micropython(vm_output):
     assert vm_output["env"] == ["micropython", "True"]
+
+
+def test_the_vm_without_a_native_emitter_runs_the_table_engine(vm_output):
+    """The WebAssembly build rejects viper at compile time: jig.slcan falls back to the
+    portable reader and encoder (the board runs jig.slcanfast's machine code)."""
+    engine, portable_encoder, no_fast, why = vm_output["engine"]
+    assert (engine, portable_encoder, no_fast) == ("table", "True", "True")
+    assert why != "imported"
 
 
 def test_captures_replay_identically_on_micropython(vm_output):
