@@ -264,3 +264,25 @@ def test_the_step_objects_are_in_the_shipped_eds():
                 index, sub = key.obj if isinstance(key.obj, tuple) else (key.obj, 0)
                 var = O.find(od, "0x%04X:%d" % (index, sub)).var
                 assert var.access_type in ("rw", "rww"), (k.name, key.name)
+
+
+def test_the_documented_measurements_are_the_ones_each_cia402_step_declares(tmp_path):
+    """The reference's 'Measurements:' line of every CiA 402 kind lists what its phase declares (kinds
+    the station cannot run on CiA 402 drives yet declare nothing and are left out)."""
+    from motorjig.station import phases
+
+    (tmp_path / "set.toml").write_text('[objects]\n"0x6065" = 1000\n')
+    steps = {
+        "identify": 'vendor_id = 1\nproduct_code = 2\nrevision = 3\nserial_pattern = "."', "servo": "",
+        "parameters": 'file = "set.toml"', "alarm-reset": "", "move": "distance = 100\nspeed = 100",
+        "home": "", "stop-response": "", "bus-health": "heartbeat_jitter_max_ms = 5"}
+    text = GOOD[: GOOD.index("[[steps]]")] + "".join('\n[[steps]]\nkind = "%s"\n%s\n' % kv for kv in steps.items())
+    plan = P.load_plan(write(tmp_path, text))
+    kinds = schema.kinds("cia402")
+    for step in plan.steps:
+        declared = [m.name for m in phases._step_functions(step, plan)[0]]
+        declared = [n for n in declared if not (n == "emcy" and step.kind != "bus-health")]  # the EMCY rule's
+        if step.kind == "parameters":
+            assert declared == ["x6065_00"] and kinds["parameters"].measurements == ("x<index>_<sub>",)
+        elif declared:
+            assert declared == list(kinds[step.kind].measurements), step.kind

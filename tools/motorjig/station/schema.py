@@ -227,7 +227,7 @@ CIA402_KINDS = (
             lo=U32[0], hi=U32[1]),
         key("serial_pattern", "regex", None, "regular expression for the serial number 0x1018:4 as 8 hex digits, "
             "e.g. \"^5349\" (not checked if absent)"),
-    ), ("device_type", "device_name", "name_ok", "hardware_version", "software_version", "vendor_id",
+    ), ("device_type", "device_name", "hardware_version", "software_version", "name_ok", "vendor_id",
         "product_code", "revision", "serial", "serial_ok")),
     Kind("parameters", "Object-dictionary entries against a CiA 402 parameter-set file (the format of `jigctl can "
          "sdo dump`): verify them by SDO upload, or write them, store them (0x1010:01 \"save\") and verify; "
@@ -242,7 +242,7 @@ CIA402_KINDS = (
         key("on", "bool", True, "operation enabled (true) or switch on disabled (false)"),
     ), ("state", "transition_time_max", "fault")),
     Kind("alarm-reset", "Fault reset (controlword bit 7 rising): the drive leaves FAULT; no fault afterwards.", (),
-         ("state", "fault")),
+         ("fault", "state")),
     Kind("move", "Profile position mode (0x6060 = 1): target 0x607A, profile velocity, acceleration and "
          "deceleration 0x6081/0x6083/0x6084, the new-set-point handshake; traced by TPDOs (statusword, "
          "position actual 0x6064, velocity actual 0x606C, following error actual 0x60F4) dated by the jig's "
@@ -296,7 +296,7 @@ CIA402_KINDS = (
         key("overshoot_max", "int", 100000, "largest allowed travel after the stop, counts; a ramp counts: "
             "v² / 2d, 200 at 20 000 counts/s and 1 000 000 counts/s²", lo=0),
         key("recover", "bool", True, "after a quick stop: back to OPERATION ENABLED, so later steps can move"),
-    ), ("stopped", "stop_time", "overshoot")),
+    ), ("stopped", "stop_time", "overshoot", "state")),
     Kind("bus-health", "The jig's CAN port counters over the run (error frames, TEC/REC, bus-off, lost frames), "
          "the drive's heartbeat regularity (0x1017) and every EMCY received, its CiA 301 code named.", (
         key("error_frames_max", "int", 0, "CAN error frames the jig counted", lo=0),
@@ -392,7 +392,9 @@ def render_reference():
     out += ["", "### Step kinds of Plus-R drives (`protocol = \"plusr\"`)"]
     out += _kinds_text(STEP_KINDS, "")
     out += ["", "### Step kinds of CiA 402 drives (`protocol = \"cia402\"`)", "",
-            "Positions in counts, speeds in counts/s, accelerations in counts/s², as the drive's objects are."]
+            "Positions in counts, speeds in counts/s, accelerations in counts/s², as the drive's objects are. "
+            "An EMCY with an error code during any step fails that step: every step but `bus-health` (which "
+            "counts the run's) also has the measurement `emcy`, `\"none\"` or the codes received, named."]
     out += _kinds_text([k for k in CIA402_KINDS if k is not KINDS["prompt"]], " (cia402)")
     out += ["", "`prompt` as for Plus-R drives."]
     return "\n".join(out) + "\n"
