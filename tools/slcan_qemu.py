@@ -15,7 +15,12 @@ and native emitter, so edits need no rebuild) and prints:
 * instructions per ``feed`` of one whole line (``t``/``T`` with 8 data bytes, ...)
   and per ``encode_frame``, for both engines, and the heap allocated (0).
 
+With ``--can-suite`` it runs make test-qemu's CAN port figures (tools/qemu/can_suite.py)
+instead, with the work tree's ``jig.slcan`` -- or that of ``--rev REV``, for a
+before/after on one build -- in place of the frozen one.
+
     .venv/bin/python tools/slcan_qemu.py [--elf build/qemu/build/firmware.elf]
+    .venv/bin/python tools/slcan_qemu.py --can-suite [--rev f2cbeda~1]
 
 Exits 1 if a parity check fails or an allocation is seen, 2 if it cannot run.
 """
@@ -188,6 +193,44 @@ def expected_reports(names):
     return want
 
 
+CAN_SUITE = """
+import machine
+try:
+    import qemu_suite, can_suite
+    print("@@engine", getattr(sys.modules['jig.slcan'].SlcanReader, 'ENGINE', 'table (before the engines)'))
+    can_suite.run(qemu_suite.result, qemu_suite.fail, qemu_suite.check_board())
+    print("@@fails 0")
+except Exception as e:
+    sys.print_exception(e)
+machine.reset()
+"""
+
+
+def source_at(rev, path):
+    """The text of path (relative to the repository) at git revision rev, or None."""
+    run = subprocess.run(["git", "-C", ROOT, "show", "%s:%s" % (rev, path)], capture_output=True)
+    return run.stdout.decode("utf-8") if run.returncode == 0 else None
+
+
+def can_suite_script(rev):
+    """tools/qemu/can_suite.py's CAN port figures with jig.slcan (and jig.slcanfast) of
+    the work tree, or of git revision rev, in place of the frozen ones."""
+    blocks = [SETUP]
+    for name in ("slcanfast", "slcan"):
+        path = "firmware/jig/%s.py" % name
+        if rev:
+            text = source_at(rev, path)
+        else:
+            with open(os.path.join(ROOT, path), encoding="utf-8") as f:
+                text = f.read()
+        if text is None and name == "slcan":
+            fail("%s has no %s." % (rev, path))
+        if text is not None:
+            blocks.append("jig.%s = _mod(%r, 'jig.%s')" % (name, text, name))
+    blocks.append(CAN_SUITE)
+    return "".join("\x05" + b + "\n\x04" for b in blocks)
+
+
 def paste_script(streams):
     def read(*parts):
         with open(os.path.join(ROOT, *parts), encoding="utf-8") as f:
@@ -218,21 +261,29 @@ def main(argv=None):
     ap.add_argument("--streams", type=int, default=200, help="pseudo-random streams for the parity check")
     ap.add_argument("--timeout", type=int, default=300, help="seconds before QEMU is stopped")
     ap.add_argument("--raw", action="store_true", help="print QEMU's whole output")
+    ap.add_argument("--can-suite", action="store_true",
+                    help="instead: the CAN port's figures of tools/qemu/can_suite.py (a make test-qemu ELF "
+                         "with memcan) with the work tree's jig.slcan in place of the frozen one")
+    ap.add_argument("--rev", help="with --can-suite: jig.slcan (and jig.slcanfast) of this git revision")
     args = ap.parse_args(argv)
+    if args.rev and not args.can_suite:
+        fail("--rev goes with --can-suite.")
     if not os.path.isfile(args.elf):
         fail("no %s: build one with make test-qemu MICROPY_DIR=... or name one with --elf." % args.elf)
     if shutil.which("qemu-system-arm") is None:
         fail("qemu-system-arm is missing: install it (Debian: apt-get install qemu-system-arm).")
+    script = can_suite_script(args.rev) if args.can_suite else paste_script(args.streams)
     try:
         run = subprocess.run(["qemu-system-arm", "-machine", "mps2-an500", "-nographic", "-monitor", "null",
                               "-semihosting", "-icount", "shift=0", "-serial", "stdio", "-kernel", args.elf],
-                             input=paste_script(args.streams).encode("utf-8"), capture_output=True,
+                             input=script.encode("utf-8"), capture_output=True,
                              timeout=args.timeout)
     except subprocess.TimeoutExpired:
         fail("QEMU did not finish within %d s." % args.timeout)
     text = run.stdout.decode("utf-8", "replace").replace("\r", "")
     lines = [ln for ln in text.split("\n")
-             if ln.startswith(("@@", "differ", "Traceback", "  File")) or ln.split(":")[0].endswith("Error")]
+             if ln.startswith(("@@", "differ", "Traceback", "  File", "RESULT can ", "FAIL"))
+             or ln.split(":")[0].endswith("Error")]
     if args.raw:
         print(text)
     fails = None
