@@ -1,7 +1,11 @@
 """jigctl test: run a test plan with MotorJig Station, or check one (``--check``).
 
-    jigctl test PLAN --port URL [--serial SN] [--operator NAME] [--out DIR] [--yes] [--json]
+    jigctl test PLAN --port URL [--can-port URL] [--serial SN] [--operator NAME] [--out DIR] [--yes] [--json]
     jigctl test --check PLAN [--port URL]
+
+A plan for a CiA 402 drive (``[drive] protocol = "cia402"``) needs both ports: ``--port``, the
+jig's PC port (its relays, inputs, counters and safety net), and ``--can-port``, the jig's
+SLCAN port the drive is reached through (on the bench: its ``slcan_url``).
 
 One progress line per step as it runs, then the verdict and the files written.
 Exit status: 0 pass, 1 fail, 2 error (a bad plan, no connection, a drive of the wrong
@@ -21,6 +25,8 @@ EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
 
 def add_test_arguments(sp):
     sp.add_argument("plan", help="the plan file (TOML), e.g. plans/smoke.toml")
+    sp.add_argument("--can-port", metavar="URL",
+                    help="the jig's SLCAN port (device or pyserial URL) for a plan with [drive] protocol = \"cia402\"")
     sp.add_argument("--check", action="store_true",
                     help="only check the plan (with --port: also that the drive is the plan's variant and type)")
     sp.add_argument("--serial", help="the DUT's serial number (default: from the drive's own info)")
@@ -104,8 +110,9 @@ def cmd_test(args):
     problem = _unanswerable_prompt(args, plan)
     if problem:
         return _err("%s: %s" % (args.plan, problem), args)
+    cia402 = getattr(plan.drive, "protocol", None) == "cia402"
     if args.check:
-        if args.port:
+        if args.port and not cia402:
             try:
                 problem = _check_drive(args, plan)
             except JigError as exc:
@@ -118,10 +125,12 @@ def cmd_test(args):
         else:
             print("%s: plan %r version %s is valid: %d steps (%s)%s" % (
                 args.plan, plan.name, plan.version, len(plan.steps), ", ".join(s.name for s in plan.steps),
-                "; the drive is the plan's" if args.port else ""))
+                "; the drive is the plan's" if args.port and not cia402 else ""))
         return EXIT_PASS
     if not args.port:
         return _err("no port: give --port (or set JIGCTL_PORT)", args)
+    if cia402 and not args.can_port:
+        return _err("%s is a plan for a CiA 402 drive: give the jig's SLCAN port with --can-port" % args.plan, args)
     from motorjig.master import Master
 
     try:
@@ -147,13 +156,24 @@ def cmd_test(args):
             store.close()
         return _err(problem, args)
     confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
-    _say(args, "plan %s %s (%s), drive slave %d, %s" % (plan.name, plan.version, plan.hash[:12],
-                                                         plan.drive.slave, args.port))
+    if cia402:
+        try:
+            from motorjig.can.port import probe
+
+            probe(args.can_port)  # a wrong SLCAN port is said plainly, before OpenHTF starts
+        except PortError as exc:
+            return _err(str(exc), args)
+        what = "drive node %d at %d bit/s on %s, jig on %s" % (plan.drive.node_id, plan.drive.bitrate,
+                                                                args.can_port, args.port)
+    else:
+        what = "drive slave %d, %s" % (plan.drive.slave, args.port)
+    _say(args, "plan %s %s (%s), %s" % (plan.name, plan.version, plan.hash[:12], what))
     try:
         ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial,
                               operator=args.operator or default_operator(), station=args.station,
                               out_dir=args.out, out=None if args.json else print, confirm=confirm,
-                              timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window)
+                              timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window,
+                              can_port=args.can_port)
     finally:
         if store is not None:
             store.close()

@@ -1,0 +1,131 @@
+"""MotorJig Station on a CiA 402 drive: plans run through the jig's SLCAN port on the real-time bench.
+
+The bench's simulated CiA 402 drive (node 5) behind the simulated jig, the station as a user
+runs it: a healthy drive passes `cia402-smoke`, its moves traced by TPDOs dated by the jig's
+clock; an overcurrent fault mid-move fails the move with the EMCY named and leaves the drive
+with its operation disabled; Ctrl-C and SIGTERM on `jigctl test` end the run ABORTED with
+the drive disabled; the jig's CAN safety stop is armed for the run and put back after it.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from motorjig.master import Master
+from motorjig.sim import Bench
+from motorjig.station import load_plan, run_plan
+
+from jig.params import P_CAN_SAFETY
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SMOKE = os.path.join(ROOT, "plans", "cia402-smoke.toml")
+JIGCTL = os.path.join(os.path.dirname(sys.executable), "jigctl")
+NODE = 5
+LONG_PLAN = ('[plan]\nname = "long402"\nversion = "1"\n[drive]\nprotocol = "cia402"\nnode_id = 5\n'
+             '[[steps]]\nkind = "servo"\n[[steps]]\nkind = "move"\nname = "long_move"\n'
+             'distance = 400000\nspeed = 20000\naccel = 500000\ndecel = 500000\n')
+
+
+def bench(**kw):
+    return Bench(driver_ids=(2,), can_nodes=(NODE,), can_bitrate=500000, pty=False, **kw)
+
+
+def run(b, tmp_path, plan_path=SMOKE, **kw):
+    plan = load_plan(plan_path)
+    # The bench runs in real time in this process on a shared, busy machine: a stall of the
+    # process is a gap in the trace (the step would end ERROR, rightly). The trace's rate is
+    # make bench's business; here a floor of 20 Hz (gaps up to 200 ms) lets the verdicts show.
+    plan.sample_rate_min = 20.0
+    ctx = run_plan(plan, b.tcp_url, can_port=b.slcan_url, out_dir=str(tmp_path), out=None,
+                   timeout_ms=300, confirm=lambda message: True, **kw)
+    return ctx.record
+
+
+def phase(record, name):
+    return next(p for p in record["phases"] if p["name"] == name)
+
+
+def failed(record):
+    return {p["name"]: {n for n, m in p["measurements"].items() if m["outcome"] != "PASS"}
+            for p in record["phases"] if p["outcome"] != "PASS"}
+
+
+def node(b):
+    return b.sim.can_nodes[NODE]
+
+
+def operation_disabled(b):
+    """True when the simulated drive's operation is not enabled (statusword bit 2 clear) and it stands still."""
+    nd = node(b)
+    return not nd.statusword() & 0x04 and not nd.motion.moving
+
+
+def test_cia402_smoke_passes_traced_by_tpdos_dated_by_the_jig(tmp_path):
+    with bench() as b:
+        rec = run(b, tmp_path)
+        with Master(b.tcp_url, timeout=0.3) as m:
+            can_safety = m.get_parameter(1, P_CAN_SAFETY)
+        assert operation_disabled(b)
+    assert rec["outcome"] == "PASS", failed(rec)
+    assert [p["name"] for p in rec["phases"]] == ["preflight", "identify", "servo_on", "out", "back", "servo_off"]
+    assert rec["metadata"]["drive"]["protocol"] == "cia402" and rec["metadata"]["drive"]["node_id"] == NODE
+    assert rec["metadata"]["sampling"] == {"by": "drive", "period_us": 2000, "dated_by": "jig"}
+    assert rec["metadata"]["safety_net"]["armed"]
+    assert can_safety == 0  # the CAN safety stop was the run's only: put back
+    out = phase(rec, "out")["measurements"]
+    assert out["position_error"]["measured_value"] == 0
+    assert 0.9 <= out["duration_ratio"]["measured_value"] <= 1.1
+    assert out["emcy"]["measured_value"] == "none"
+    assert phase(rec, "servo_on")["measurements"]["state"]["measured_value"] == "OPERATION ENABLED"
+
+
+def test_an_overcurrent_mid_move_fails_the_move_with_the_emcy_named_and_disables_the_drive(tmp_path):
+    with bench() as b:
+        b.sim.set_fault("can:overcurrent", 30, NODE)
+        rec = run(b, tmp_path)
+        assert operation_disabled(b)
+    assert rec["outcome"] == "FAIL"
+    assert list(failed(rec)) == ["out"]  # stop_on_fail: nothing after it ran
+    out = phase(rec, "out")["measurements"]
+    assert "0x2310" in out["emcy"]["measured_value"] and out["emcy"]["outcome"] == "FAIL"
+    assert out["fault"]["measured_value"] == 0x2310 and out["fault"]["outcome"] == "FAIL"
+    assert out["target_reached"]["measured_value"] is False
+
+
+def test_a_plan_for_a_cia402_drive_needs_the_can_port(tmp_path):
+    p = subprocess.run([JIGCTL, "test", SMOKE, "--port", "socket://127.0.0.1:9", "--db", "none", "--out",
+                        str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    assert "--can-port" in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_mid_move_leaves_the_drive_disabled(tmp_path, sig):
+    plan = tmp_path / "long402.toml"
+    plan.write_text(LONG_PLAN)
+    with bench() as b:
+        p = subprocess.Popen([JIGCTL, "test", str(plan), "--port", b.tcp_url, "--can-port", b.slcan_url,
+                              "--out", str(tmp_path), "--db", "none", "--yes"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 60
+            while not node(b).motion.moving:
+                assert p.poll() is None, "jigctl test ended before the move: %s" % (p.communicate(),)
+                assert time.monotonic() < deadline, "the move never started"
+                time.sleep(0.05)
+            time.sleep(0.3)
+            p.send_signal(sig)
+            out, err = p.communicate(timeout=60)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        deadline = time.monotonic() + 5
+        while not operation_disabled(b) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert operation_disabled(b), node(b).state
+    assert p.returncode == 2, (out, err)
+    assert "ABORTED" in out and "Traceback" not in err
