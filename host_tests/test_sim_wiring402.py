@@ -113,17 +113,26 @@ def test_load_wiring_takes_a_cia402_plans_node_id(tmp_path):
     assert load_wiring(p).slave == 3 and load_wiring(p).node is None
 
 
-def test_the_shipped_wiring_file_wires_node_5():
+@pytest.mark.parametrize("plan", ["cia402-eol.toml"])
+def test_the_shipped_cia402_plans_wiring_works_on_the_bench(plan):
+    """--wiring plans/cia402-eol.toml: every relay reaches the 0x60FD bit it names, every
+    0x60FE:1 bit the jig input it names."""
     from pathlib import Path
 
-    w = load_wiring(Path(__file__).resolve().parent.parent / "plans" / "cia402-wiring.toml")
-    assert w.node == 5
-    assert w.find("relay", "limit+")[:2] == (0, 1) and w.find("relay", "limit-")[:2] == (1, 0)
-    assert w.find("relay", "user-in-0")[:2] == (2, 16) and w.find("relay", "home") is None
-    assert w.find("sense", "user-out-0")[:2] == (0, 16)
+    w = load_wiring(Path(__file__).resolve().parent.parent / "plans" / plan)
+    assert w.node == 5 and w.relays and w.senses
     b = SimBench(driver_ids=(PLUSR,), can_nodes=(5,), wiring=w)
-    relays(b, on=1 << 0)
-    assert b.can_nodes[5].digital_inputs() & 0b11 == 0b10
+    master = Master(b.clock, b.can_bus)
+    b.run_for(5 * MS)
+    node = b.can_nodes[5]
+    for relay, bit, _name in w.relays:
+        relays(b, on=1 << relay)
+        assert master.get(0x60FD) & w.drive_input_mask == 1 << bit
+        relays(b, off=1 << relay)
+    for k, bit, _name in w.senses:
+        master.set(0x60FE, 1, "<I", 1 << bit)
+        assert jig_inputs(b) == 1 << k
+    assert node.digital_inputs() & w.drive_input_mask == 0
 
 
 def test_a_bench_refuses_a_wiring_to_a_node_it_does_not_have():

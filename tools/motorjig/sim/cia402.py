@@ -31,8 +31,10 @@ deceleration 0x6085 and shows as internal limit active (statusword bit 11).
 Digital outputs 0x60FE:1 masked by 0x60FE:2 (``out_bits``, the wiring's side
 towards the jig's inputs).
 
-Faults of a failing drive: ``set_fault(name, value)`` with the names of ``FAULTS``;
-``clear_faults()``.
+Faults of a failing drive: ``set_fault(name, value)`` with the names of ``FAULTS``
+(following error, overcurrent, sluggish, dead input, a parameter off its golden value,
+no origin, missed heartbeats, SDO aborts); ``clear_faults()``. A faulted drive ends in
+FAULT (operation disabled) until a fault reset.
 """
 
 import math
