@@ -226,9 +226,8 @@ def byte_class(b):
     return K_OTHER
 
 
-# Indices into SlcanReader.st, the engines' whole state (an integer array: on
-# MicroPython an array store costs a fraction of an attribute store, and the viper
-# engine can only reach integers and buffers).
+# Indices into the reader's st: the partial line and the fields as the engines find
+# them, in one integer array (the viper engine reaches it through one pointer).
 S_STATE = const(0)
 S_N = const(1)  # digits read in the counted field
 S_NEED = const(2)  # digits it needs
