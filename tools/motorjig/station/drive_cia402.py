@@ -18,12 +18,16 @@ command is dated by its SDO reply (the drive's answer, ``sdo_stamp``), 1 ms reso
 
 **The trace** (``TRACE_TPDOS``): TPDO1 statusword on change (every state change and
 handshake bit, dated); TPDO2 statusword + position actual 0x6064 and TPDO3 velocity
-actual 0x606C + following error actual 0x60F4, both on every SYNC, which the station sends
-every ``sync_period(bitrate)`` during moving steps (2 ms at 1 Mbit/s and 500 kbit/s, where
-the three frames fill 15 % / 30 % of the bus). One sample is one SYNC's TPDO2 + TPDO3;
-demand = actual + following error. The TPDOs are decoded here with ``struct`` (the maps
-are python-canopen's, set with ``PdoMap.save``): 2 000 frames a second through its
-per-variable decoding would cost this PC more than the bus costs the drive.
+actual 0x606C + following error actual 0x60F4, sampled by the drive itself every
+``sync_period(bitrate)`` (2 ms at 1 Mbit/s and 500 kbit/s, where the frames fill 15 % / 30 %
+of the bus): event-driven (transmission type 254, event timer = inhibit time = the period)
+by default, or on a SYNC the station sends at that period (``on_sync=True``). The drive's
+own timer is the default because a SYNC sent by this PC is as regular as this PC: on the
+shared bench machine the SYNC trace came at 276 Hz with gaps where the drive-timed one came
+at 500.0 Hz (cia402-smoke's moves, same load). A sample is a TPDO3 with the last TPDO2
+(on SYNC: the same SYNC's); demand = actual + following error. The TPDOs are decoded here
+with ``struct`` (the maps are python-canopen's, set with ``PdoMap.save``): 1 000 frames a
+second through its per-variable decoding would cost this PC more than the bus costs the drive.
 
 **EMCY**: every EMCY the node sends is kept (``emcys``: time, code, register, text named
 by ``motorjig.can.cia301``); a step that sees one with a non-zero code fails with it.
@@ -71,6 +75,7 @@ TRACE_TPDOS = {
 SW_FAULT = 1 << 3
 SW_WARNING = 1 << 7
 SW_TARGET_REACHED = 1 << 10
+SW_INTERNAL_LIMIT = 1 << 11
 SW_ACK = 1 << 12  # profile position: set-point acknowledge; homing: homing attained
 SW_ERROR = 1 << 13  # profile position: following error; homing: homing error
 # controlword bits
@@ -146,7 +151,7 @@ class Emcy:
 class Cia402Drive(Drive):
     protocol = "cia402"
 
-    def __init__(self, url, node_id, bitrate, od, master=None, jig_id=1, period=None):
+    def __init__(self, url, node_id, bitrate, od, master=None, jig_id=1, period=None, on_sync=False):
         self.url, self.node_id, self.bitrate, self.od = url, node_id, bitrate, od
         self.master, self.jig_id = master, jig_id
         self.label = "node %d" % node_id
@@ -160,7 +165,9 @@ class Cia402Drive(Drive):
         self.samples = queue.SimpleQueue()  # (t, statusword, actual, velocity, following error)
         self._tpdo2 = None
         self.period = period or sync_period(bitrate)
+        self.event_driven = not on_sync
         self._sync_task = None
+        self.tracing = False
         self._mode = None
         self._lock = threading.RLock()  # one SDO conversation at a time (steps, the safety net)
         self.last_sent = time.monotonic()
@@ -205,8 +212,13 @@ class Cia402Drive(Drive):
                     pdo.add_variable(index, sub)
                 pdo.cob_id = (0x80 + 0x100 * number) + self.node_id
                 pdo.trans_type = trans_type
-                pdo.inhibit_time = 0 if trans_type >= 254 else None
-                pdo.event_timer = 0 if trans_type >= 254 else None
+                if number != 1 and self.event_driven:
+                    pdo.trans_type = 254
+                    pdo.inhibit_time = int(round(self.period * 10000))  # 100 us units
+                    pdo.event_timer = int(round(self.period * 1000))
+                else:
+                    pdo.inhibit_time = 0 if trans_type >= 254 else None
+                    pdo.event_timer = 0 if trans_type >= 254 else None
                 pdo.enabled = True
                 pdo.save()
             self.t_opened = self.write(0x1017, 0, HEARTBEAT_MS)  # heartbeats due from here
@@ -246,7 +258,11 @@ class Cia402Drive(Drive):
             self._tpdo2 = (t, sw, pos)
 
     def _on_tpdo3(self, can_id, data, t):
-        got, self._tpdo2 = self._tpdo2, None
+        got = self._tpdo2
+        if not self.tracing:
+            return
+        if not self.event_driven:
+            self._tpdo2 = None
         if got is not None and len(data) >= 8:
             vel, ferr = struct.unpack_from("<ii", data)
             self.samples.put((got[0], got[1], got[2], vel, ferr))
@@ -287,8 +303,10 @@ class Cia402Drive(Drive):
         return self.read(0x6041)
 
     def sync(self, on):
-        """Start (on) or stop the SYNC the trace TPDOs answer; also keeps the jig's CAN safety window open."""
-        if on and self._sync_task is None:
+        """Start (on) or stop tracing: samples are kept (``samples``) only while on; on SYNC, the
+        station's SYNC runs only then (it also keeps the jig's CAN safety window open)."""
+        self.tracing = on
+        if on and self._sync_task is None and not self.event_driven:
             self._sync_task = self.network.bus.send_periodic(
                 can.Message(arbitration_id=0x080, is_extended_id=False, data=b""), self.period)
         elif not on and self._sync_task is not None:

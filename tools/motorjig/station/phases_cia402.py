@@ -19,7 +19,7 @@ from openhtf.util import units
 
 from motorjig.can import power402
 from motorjig.errors import JigError
-from motorjig.station.drive_cia402 import SW_ACK, SW_ERROR, SW_TARGET_REACHED
+from motorjig.station.drive_cia402 import SW_ACK, SW_ERROR, SW_INTERNAL_LIMIT, SW_TARGET_REACHED
 from motorjig.station.sampling import Cia402Trace
 
 COUNTS = units.UnitDescriptor("count", "count", "count")
@@ -324,20 +324,89 @@ def run_bus_health(test, bus, step, ctx):
                                      for e in d.emcys]), "application/json")
 
 
-# --- not on CiA 402 yet ------------------------------------------------------------------------------------
-def _not_yet(kind):
-    def measures(step, plan):
-        return []
-
-    def run(test, bus, step, ctx):
-        raise JigError("the %s step is not implemented on CiA 402 drives yet" % kind)
-
-    return measures, run
+# --- io, limit-sensor: through the wiring ---------------------------------------------------------
+def measures_io(step, plan):
+    return _h().measures_io(step, plan)  # the Plus-R step's measurements: the same wires
 
 
-measures_io, run_io = _not_yet("io")
-measures_limit_sensor, run_limit_sensor = _not_yet("limit-sensor")
-measures_lss, run_lss = _not_yet("lss")
+def run_io(test, bus, step, ctx):
+    h, m, d, jig = _h(), bus.master, bus.drive, bus.jig_id
+    wiring = ctx.plan.wiring
+    relays, senses = h._io_entries(step, wiring)
+    settle = step.args["settle_ms"] / 1000.0
+    relay_mask = sum(1 << e[0] for e in wiring.relays)
+    output_mask = sum(1 << e[1] for e in wiring.senses)
+    outputs = d.read(0x60FE, 1) & ~output_mask & 0xFFFFFFFF
+    try:
+        m.set_io_output(jig, clear_mask=relay_mask)
+        for relay, _, _ in relays:
+            for on in (True, False):
+                m.set_io_output(jig, **{"set_mask" if on else "clear_mask": 1 << relay})
+                time.sleep(settle)
+                test.measurements["relay_%d_%s" % (relay, "on" if on else "off")] = (
+                    d.inputs() & wiring.drive_input_mask)
+        if senses:
+            d.write(0x60FE, 2, d.read(0x60FE, 2) | output_mask)  # the wired outputs enabled (0x60FE:2 mask)
+        for jig_in, bit, _ in senses:
+            for on in (True, False):
+                d.write(0x60FE, 1, outputs | (1 << bit if on else 0))
+                time.sleep(settle)
+                test.measurements["sense_%d_%s" % (jig_in, "on" if on else "off")] = (
+                    m.get_io_input(jig) & wiring.jig_input_mask)
+    finally:  # a relay left on (a limit input!) would stop the next step or the next drive
+        m.set_io_output(jig, clear_mask=relay_mask)
+        d.write(0x60FE, 1, outputs)
+
+
+LIMIT_BITS = {0: -1, 1: +1}  # 0x60FD bit 0: negative limit switch, bit 1: positive
+
+
+def measures_limit_sensor(step, plan):
+    h, a = _h(), step.args
+    lo, hi = a.get("stop_time_s", (0.0, 0.5))
+    return [h._equals("stopped", True, doc="the axis stopped after the limit input"),
+            h._equals("limit_flag", True, doc="0x60FD shows the limit switch and the statusword internal limit "
+                                              "active (bit 11)"),
+            h._range("stop_time", lo, hi, S, "from the drive showing the limit (statusword bit 11, dated by the "
+                                             "jig) to standstill")]
+
+
+def run_limit_sensor(test, bus, step, ctx):
+    m, d, jig, a = bus.master, bus.drive, bus.jig_id, step.args
+    relay, drive_input, _ = ctx.plan.wiring.find("relay", a["relay"])  # the loader checked it is wired
+    direction = LIMIT_BITS.get(drive_input, +1)
+    far = max(-I32_MAX, min(I32_MAX, d.position() + direction * a["speed"] * 60))
+    trace = Cia402Trace(ctx, step)
+    trace.begin(d)
+    stopped = flag = False
+    try:
+        trace.sent("move", d.move(far, a["speed"]))
+        trace.sample_until(d, None, a.get("after_ms", 100) / 1000.0)
+        m.set_io_output(jig, set_mask=1 << relay)
+        stopped = trace.until_stopped(d, None, a.get("timeout_s", 10.0))
+        flag = bool(d.inputs() & (1 << drive_input)) and bool(d.read_statusword() & SW_INTERNAL_LIMIT)
+    finally:
+        m.set_io_output(jig, clear_mask=1 << relay)
+        if not stopped:
+            d.quick_stop()
+        trace.end(d)
+        d.controlword(power402.COMMANDS[power402.DISABLE_OPERATION])  # drop the move the limit held ...
+        d.enable(True)  # ... and enable again: the demand is the actual position
+    # the relay's instant as the drive saw it: halfway from the sample before its flag
+    trace.date_by_flag("relay", "internal_limit", trace.time_of("move"))
+    test.measurements["stopped"] = stopped
+    test.measurements["limit_flag"] = flag
+    test.measurements["stop_time"] = round(trace.t_stop - trace.time_of("relay"), 4)
+    test.attach("trace", _h()._attachment(trace), "application/json")
+    if stopped:
+        trace.check(trace.time_of("relay"), trace.t_stop, ctx.plan.sample_rate_min, "the stop at the limit")
+
+
+measures_lss = lambda step, plan: []  # noqa: E731
+
+
+def run_lss(test, bus, step, ctx):
+    raise JigError("the lss step is not implemented on CiA 402 drives yet")
 
 
 # --- the EMCY rule of every step --------------------------------------------------------------------------------

@@ -285,6 +285,10 @@ class _Cia402Axis:
     def fault(self):
         return bool(self.statusword & 0x08)
 
+    @property
+    def internal_limit(self):
+        return bool(self.statusword & 0x800)
+
 
 class Cia402Trace(_Trace):
     """A CiA 402 drive's own samples (``drive_cia402``): TPDOs answering the station's SYNC,
