@@ -31,7 +31,7 @@ def test_constants_mirror_the_modules_they_come_from():
         "STATUS_FRAME_TYPE_ERROR": frame, "STATUS_DATA_ERROR": frame, "STATUS_FRAME_ERROR": frame,
         "P_SLAVE_ID": params, "P_REPLY_TIMEOUT_MS": params, "P_INTERBYTE_US": params, "P_DE_PRE_US": params,
         "P_DE_POST_US": params, "TA_SUM": counters, "TA_BASE": counters, "EV_DROP": parser, "HUNT": parser,
-        "CRC_AT": native,
+        "CRC_AT": native, "SLOW_AHEAD_US": bridge,
     }
     for name in vars(parser):
         if name.startswith(("S_", "A_")):

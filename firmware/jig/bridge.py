@@ -114,7 +114,8 @@ B_SEEN = const(10)  # bitmap of driver ids that answered
 B_WAKE = const(11)  # 1: a client (jig.trace) waits for the bridge to be free: ask for the slow pass then
 B_XHEAD = const(12)  # the next entry of Bridge.xt to write
 B_XCUR = const(13)  # the entry of the forwarded request awaiting its reply (-1: none)
-B_SIZE = const(14)
+B_T_SLOW = const(14)  # tick of the last slow pass (poll)
+B_SIZE = const(15)
 
 # Bridge.xt: the last XT_N forwarded PC requests, 4 ints each: id, second body byte
 # (Ver6 type / Ver8 sync), tick when the request's last stop bit had left on the driver
@@ -205,6 +206,11 @@ _CS_START = const(8)
 _CS_T_IN = const(14)
 _CS_TAIL = const(2)
 _QUIET_US = const(2000)
+# A forwarded request's end, this long or more after the last slow pass: the slow pass
+# runs now, while the drive thinks, instead of a little later inside a frame passed on
+# (the line watch's, 5 ms after a frame began, or the 10 ms one), where it would stall
+# the copy: at most one every SLOW_AHEAD_US, never one a transaction.
+SLOW_AHEAD_US = const(4000)
 _T_DRV_PASSED = const(6)
 _T_PC_PASSED = const(4)
 _V_BAD_CRC = const(1)
@@ -493,6 +499,8 @@ class Bridge:
                 cs = self.cs
                 if cs[_CS_HEAD] != cs[_CS_TAIL] and (t_in - cs[_CS_NEXT]) & _TICKS_MASK < _TICKS_HALF:
                     self.due[0] = t_in  # records wait, the drive thinks: the slow pass streams now
+                elif ticks_diff(t_in, bs[B_T_SLOW]) >= SLOW_AHEAD_US:
+                    self.due[0] = t_in  # the drive thinks: the slow pass now, not inside its reply
             return
         if rec:
             self._record(_CH_PC_IN, body, p.st[S_N], t_in)
@@ -941,6 +949,7 @@ class Bridge:
         # (the wait starts when the request has gone, and no timeout cuts a frame
         # being passed on short: cut through, either is still in progress)
         bs = self.bs
+        bs[B_T_SLOW] = now
         if (bs[B_STATE] != IDLE and not bs[B_REL] and not bs[B_FWD]
                 and ticks_diff(now, bs[B_DEADLINE]) >= 0):
             self._event(E_TIMEOUT)

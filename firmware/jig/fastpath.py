@@ -121,6 +121,8 @@ _B_SEEN = const(10)
 _B_WAKE = const(11)
 _B_XHEAD = const(12)
 _B_XCUR = const(13)
+_B_T_SLOW = const(14)
+_SLOW_AHEAD_US = const(4000)
 _XT_N = const(16)
 _SEEN_IDS = const(30)
 # jig.counters
@@ -583,6 +585,8 @@ def pump(ctx, passes: int) -> int:
                             # the slow pass now
                             if cs[_CS_HEAD] != cs[_CS_TAIL] and ((now - cs[_CS_NEXT]) & _MASK) < _HALF:
                                 due[0] = now
+                            elif ((now - bs[_B_T_SLOW] + _HALF) & _MASK) - _HALF >= _SLOW_AHEAD_US:
+                                due[0] = now  # the drive thinks: the slow pass now, not inside its reply
                     elif ev == _EV_FRAME and bs[_B_FWD] == 0 and ub[0] == int(ram[_P_SLAVE_ID]):
                         # Bridge.on_pc_frame and _local: a frame for the jig, answered here
                         v[_C_UP_IN] += 1
