@@ -439,6 +439,91 @@ def test_lss_moves_a_node_through_unconfigured_and_back(run):
     assert "bitrate 250000 bit/s configured (table index 3)" in text
 
 
+# --- sdo dump / load: a node's settings as a CiA 402 parameter-set file ----------------------
+@pytest.mark.parametrize("argv, message", [
+    (["sdo", "dump", "0"], "node id must be 1..127, not '0'"),
+    (["sdo", "dump", "5", "--objects", "0x2001"], "0x2001:00 Set position actual is write-only"),
+    (["sdo", "dump", "5", "--objects", "0x6081,,0x6083"], "an empty entry in the object list"),
+    (["sdo", "dump", "5", "--objects", "0x6099:3"], "0x6099 Homing speeds has no sub-index 3"),
+    (["sdo", "dump", "5", "--objects", "0x2FFF"], "0x2FFF is not an object in motorjig-cia402.eds"),
+    (["sdo", "load", "5", "/no/such/set.toml"], "/no/such/set.toml: cannot read"),
+])
+def test_sdo_dump_and_load_refuse_bad_input_in_one_sentence(capsys, monkeypatch, argv, message):
+    monkeypatch.delenv("JIGCTL_CAN_PORT", raising=False)
+    run = Run(capsys, "socket://127.0.0.1:1")  # never opened: the input is checked first
+    run("can", *argv, code=2)
+    assert message in run.err
+
+
+def test_sdo_dump_and_load_help(capsys):
+    for action, own in (("dump", "--objects LIST"), ("load", "--store")):
+        assert cli.main(["can", "sdo", action, "--help"]) == 0
+        out = capsys.readouterr().out
+        assert "usage: jigctl can sdo %s" % action in out and "--bitrate" in out and own in out, action
+
+
+@pytest.mark.parametrize("text, message", [
+    ('[objects]\n"0x6041" = 1\n', "set.toml:2: objects.0x6041: 0x6041:00 Statusword is read-only"),
+    ('[objects]\n"0x6065" = -1\n', "set.toml:2: objects.0x6065: 0x6065:00 Following error window: -1 is out of "
+                                   "range for UNSIGNED32"),
+    ('[objects]\n"0x6065" = true\n', "set.toml:2: objects.0x6065: 0x6065:00 Following error window: expected an "
+                                     "integer"),
+    ('[drive]\nslave_type = 20\n[objects]\n"0x6065" = 1\n', "set.toml:2: drive.slave_type: unknown key"),
+    ('[parameters]\naxis_acc_time = 100\n', "set.toml:1: parameters: unknown table"),
+])
+def test_sdo_load_checks_the_file_before_the_port(capsys, monkeypatch, tmp_path, text, message):
+    monkeypatch.delenv("JIGCTL_CAN_PORT", raising=False)
+    (tmp_path / "set.toml").write_text(text)
+    run = Run(capsys, "socket://127.0.0.1:1")
+    run("can", "sdo", "load", 5, tmp_path / "set.toml", code=2)
+    assert message in run.err
+
+
+def test_sdo_dump_and_load_round_trip_through_the_node(run, tmp_path):
+    from motorjig.can import paramset402
+
+    text = run("can", "sdo", "dump", 5)
+    assert text.startswith("# parameter set of node 5 (MotorJig CiA 402 drive (sim)), ")
+    assert "product_code = 0x00000402" in text and '"0x6099:01" = ' in text
+    path = tmp_path / "node5.toml"
+    path.write_text(text)
+    ps = paramset402.load(str(path), O.load_eds(EDS_PATH), writable=True)
+    assert {(0x6065, 0), (0x6085, 0), (0x6099, 1), (0x607D, 2)} <= set(ps.values)
+    assert (0x6040, 0) not in ps.values and (0x607A, 0) not in ps.values  # orders, not settings
+    for (index, sub), value in ps.values.items():
+        assert run.json("can", "sdo", "read", 5, "0x%04X:%d" % (index, sub))["value"] == value
+    window = ps.values[(0x6065, 0)]
+    changed = tmp_path / "changed.toml"
+    changed.write_text(text.replace('"0x6065" = %d ' % window, '"0x6065" = %d ' % (window + 234)))
+    out = run("can", "sdo", "load", 5, changed, "--store")
+    assert out == "node 5: %d objects from %s written and stored (0x1010:01 \"save\")\n" % (len(ps.values), changed)
+    run("can", "nmt", 5, "reset", "--wait", 0.5)  # a stored value outlives a reset
+    assert run.json("can", "sdo", "read", 5, "0x6065")["value"] == window + 234
+    # a set of another drive is refused before anything is written
+    other = tmp_path / "other.toml"
+    other.write_text(text.replace("product_code = 0x00000402", "product_code = 0x00000403").replace(
+        '"0x6065" = %d ' % window, '"0x6065" = 7 '))
+    run("can", "sdo", "load", 5, other, code=2)
+    assert "is for a drive of product_code 0x00000403, node 5 has 0x00000402 (0x1018:2): nothing was written" in run.err
+    assert run.json("can", "sdo", "read", 5, "0x6065")["value"] == window + 234
+    d = run.json("can", "sdo", "load", 5, path, "--store")
+    assert d == {"node": 5, "file": str(path), "written": len(ps.values), "stored": True}
+    run("can", "nmt", 5, "reset", "--wait", 0.5)
+    assert run.json("can", "sdo", "read", 5, "0x6065")["value"] == window
+    run("can", "nmt", 5, "start", "--wait", 0.5)
+
+
+def test_sdo_dump_of_a_list_and_as_json(run):
+    text = run("can", "sdo", "dump", 5, "--objects", "Homing speeds,0x6065,0x2000")
+    body = text[text.index("[objects]"):].splitlines()[1:]
+    assert [line.split(" = ")[0] for line in body] == ['"0x2000"', '"0x6065"', '"0x6099:01"', '"0x6099:02"']
+    d = run.json("can", "sdo", "dump", 5, "--objects", "0x2000")
+    assert d["node"] == 5 and d["drive"]["vendor_id"] == VENDOR
+    assert d["objects"] == [{"index": 0x2000, "subindex": 0, "name": "Counts per revolution", "value": 10000}]
+    run("can", "sdo", "dump", 9, code=4)
+    assert "node 9 did not answer the read of 0x1000:00 Device type" in run.err
+
+
 def test_over_the_pty(capsys, bench):
     # Last in this module: the bench sees the pty closed a moment after it is, and turns
     # away a TCP client that comes in that moment (one host at a time).

@@ -90,6 +90,9 @@ def test_a_cia402_plan_carries_its_drive_and_the_eds_object_dictionary():
     assert ps.values[(0x6065, 0)] == 1000 and ps.values[(0x6099, 1)] == 5000
     assert ps.drive["product_code"] == 0x402
     assert plan.wiring.node == 5 and [r[1] for r in plan.wiring.relays] == [1, 0, 16]
+    assert d.describe() == "CAN node 5, 500000 bit/s, motorjig-cia402.eds"
+    assert d.as_dict() == {"protocol": "cia402", "node_id": 5, "bitrate": 500000, "eds": "motorjig-cia402.eds",
+                           "jig_id": 1}
 
 
 def test_the_golden_set_is_the_simulated_drives_defaults():
@@ -104,6 +107,7 @@ def test_old_plans_protocol_numbers_load_as_plusr_variants(tmp_path):
     plusr = GOOD.replace('protocol = "cia402"\nnode_id = 5', "slave = 2\nprotocol = [8, 6]")
     d = P.load_plan(write(tmp_path, plusr)).drive
     assert (d.protocol, d.variants, d.slave) == ("plusr", (6, 8), 2)
+    assert d.describe() == "slave 2, Ver6/Ver8, type 20"
     d = P.load_plan(write(tmp_path, plusr.replace("protocol = [8, 6]", 'protocol = "plusr"\nvariant = 8'))).drive
     assert (d.protocol, d.variants) == ("plusr", (8,))
     d = P.load_plan(write(tmp_path, plusr.replace("protocol = [8, 6]\n", ""))).drive
@@ -226,6 +230,11 @@ def test_a_plusr_key_in_a_cia402_step(capsys, tmp_path):
 def test_a_plusr_drive_key_in_a_cia402_plan(capsys, tmp_path):
     refused(capsys, tmp_path, GOOD.replace("node_id = 5", "node_id = 5\nslave = 2"), 8, "drive.slave",
             ['a key of protocol = "plusr" drives', 'protocol = "cia402"'])
+
+
+def test_variants_given_twice(capsys, tmp_path):
+    plusr = GOOD.replace('protocol = "cia402"\nnode_id = 5', "slave = 2\nprotocol = 6\nvariant = 8")
+    refused(capsys, tmp_path, plusr, 8, "drive.variant", ["the variants are given twice"])
 
 
 def test_a_protocol_that_is_neither(capsys, tmp_path):

@@ -48,6 +48,10 @@ class Drive:
         return {"protocol": self.protocol, "slave": self.slave, "variant": list(self.variants),
                 "slave_type": self.slave_type, "jig_id": self.jig_id}
 
+    def describe(self):
+        """The drive in a few words: 'slave 2, Ver6/Ver8, type 20'."""
+        return "slave %d, %s, type %d" % (self.slave, "/".join("Ver%d" % v for v in self.variants), self.slave_type)
+
 
 class Cia402Drive:
     """A CiA 402 drive (``protocol`` "cia402") at ``node_id`` on the CAN bus at ``bitrate``;
@@ -61,6 +65,10 @@ class Cia402Drive:
     def as_dict(self):
         return {"protocol": self.protocol, "node_id": self.node_id, "bitrate": self.bitrate,
                 "eds": os.path.basename(self.eds), "jig_id": self.jig_id}
+
+    def describe(self):
+        """The drive in a few words: 'CAN node 5, 500000 bit/s, motorjig-cia402.eds'."""
+        return "CAN node %d, %d bit/s, %s" % (self.node_id, self.bitrate, os.path.basename(self.eds))
 
 
 class Step:
