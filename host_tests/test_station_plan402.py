@@ -253,6 +253,29 @@ def test_a_limit_step_on_a_relay_wired_to_no_limit_input(capsys, tmp_path):
     refused(capsys, tmp_path, text, 26, "steps[2].relay", ["not a limit input", "0x60FD bit 0 negative"])
 
 
+def test_a_move_that_cannot_end_within_its_timeout(capsys, tmp_path):
+    text = GOOD.replace("distance = 1000", "distance = 100000\ntimeout_s = 5").replace("speed = 5000",
+                                                                                      "speed = [50000, 10000]")
+    refused(capsys, tmp_path, text, 16, "steps[1].timeout_s", ["takes at least 10 s (distance / speed)",
+                                                               "timeout_s = 5"])
+
+
+def test_a_duration_limit_above_the_timeout(capsys, tmp_path):
+    text = GOOD + '\n[[steps]]\nkind = "home"\nduration_s = [0.1, 20]\ntimeout_s = 10\n'
+    refused(capsys, tmp_path, text, 20, "steps[2].duration_s", ["upper limit 20 s is above timeout_s = 10"])
+
+
+@pytest.mark.parametrize("node", [0, 128, 254])
+def test_an_lss_factory_node_id_that_is_none(capsys, tmp_path, node):
+    text = GOOD + '\n[[steps]]\nkind = "lss"\nfactory_node_id = %d\n' % node
+    refused(capsys, tmp_path, text, 20, "steps[2].factory_node_id", [str(node)])
+
+
+def test_an_lss_step_loads(tmp_path):
+    step = P.load_plan(write(tmp_path, GOOD + '\n[[steps]]\nkind = "lss"\n')).steps[-1]
+    assert (step.kind, step.args["factory_node_id"]) == ("lss", 255)
+
+
 # --- the schema and its reference ------------------------------------------------------
 def test_every_protocol_has_its_kinds_and_the_docs_show_them():
     assert set(schema.PROTOCOL_KINDS) == set(schema.PROTOCOLS) == {"plusr", "cia402"}

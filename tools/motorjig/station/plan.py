@@ -219,6 +219,19 @@ def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
         distances = args["distance"] if isinstance(args["distance"], list) else [args["distance"]]
         if args["mode"] == "inc" and 0 in distances:
             raise ck.error(step_path + ("distance",), "a move of distance 0 tests nothing")
+        if args["mode"] == "inc":
+            speeds = args["speed"] if isinstance(args["speed"], list) else [args["speed"]]
+            slowest = max(abs(d) / v for d in distances for v in speeds)
+            if slowest > args["timeout_s"]:
+                raise ck.error(step_path + ("timeout_s",), "the move takes at least %.3g s (distance / speed), longer "
+                                                           "than timeout_s = %g" % (slowest, args["timeout_s"]))
+        _duration_within_timeout(ck, step_path, args)
+    elif kind == "home":
+        _duration_within_timeout(ck, step_path, args)
+    elif kind == "lss":
+        if 127 < args["factory_node_id"] < 255:
+            raise ck.error(step_path + ("factory_node_id",), "a node id is 1..127, or 255 for none, not %d"
+                           % args["factory_node_id"])
     elif kind == "parameters":
         path = os.path.join(plan_dir, args["file"])
         if not os.path.exists(path):
@@ -271,6 +284,13 @@ def _check_objects(ck, step_path, keys, args, drive):
                 where = step_path + ((k.name, i) if isinstance(args[k.name], list) else (k.name,))
                 raise ck.error(where, "%d is outside %s %s's limits in %s: %d..%d" % (
                     v, label, var.name, os.path.basename(drive.eds), low, high))
+
+
+def _duration_within_timeout(ck, step_path, args):
+    """A duration limit above the step's timeout could never be reached: the plan contradicts itself."""
+    if args.get("duration_s") is not None and args["duration_s"][1] > args["timeout_s"]:
+        raise ck.error(step_path + ("duration_s",), "its upper limit %g s is above timeout_s = %g: the step gives up "
+                                                    "before that" % (args["duration_s"][1], args["timeout_s"]))
 
 
 def _expand(ck, kind, name, explicit, args, index, out, owners, protocol="plusr"):
