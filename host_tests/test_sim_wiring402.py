@@ -381,6 +381,26 @@ def test_sdo_aborts_and_the_pdos_still_disable_it():
     assert node.state == C.SWITCH_ON_DISABLED
 
 
+def test_sdo_aborts_for_one_object_only():
+    b, master, node = bench()
+    b.set_fault("can:sdo-abort", "0x06010002@0x6065", NID)
+    assert node.active_faults() == ["sdo-abort=0x06010002@0x6065"]
+    with pytest.raises(Abort) as exc:
+        master.set(0x6065, 0, "<I", 10)
+    assert exc.value.code == 0x06010002
+    with pytest.raises(Abort):
+        master.get(0x6065)  # reads too
+    assert master.get(0x6066, 0, "<H") == 10
+    assert master.upload(0x1008).startswith(b"MotorJig")  # a segmented upload of another object
+    b.set_fault("can:sdo-abort", "0x08000020@0x1008:0", NID)
+    with pytest.raises(Abort) as exc:
+        master.upload(0x1008)
+    assert exc.value.code == 0x08000020 and master.get(0x6065) == 1000  # the write above was refused
+    with pytest.raises(ValueError, match="CODE\\[@INDEX"):
+        C.parse_fault("sdo-abort", "0x08000000@x")
+    assert C.parse_fault("sdo-abort", "0x08000000@6065:1") == ("sdo-abort", (0x08000000, (0x6065, 1)))
+
+
 def test_bench_set_fault_without_a_node_id_goes_to_the_wired_node():
     b, master, node = bench()
     b.set_fault("can:sluggish", 2)

@@ -221,7 +221,9 @@ FAULTS = {
     "no-origin": ("", None, "the home switch never reads active: a homing gives up after two turns with the "
                             "homing error bit 13"),
     "missed-heartbeat": ("", None, "the drive stops producing its heartbeat (0x1017) while set"),
-    "sdo-abort": ("CODE", ABORT_GENERAL, "every SDO request is answered with abort CODE (default 0x08000000)"),
+    "sdo-abort": ("CODE[@INDEX[:SUB]]", ABORT_GENERAL, "every SDO request (or only those for object INDEX, "
+                                                       "INDEX:SUB; hex) is answered with abort CODE (default "
+                                                       "0x08000000)"),
     "param": ("INDEX[:SUB]=VALUE", None, "object INDEX:SUB (an integer in the EDS) reads VALUE, now and after a "
                                         "reset (its saved value too; the drive uses it): a parameter off the golden "
                                         "set (repeatable; a write by SDO replaces it)"),
@@ -289,6 +291,9 @@ def parse_fault(name, value=None):
         value = FAULTS[name][1]
         if value is None:
             raise ValueError("%s: needs a value: %s=%s" % (name, name, FAULTS[name][0]))
+    scope = None
+    if name == "sdo-abort":
+        value, scope = _abort_scope(value)
     try:
         if name in ("sluggish", "overcurrent"):
             v = float(value)
@@ -300,7 +305,25 @@ def parse_fault(name, value=None):
           "dead-input": 0 <= v <= 31, "sdo-abort": 0 < v <= 0xFFFFFFFF}[name]
     if not ok:
         raise ValueError("%s: %r is out of range for %s" % (name, value, FAULTS[name][0]))
+    if name == "sdo-abort":
+        return name, (v, scope)
     return name, v
+
+
+def _abort_scope(value):
+    """sdo-abort's value: (CODE, None) or (CODE, (index, sub or None)) from "CODE@INDEX[:SUB]"
+    or a tuple; the code left as given."""
+    if isinstance(value, tuple):
+        return value
+    if not isinstance(value, str) or "@" not in value:
+        return value, None
+    code, _, obj = value.partition("@")
+    index, colon, sub = obj.partition(":")
+    try:
+        return code, (int(index, 16), int(sub, 16) if colon else None)
+    except ValueError:
+        raise ValueError("sdo-abort: expected CODE[@INDEX[:SUB]] (INDEX, SUB hex), e.g. 0x06020000@0x6065, got %r"
+                         % (value,)) from None
 
 
 def od_variables(od):
@@ -374,6 +397,7 @@ class Cia402Node:
         self.no_origin = False
         self.missed_heartbeat = False
         self.sdo_abort_code = None
+        self.sdo_abort_scope = None  # None: every request; (index, sub or None): that object's
         self.param_faults = {}  # (index, sub) -> the value set_fault forced
         self._param_saved = {}  # (index, sub) -> (present value, stored value or None) before it
         # LSS
@@ -722,7 +746,7 @@ class Cia402Node:
         if ccs == 4:  # the client aborts
             self._sdo = None
             return
-        if self.sdo_abort_code is not None:
+        if self.sdo_abort_code is not None and self._aborts(ccs, index, sub):
             self._abort(index, sub, self.sdo_abort_code)
             return
         x = self._sdo
@@ -745,6 +769,14 @@ class Cia402Node:
             self._initiate_upload(index, sub)
         else:  # 5, 6: block transfer; 7: nothing
             self._abort(index, sub, ABORT_COMMAND)
+
+    def _aborts(self, ccs, index, sub):
+        """Does the sdo-abort fault answer this request? (segments carry no index: they go
+        with their transfer, which started only if its object was not aborted)"""
+        scope = self.sdo_abort_scope
+        if scope is None:
+            return True
+        return ccs not in (0, 3) and index == scope[0] and scope[1] in (None, sub)
 
     def _lookup(self, index, sub):
         var = self.vars.get((index, sub))
@@ -1454,7 +1486,7 @@ class Cia402Node:
         elif name == "missed-heartbeat":
             self.missed_heartbeat = v
         elif name == "sdo-abort":
-            self.sdo_abort_code = v
+            self.sdo_abort_code, self.sdo_abort_scope = v
         elif name == "param":
             key, value = v
             check_param(self.vars, key, value)
@@ -1487,7 +1519,9 @@ class Cia402Node:
         if self.missed_heartbeat:
             out.append("missed-heartbeat")
         if self.sdo_abort_code is not None:
-            out.append("sdo-abort=0x%08X" % self.sdo_abort_code)
+            scope = self.sdo_abort_scope
+            out.append("sdo-abort=0x%08X" % self.sdo_abort_code + (
+                "" if scope is None else "@0x%04X" % scope[0] + ("" if scope[1] is None else ":%02X" % scope[1])))
         out += ["param=0x%04X:%02X=%d" % (k + (v,)) for k, v in sorted(self.param_faults.items())]
         return out
 
@@ -1501,6 +1535,7 @@ class Cia402Node:
         self.no_origin = False
         self.missed_heartbeat = False
         self.sdo_abort_code = None
+        self.sdo_abort_scope = None
         saved, self._param_saved = self._param_saved, {}
         self.param_faults = {}
         for key, (value, stored) in saved.items():
