@@ -23,6 +23,7 @@ from jig.params import P_CAN_SAFETY
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMOKE = os.path.join(ROOT, "plans", "cia402-smoke.toml")
+EOL = os.path.join(ROOT, "plans", "cia402-eol.toml")
 JIGCTL = os.path.join(os.path.dirname(sys.executable), "jigctl")
 NODE = 5
 LONG_PLAN = ('[plan]\nname = "long402"\nversion = "1"\n[drive]\nprotocol = "cia402"\nnode_id = 5\n'
@@ -32,6 +33,10 @@ LONG_PLAN = ('[plan]\nname = "long402"\nversion = "1"\n[drive]\nprotocol = "cia4
 
 def bench(**kw):
     return Bench(driver_ids=(2,), can_nodes=(NODE,), can_bitrate=500000, pty=False, **kw)
+
+
+def eol_bench():
+    return bench(wiring=load_plan(EOL).wiring)
 
 
 def run(b, tmp_path, plan_path=SMOKE, **kw):
@@ -94,6 +99,43 @@ def test_an_overcurrent_mid_move_fails_the_move_with_the_emcy_named_and_disables
     assert "0x2310" in out["emcy"]["measured_value"] and out["emcy"]["outcome"] == "FAIL"
     assert out["fault"]["measured_value"] == 0x2310 and out["fault"]["outcome"] == "FAIL"
     assert out["target_reached"]["measured_value"] is False
+
+
+def test_cia402_eol_passes_on_a_healthy_drive(tmp_path):
+    with eol_bench() as b:
+        rec = run(b, tmp_path, EOL)
+        assert operation_disabled(b)
+    assert rec["outcome"] == "PASS", failed(rec)
+    names = [p["name"] for p in rec["phases"]]
+    assert names[1:5] == ["identify", "parameters", "alarm-reset", "servo_on"]
+    assert {"home", "io", "limit-sensor", "quick_stop", "halt", "bus-health"} <= set(names)
+    health = phase(rec, "bus-health")["measurements"]
+    assert health["heartbeats"]["measured_value"] if "heartbeats" in health else True
+    assert health["emcy"]["measured_value"] == 0 and health["lost_frames"]["measured_value"] == 0
+
+
+# fault -> (the step that must catch it, the measurements that must fail there)
+EOL_FAULTS = {
+    "following-error": ("move_speed_50000", {"emcy", "fault", "following_error", "position_error", "target_reached"}),
+    "overcurrent": ("move_speed_5000", {"emcy", "fault", "position_error", "target_reached"}),
+    "sluggish": ("move_speed_5000", {"duration_ratio"}),
+    "no-origin": ("home", {"homing_attained"}),
+    "missed-heartbeat": ("bus-health", {"heartbeat_jitter"}),
+    "dead-input": ("io", {"relay_2_on"}),
+}
+
+
+@pytest.mark.parametrize("fault", list(EOL_FAULTS))
+def test_each_fault_fails_cia402_eol_at_its_step_and_leaves_the_drive_disabled(tmp_path, fault):
+    step, measurements = EOL_FAULTS[fault]
+    with eol_bench() as b:
+        b.sim.set_fault("can:" + fault, 16 if fault == "dead-input" else None, NODE)
+        rec = run(b, tmp_path, EOL)
+        assert operation_disabled(b), node(b).state
+    assert rec["outcome"] == "FAIL", failed(rec)
+    got = failed(rec)
+    assert list(got) == [step], got
+    assert measurements <= got[step], got
 
 
 def test_a_plan_for_a_cia402_drive_needs_the_can_port(tmp_path):

@@ -48,7 +48,7 @@ from motorjig.errors import JigError, PortError
 from motorjig.station.drive import Drive
 
 HEARTBEAT_MS = 100  # the drive's 0x1017 during a run (bus-health judges its regularity)
-SDO_TIMEOUT_S = 1.0
+SDO_TIMEOUT_S = 2.0  # a drive answers in ms; the real-time bench on a shared machine has stalled ~1 s
 STATE_TIMEOUT_S = 2.0  # a power state transition must be made within this
 _FRAME_BITS = 300  # SYNC + TPDO2 (6 bytes) + TPDO3 (8 bytes) with stuffing, about
 _LOAD = 0.3  # the share of the bus the trace may use
@@ -168,6 +168,7 @@ class Cia402Drive(Drive):
         self.event_driven = not on_sync
         self._sync_task = None
         self.tracing = False
+        self._timers_on = False
         self._mode = None
         self._lock = threading.RLock()  # one SDO conversation at a time (steps, the safety net)
         self.last_sent = time.monotonic()
@@ -215,7 +216,7 @@ class Cia402Drive(Drive):
                 if number != 1 and self.event_driven:
                     pdo.trans_type = 254
                     pdo.inhibit_time = int(round(self.period * 10000))  # 100 us units
-                    pdo.event_timer = int(round(self.period * 1000))
+                    pdo.event_timer = 0  # on while a step traces (sync): no stream between steps
                 else:
                     pdo.inhibit_time = 0 if trans_type >= 254 else None
                     pdo.event_timer = 0 if trans_type >= 254 else None
@@ -226,7 +227,7 @@ class Cia402Drive(Drive):
             self.last_sent = time.monotonic()
 
     def close(self):
-        self.sync(False)
+        self._stop_sync()
         net, self.network = self.network, None
         if net is not None:
             try:
@@ -303,14 +304,26 @@ class Cia402Drive(Drive):
         return self.read(0x6041)
 
     def sync(self, on):
-        """Start (on) or stop tracing: samples are kept (``samples``) only while on; on SYNC, the
-        station's SYNC runs only then (it also keeps the jig's CAN safety window open)."""
+        """Start (on) or stop tracing: samples are kept (``samples``) only while on. Event-driven,
+        the drive's event timers of TPDO2/3 run only then (between steps they would only queue
+        frames before the station's SDO replies); on SYNC, the station's SYNC runs only then."""
         self.tracing = on
-        if on and self._sync_task is None and not self.event_driven:
+        if self.event_driven:
+            if self._timers_on != on:
+                ms = int(round(self.period * 1000)) if on else 0
+                for comm in (0x1801, 0x1802):  # TPDO2, TPDO3 communication: sub 5 event timer
+                    self.write(comm, 5, ms)
+                self._timers_on = on
+        elif on and self._sync_task is None:
             self._sync_task = self.network.bus.send_periodic(
                 can.Message(arbitration_id=0x080, is_extended_id=False, data=b""), self.period)
-        elif not on and self._sync_task is not None:
-            task, self._sync_task = self._sync_task, None
+        elif not on:
+            self._stop_sync()
+
+    def _stop_sync(self):
+        self.tracing = False
+        task, self._sync_task = self._sync_task, None
+        if task is not None:
             try:
                 task.stop()
             except (can.CanError, OSError):
@@ -464,7 +477,7 @@ class Cia402Drive(Drive):
     def make_safe(self, emergency=False):
         """Quick stop, then disable voltage (SWITCH ON DISABLED), each tried whatever the other did."""
         problems = []
-        self.sync(False)
+        self._stop_sync()
         for what, cw in (("quick stop", power402.COMMANDS[power402.QUICK_STOP]),
                          ("disable voltage", power402.COMMANDS[power402.DISABLE_VOLTAGE])):
             try:
