@@ -470,7 +470,7 @@ def test_cli_wires_a_can_node(tmp_path, capsys):
     assert main(["--can-nodes", "5", "--wiring", str(p), "--no-demo", "--no-pty", "--duration", "0.2",
                  "--fault", "can:5:param=0x6065=500"]) == 0
     out = capsys.readouterr().out
-    assert "CAN node 5 (0x60FD inputs, 0x60FE:1 outputs)" in out and "jig relay 1 -> drive input 1 (limit+)" in out
+    assert "CAN node 5 (0x60FD inputs, 0x60FE:1 outputs)" in out and "jig relay 1 -> 0x60FD bit 1 (limit+)" in out
     assert "CAN node 5: param=0x6065:00=500" in out
 
 

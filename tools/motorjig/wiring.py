@@ -143,10 +143,11 @@ class Wiring:
     def describe(self):
         """One line per wire, for people."""
         lines = []
+        inp, out = ("0x60FD bit", "0x60FE:1 bit") if self.node is not None else ("drive input", "drive output")
         for relay, bit, name in self.relays:
-            lines.append("jig relay %d -> drive input %d%s" % (relay, bit, " (%s)" % name if name else ""))
+            lines.append("jig relay %d -> %s %d%s" % (relay, inp, bit, " (%s)" % name if name else ""))
         for k, bit, name in self.senses:
-            lines.append("drive output %d -> jig input %d%s" % (bit, k, " (%s)" % name if name else ""))
+            lines.append("%s %d -> jig input %d%s" % (out, bit, k, " (%s)" % name if name else ""))
         return lines
 
     def __repr__(self):
