@@ -481,3 +481,19 @@ def test_cli_refuses_a_wiring_to_a_node_not_on_the_bench(tmp_path):
         check_setup(parse_args(["--can-nodes", "5", "--wiring", str(p)]))
     with pytest.raises(ValueError, match="param: 0x9999:00 is not in the EDS"):
         check_setup(parse_args(["--can-nodes", "5", "--fault", "can:5:param=0x9999=1"]))
+
+
+SPECS = {"following-error": "20000", "overcurrent": "30", "sluggish": "1.5", "dead-input": "16", "no-origin": None,
+         "missed-heartbeat": None, "sdo-abort": "0x08000000@0x6065", "param": "0x6065=500"}
+
+
+def test_every_can_fault_from_the_command_line_reaches_the_node():
+    assert set(SPECS) == set(C.FAULTS)
+    for name, value in SPECS.items():
+        spec = "can:5:%s%s" % (name, "" if value is None else "=" + value)
+        _wiring, faults = check_setup(parse_args(["--can-nodes", "5,6", "--fault", spec]))
+        assert faults == [(5, "can:" + name, value)]
+        b = SimBench(driver_ids=(PLUSR,), can_nodes=(5, 6), faults=faults)
+        on = b.can_nodes[5].active_faults()
+        assert len(on) == 1 and on[0].startswith(name), (spec, on)
+        assert b.can_nodes[6].active_faults() == []
