@@ -397,7 +397,29 @@ def render_reference():
             "counts the run's) also has the measurement `emcy`, `\"none\"` or the codes received, named."]
     out += _kinds_text([k for k in CIA402_KINDS if k is not KINDS["prompt"]], " (cia402)")
     out += ["", "`prompt` as for Plus-R drives."]
+    out += _paramset402_text()
     return "\n".join(out) + "\n"
+
+
+def _paramset402_text():
+    """The CiA 402 parameter-set format (motorjig.can.paramset402: its keys and rules)."""
+    from motorjig.can import paramset402 as PS
+
+    out = ["", "### CiA 402 parameter-set files (`jigctl can sdo dump` / `load`, the `parameters` step)", "",
+           "```toml", "[drive]                     # optional: the drive the set is for (sdo load refuses another)"]
+    example = {"device_type": 0x00020192, "vendor_id": 0x4D4A4947, "product_code": 0x402}  # the bench's drive
+    for k, (index, sub) in PS.DRIVE_KEYS.items():
+        out.append("%-27s # 0x%04X%s" % ("%s = 0x%08X" % (k, example.get(k, 0)), index, ":%d" % sub if sub else ""))
+    out += ["", "[objects]", '"0x6065" = 1000             # INDEX: a single value (sub-index 0)',
+            '"0x6099:01" = 5000          # INDEX:SUB, two digits are hex (as jigctl shows them)',
+            '"Profile velocity" = 10000  # or the EDS\'s names', "```", "",
+            "Every entry is checked against the plan's EDS when the plan loads: the object exists (a sub-index the EDS "
+            "lists), it is one value, of its data type (integers for integer types, `true`/`false`, numbers, text, "
+            "hex bytes as a string), within the type and the EDS's LowLimit/HighLimit; readable for `verify`, "
+            "writable for `apply` and `sdo load`. `sdo dump` without `--objects` takes every object the EDS lets one "
+            "read and write at 0x1017 and from 0x2000 on, except the orders (%s)." % ", ".join(
+                "0x%04X%s" % (i, ":%d" % s if s else "") for i, s in sorted(PS.COMMANDS))]
+    return out
 
 
 def _kinds_text(kind_list, suffix):
