@@ -393,6 +393,10 @@ def test_slcan_port_takes_what_fits_nothing_while_closed_and_delivers_per_usb_fr
     assert port.any() == 0 and woke == []  # dropped while closed
     port.host_open()
     port.host_send(b"S6\rO\r")
+    assert woke == [] and port.any() == 0  # the host's bytes wait for the next USB frame
+    clock.advance(999)
+    assert woke == [] and port.any() == 0
+    clock.advance(1)
     assert woke == [1] and port.any() == 5
     buf = bytearray(3)
     assert port.readinto(buf) == 3 and buf == b"S6\r"

@@ -552,7 +552,7 @@ def test_parse_wiring_values_and_helpers():
 
 
 @pytest.mark.parametrize("table,msg", [
-    ({"slave": 2, "relays": []}, "plan.toml: wiring.relays: unknown key (known: slave, relay, sense)"),
+    ({"slave": 2, "relays": []}, "plan.toml: wiring.relays: unknown key (known: slave, node, relay, sense)"),
     ({"relay": [{"relay": 0, "drive_inptu": 1}]}, "plan.toml: wiring.relay[0].drive_inptu: unknown key"),
     ({"relay": [{"relay": 0, "drive_input": 0}, {"relay": 1, "drive_input": "x"}]},
      "plan.toml: wiring.relay[1].drive_input: expected an integer 0..31, got 'x'"),
