@@ -302,7 +302,7 @@ def serve(args, out=None):
             " or %s" % bench.pty_path if bench.pty_path else ""))
         out.write("  the jig's capture port: %s (the raw-frames tab records through it)\n" % bench.capture_url)
         if wiring is not None:
-            out.write("  wired as %s says: jig relays and inputs to drive %s\n" % (wiring.source, wiring.slave))
+            out.write("  wired as %s says: jig relays and inputs to %s\n" % (wiring.source, wiring.drive or "the first drive"))
         if can_nodes and can_port is None:
             can_port = getattr(bench, "slcan_url", None)
         if can_nodes:
