@@ -210,7 +210,7 @@ _QUIET_US = const(2000)
 # runs now, while the drive thinks, instead of a little later inside a frame passed on
 # (the line watch's, 5 ms after a frame began, or the 10 ms one), where it would stall
 # the copy: at most one every SLOW_AHEAD_US, never one a transaction.
-SLOW_AHEAD_US = const(4000)
+SLOW_AHEAD_US = const(3000)
 _T_DRV_PASSED = const(6)
 _T_PC_PASSED = const(4)
 _V_BAD_CRC = const(1)

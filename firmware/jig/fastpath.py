@@ -122,7 +122,7 @@ _B_WAKE = const(11)
 _B_XHEAD = const(12)
 _B_XCUR = const(13)
 _B_T_SLOW = const(14)
-_SLOW_AHEAD_US = const(4000)
+_SLOW_AHEAD_US = const(3000)
 _XT_N = const(16)
 _SEEN_IDS = const(30)
 # jig.counters
