@@ -73,7 +73,7 @@ def test_the_eol_plan_expands_its_sweep_into_three_moves():
     assert [s.args["speed"] for s in moves] == [5000, 20000, 50000]
     assert [s.name for s in moves] == ["move_speed_5000", "move_speed_20000", "move_speed_50000"]
     assert len({s.name for s in plan.steps}) == len(plan.steps)
-    assert plan.drive.protocol == (6, 8)
+    assert plan.drive.protocol == "plusr" and plan.drive.variants == (6, 8)
     assert re.fullmatch(r"[0-9a-f]{64}", plan.hash)
 
 

@@ -769,6 +769,6 @@ def cmd_crashlog(args):
 
 def fail(code, message):
     message = message.rstrip(".")
-    sys.stderr.write("jigctl: %s.\n" % message)
+    sys.stderr.write("jigctl: %s%s\n" % (message, "" if message.endswith((".", "?", "!")) else "."))
     sys.stderr.flush()
     return code

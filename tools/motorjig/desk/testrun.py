@@ -92,9 +92,8 @@ class PlanEntry:
         if self.plan is None:
             return self.error
         p = self.plan
-        return "%s  ·  %d steps  ·  drive slave %d (%s, slave type %d)  ·  %s" % (
-            p.description or p.name, len(p.steps), p.drive.slave,
-            "/".join("Ver%d" % v for v in p.drive.protocol), p.drive.slave_type, self.file)
+        return "%s  ·  %d steps  ·  drive %s  ·  %s" % (p.description or p.name, len(p.steps), p.drive.describe(),
+                                                     self.file)
 
 
 class Run:
