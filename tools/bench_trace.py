@@ -177,7 +177,7 @@ def polling_with_trace(baud, trace_period_us, n=200, cpu_model=JIG_CPU_MODEL):
         if i >= 3:
             hop = ends["jig-down"] - ends["pc"]
             # a request held behind a sample leaves the jig whole after the PC's last byte;
-            # cut through it leaves with it (a hop of about two byte times)
+            # cut through it leaves with it (a hop of about a byte time and the DE pre-delay)
             (hops_held if hop > 3 * 10e6 / baud + 5 else hops_free).append(hop)
             rep_hops.append(ends["jig-up"] - ends["driver-2"])
     period = (b.clock.now - t_start) / n
