@@ -138,6 +138,16 @@ def test_each_fault_fails_cia402_eol_at_its_step_and_leaves_the_drive_disabled(t
     assert measurements <= got[step], got
 
 
+def test_a_node_that_does_not_answer_ends_the_run_as_an_error_saying_so(tmp_path):
+    plan = tmp_path / "node7.toml"
+    with open(SMOKE) as f:
+        plan.write_text(f.read().replace("node_id = 5", "node_id = 7"))
+    with bench() as b:
+        rec = run(b, tmp_path, str(plan))
+    assert rec["outcome"] == "ERROR"
+    assert any("node 7 does not answer" in d["description"] for d in rec["outcome_details"]), rec["outcome_details"]
+
+
 def test_a_plan_for_a_cia402_drive_needs_the_can_port(tmp_path):
     p = subprocess.run([JIGCTL, "test", SMOKE, "--port", "socket://127.0.0.1:9", "--db", "none", "--out",
                         str(tmp_path)], capture_output=True, text=True, timeout=60)

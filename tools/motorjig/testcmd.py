@@ -157,6 +157,10 @@ def cmd_test(args):
         return _err(problem, args)
     confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
     if cia402:
+        import logging
+
+        # python-canopen logs each SDO transfer it gives up as an error; the step's error says it
+        logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
         try:
             from motorjig.can.port import probe
 

@@ -197,9 +197,9 @@ class Cia402Drive(Drive):
         self.network.subscribe(0x380 + n, self._on_tpdo3)
         try:
             self.read(0x1000)
-        except JigError as exc:
-            raise JigError("node %d does not answer on %s at %d bit/s (%s): check the cable, --can-port, "
-                           "[drive] node_id and bitrate" % (n, self.url, self.bitrate, exc)) from None
+        except JigError:
+            raise JigError("node %d does not answer on %s at %d bit/s (no SDO reply to 0x1000): check the cable, "
+                           "--can-port, [drive] node_id and bitrate" % (n, self.url, self.bitrate)) from None
         self._prepare()
 
     def _prepare(self):
