@@ -148,6 +148,43 @@ def test_a_node_that_does_not_answer_ends_the_run_as_an_error_saying_so(tmp_path
     assert any("node 7 does not answer" in d["description"] for d in rec["outcome_details"]), rec["outcome_details"]
 
 
+LSS_PLAN = ('[plan]\nname = "lss402"\nversion = "1"\n[drive]\nprotocol = "cia402"\nnode_id = 5\n'
+            '[[steps]]\nkind = "lss"\n[[steps]]\nkind = "identify"\n[[steps]]\nkind = "servo"\n'
+            '[[steps]]\nkind = "move"\ndistance = 5000\nspeed = 20000\naccel = 500000\ndecel = 500000\n'
+            '[[steps]]\nkind = "servo"\nname = "servo_off"\non = false\n')
+
+
+def unconfigure(b):
+    """Node 5 as a drive fresh from its box: LSS node id 255, stored (it answers LSS only)."""
+    import canopen
+
+    with canopen.Network() as net:
+        net.connect(channel=b.slcan_url, interface="slcan", bitrate=500000, sleep_after_open=0.05)
+        net.lss.send_switch_state_global(net.lss.CONFIGURATION_STATE)
+        net.lss.configure_node_id(255)
+        net.lss.store_configuration()
+        net.lss.send_switch_state_global(net.lss.WAITING_STATE)
+        net.nmt.send_command(0x81)  # reset node: it comes back with the stored id (none)
+        deadline = time.monotonic() + 5
+        while node(b).node_id != 255 and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+
+def test_an_lss_step_gives_an_unconfigured_drive_the_plans_node_id_and_the_run_goes_on(tmp_path):
+    plan = tmp_path / "lss402.toml"
+    plan.write_text(LSS_PLAN)
+    with bench() as b:
+        unconfigure(b)
+        assert node(b).node_id == 255
+        rec = run(b, tmp_path, str(plan))
+        assert node(b).node_id == NODE
+    assert rec["outcome"] == "PASS", failed(rec)
+    lss = phase(rec, "lss")["measurements"]
+    assert lss["found"]["measured_value"] is True and lss["node_id"]["measured_value"] == NODE
+    assert lss["serial"]["measured_value"] == "%08X" % rec["metadata"]["drive"]["serial"]
+    assert rec["dut_id"].startswith("node5-")
+
+
 def test_a_plan_for_a_cia402_drive_needs_the_can_port(tmp_path):
     p = subprocess.run([JIGCTL, "test", SMOKE, "--port", "socket://127.0.0.1:9", "--db", "none", "--out",
                         str(tmp_path)], capture_output=True, text=True, timeout=60)

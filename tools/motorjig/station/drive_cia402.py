@@ -99,7 +99,7 @@ class StampedSlcanBus(slcanBus):
         self._send_lock = threading.Lock()
         super().__init__(*a, **kw)
 
-    def open(self):
+    def open(self, require_node=True):
         self._write("Z1")
         super().open()
 
@@ -159,6 +159,7 @@ class Cia402Drive(Drive):
         self.emcys = []
         self.heartbeats = []  # jig times of the node's heartbeats
         self.t_opened = None  # jig time the heartbeat was switched on
+        self.ready = False  # the node answered and is prepared (connect_node)
         self.sdo_stamp = None  # jig time of the node's last SDO reply
         self.statusword = None  # the last one a TPDO brought
         self.sw_log = []  # (t, statusword) of TPDO1 (every change)
@@ -174,7 +175,7 @@ class Cia402Drive(Drive):
         self.last_sent = time.monotonic()
 
     # --- the connection ---------------------------------------------------------------------
-    def open(self):
+    def open(self, require_node=True):
         """Open the port and prepare the node (see the module's doc); PortError / JigError if the
         port is not the jig's SLCAN port or the node does not answer."""
         canport.probe(self.url)
@@ -195,12 +196,25 @@ class Cia402Drive(Drive):
         self.network.subscribe(0x180 + n, self._on_tpdo1)
         self.network.subscribe(0x280 + n, self._on_tpdo2)
         self.network.subscribe(0x380 + n, self._on_tpdo3)
-        try:
-            self.read(0x1000)
-        except JigError:
-            raise JigError("node %d does not answer on %s at %d bit/s (no SDO reply to 0x1000): check the cable, "
-                           "--can-port, [drive] node_id and bitrate" % (n, self.url, self.bitrate)) from None
+        if require_node:
+            self.connect_node()
+
+    def connect_node(self, wait_s=0.0):
+        """The node answers at its id (asked again for up to ``wait_s``: a node just given its id
+        boots first); then it is prepared for the run. JigError if it does not."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                self.read(0x1000)
+                break
+            except JigError:
+                if time.monotonic() >= deadline:
+                    raise JigError("node %d does not answer on %s at %d bit/s (no SDO reply to 0x1000): check the "
+                                   "cable, --can-port, [drive] node_id and bitrate"
+                                   % (self.node_id, self.url, self.bitrate)) from None
+                time.sleep(0.05)
         self._prepare()
+        self.ready = True
 
     def _prepare(self):
         node = self.node
@@ -464,6 +478,38 @@ class Cia402Drive(Drive):
 
     def inputs(self):
         return self.read(0x60FD)
+
+    def lss_configure(self, factory_node_id=0xFF):
+        """CiA 305: find the drive at its factory node id (255: unconfigured, by LSS fast scan; else
+        by its identity 0x1018 read there), give it this drive's node id and bitrate, store them
+        and switch every node back to waiting, where it boots with its new id. Returns its
+        identity (vendor, product, revision, serial), or None when no node was found."""
+        from motorjig.can.command import LSS_BIT_TIMING
+
+        lss = self.network.lss
+        with self._lock:
+            self.last_sent = time.monotonic()
+            if factory_node_id == 0xFF:
+                found, ids = lss.fast_scan()
+                if not found:
+                    return None
+            else:
+                factory = canopen.RemoteNode(factory_node_id, self.od)
+                self.network.add_node(factory)
+                factory.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+                try:
+                    ids = [factory.sdo[0x1018][sub].raw for sub in (1, 2, 3, 4)]
+                except (canopen.SdoAbortedError, canopen.SdoCommunicationError):
+                    return None
+                finally:
+                    del self.network[factory_node_id]
+                if not lss.send_switch_state_selective(*ids):
+                    return None
+            lss.configure_node_id(self.node_id)
+            lss.configure_bit_timing(LSS_BIT_TIMING[self.bitrate])
+            lss.store_configuration()
+            lss.send_switch_state_global(lss.WAITING_STATE)
+        return tuple(ids)
 
     def bus_health(self):
         counters = {}

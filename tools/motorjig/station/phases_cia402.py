@@ -402,11 +402,28 @@ def run_limit_sensor(test, bus, step, ctx):
         trace.check(trace.time_of("relay"), trace.t_stop, ctx.plan.sample_rate_min, "the stop at the limit")
 
 
-measures_lss = lambda step, plan: []  # noqa: E731
+def measures_lss(step, plan):
+    h = _h()
+    return [h._equals("found", True, doc="a drive answered at the factory node id %d (255: LSS fast scan of the "
+                                         "unconfigured)" % step.args.get("factory_node_id", 255)),
+            h._m("vendor_id", doc="its LSS address: 0x1018:1"), h._m("product_code", doc="0x1018:2"),
+            h._m("serial", doc="0x1018:4 (hex)"),
+            h._equals("node_id", plan.drive.node_id, doc="the node id it answers at afterwards (SDO 0x1000)")]
 
 
 def run_lss(test, bus, step, ctx):
-    raise JigError("the lss step is not implemented on CiA 402 drives yet")
+    d, m = bus.drive, test.measurements
+    ids = d.lss_configure(step.args.get("factory_node_id", 255))
+    m["found"] = ids is not None
+    if ids is None:
+        return
+    m["vendor_id"], m["product_code"], m["serial"] = ids[0], ids[1], "%08X" % ids[3]
+    d.connect_node(wait_s=2.0)  # boots with its new id; then the trace TPDOs, heartbeat, operational
+    m["node_id"] = d.node_id
+    drive = test.test_record.metadata.setdefault("drive", {})
+    drive.update(vendor_id=ids[0], product_code=ids[1], revision=ids[2], serial=ids[3], device_type=d.read(0x1000))
+    if test.test_record.dut_id in (None, "", "unknown"):
+        test.dut_id = "node%d-%08X-%08X" % (d.node_id, ids[1], ids[3])
 
 
 # --- the EMCY rule of every step --------------------------------------------------------------------------------

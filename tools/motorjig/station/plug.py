@@ -66,7 +66,9 @@ for _name, _doc, _default in (
         ("motorjig_can_port", "the jig's SLCAN port (device or pyserial URL) of a CiA 402 drive", None),
         ("motorjig_node_id", "the CiA 402 drive's node id", 5),
         ("motorjig_bitrate", "the CAN bitrate, bit/s", 500000),
-        ("motorjig_eds", "the CiA 402 drive's EDS (default: the one the project ships)", None)):
+        ("motorjig_eds", "the CiA 402 drive's EDS (default: the one the project ships)", None),
+        ("motorjig_lss", "the plan gives the CiA 402 drive its node id (an lss step): do not ask for it at start",
+         False)):
     if _name not in CONF._declarations:  # a re-import (tests) must not declare twice
         CONF.declare(_name, _doc, default_value=_default)
 
@@ -230,7 +232,7 @@ class MotorJigPlug(plugs.BasePlug):
         d = Cia402Drive(CONF.motorjig_can_port, CONF.motorjig_node_id, CONF.motorjig_bitrate,
                         object_dictionary(CONF.motorjig_eds), self.master, CONF.motorjig_jig_id)
         try:
-            d.open()
+            d.open(require_node=not CONF.motorjig_lss)  # an lss step first: the node has no id yet
         except BaseException:
             d.close()
             self.master.close()

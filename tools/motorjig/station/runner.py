@@ -221,6 +221,14 @@ def _preflight_cia402(test, bus, plan, serial, ctx):
     """The CiA 402 drive's preflight: the plug has opened it (node answers, trace TPDOs mapped);
     its device profile must be 402. The records name it, its EDS and its identity."""
     d = bus.drive
+    if not d.ready:  # the plan's lss step gives the drive its id first: identified there
+        test.test_record.metadata["drive"] = dict(protocol="cia402", node_id=d.node_id, bitrate=d.bitrate,
+                                                  eds=getattr(plan.drive, "eds", None))
+        if plan.reset_jig_counters:
+            bus.master.reset_counters(bus.jig_id)
+        _arm_safety_net(test, bus, ctx)
+        bus.master.roundtrips.clear()
+        return
     device_type = d.read(0x1000)
     if device_type & 0xFFFF != 402:
         raise PreflightError("node %d has device profile %d (0x1000 = 0x%08X), not CiA 402: nothing was moved"
@@ -373,7 +381,10 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
             "motorjig_protocol": "cia402" if cia402 else "plusr", "motorjig_can_port": can_port}
     if cia402:
         load.update(motorjig_node_id=plan.drive.node_id, motorjig_bitrate=plan.drive.bitrate,
-                    motorjig_eds=getattr(plan.drive, "eds", None))
+                    motorjig_eds=getattr(plan.drive, "eds", None),
+                    motorjig_lss=bool(plan.steps) and plan.steps[0].kind == "lss")
+    else:
+        load["motorjig_lss"] = False
     if station:
         load["station_id"] = station
     CONF.load(**load)
