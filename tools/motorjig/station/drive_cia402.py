@@ -160,6 +160,7 @@ class Cia402Drive(Drive):
         self.heartbeats = []  # jig times of the node's heartbeats
         self.t_opened = None  # jig time the heartbeat was switched on
         self.ready = False  # the node answered and is prepared (connect_node)
+        self.bus_seconds = 0.0  # time spent waiting for SDO replies (the run's split: motion, bus, engine)
         self.sdo_stamp = None  # jig time of the node's last SDO reply
         self.statusword = None  # the last one a TPDO brought
         self.sw_log = []  # (t, statusword) of TPDO1 (every change)
@@ -286,7 +287,7 @@ class Cia402Drive(Drive):
     def read(self, index, sub=0):
         """An object's value by SDO (JigError naming the abort or the silence)."""
         with self._lock:
-            self.last_sent = time.monotonic()
+            t0 = self.last_sent = time.monotonic()
             try:
                 obj = self.node.sdo[index]
                 return (obj[sub] if not isinstance(obj, canopen.sdo.SdoVariable) else obj).raw
@@ -295,11 +296,13 @@ class Cia402Drive(Drive):
                     self.node_id, index, sub, cia301.abort_text(exc.code))) from None
             except (canopen.SdoCommunicationError, can.CanError, OSError) as exc:
                 raise JigError("node %d, reading 0x%04X:%02X: %s" % (self.node_id, index, sub, exc)) from None
+            finally:
+                self.bus_seconds += time.monotonic() - t0
 
     def write(self, index, sub, value):
         """Write an object by SDO; returns the jig's time of the drive's reply."""
         with self._lock:
-            self.last_sent = time.monotonic()
+            t0 = self.last_sent = time.monotonic()
             try:
                 obj = self.node.sdo[index]
                 (obj[sub] if not isinstance(obj, canopen.sdo.SdoVariable) else obj).raw = value
@@ -308,6 +311,8 @@ class Cia402Drive(Drive):
                     self.node_id, index, sub, value, cia301.abort_text(exc.code))) from None
             except (canopen.SdoCommunicationError, can.CanError, OSError) as exc:
                 raise JigError("node %d, writing 0x%04X:%02X: %s" % (self.node_id, index, sub, exc)) from None
+            finally:
+                self.bus_seconds += time.monotonic() - t0
             return self.sdo_stamp
 
     def controlword(self, value):

@@ -563,15 +563,20 @@ def build_phase(step, plan, ctx):
             raise RunAborted("aborted before step %s" % step.name)
         ctx.started(step)
         n0 = len(bus.master.roundtrips)
+        drive_s0 = getattr(bus.drive, "bus_seconds", 0.0)
+
+        def bus_s():  # seconds of the step spent waiting for replies: the jig's PC port and the drive's SDO
+            return sum(bus.master.roundtrips[n0:]) + getattr(bus.drive, "bus_seconds", 0.0) - drive_s0
+
         try:
             run(test, bus, step, ctx)
         except (KeyboardInterrupt, threads.ThreadTerminationError):
             bus.note_abort()
-            ctx.finished(step, "ABORTED", [], sum(bus.master.roundtrips[n0:]))
+            ctx.finished(step, "ABORTED", [], bus_s())
             raise
         except BaseException as exc:
             bus.note_failure()
-            ctx.finished(step, "ERROR", ["%s: %s" % (type(exc).__name__, exc)], sum(bus.master.roundtrips[n0:]),
+            ctx.finished(step, "ERROR", ["%s: %s" % (type(exc).__name__, exc)], bus_s(),
                          _results(test, measures))
             raise
         results = _results(test, measures)
@@ -580,13 +585,13 @@ def build_phase(step, plan, ctx):
             bus.note_failure()
             why = ("the jig's safety stop fired during the step: this PC was silent for more than %d ms and the "
                    "jig stopped the axis; the drive was not judged" % bus.safety.window_ms)
-            ctx.finished(step, "ERROR", [why], sum(bus.master.roundtrips[n0:]), results)
+            ctx.finished(step, "ERROR", [why], bus_s(), results)
             raise UntrustedMeasurement(why)
         if failed:
             bus.note_failure()
             # the report's banner says why the run failed: the first failing step's measurements
             test.test_record.metadata.setdefault("verdict_reason", "%s: %s" % (step.name, "; ".join(failed)))
-        ctx.finished(step, "FAIL" if failed else "PASS", failed, sum(bus.master.roundtrips[n0:]), results)
+        ctx.finished(step, "FAIL" if failed else "PASS", failed, bus_s(), results)
 
     phase.__name__ = step.name
     phase.__doc__ = "%s step %r" % (step.kind, step.name)
