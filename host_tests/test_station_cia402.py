@@ -148,6 +148,35 @@ def test_a_node_that_does_not_answer_ends_the_run_as_an_error_saying_so(tmp_path
     assert any("node 7 does not answer" in d["description"] for d in rec["outcome_details"]), rec["outcome_details"]
 
 
+def test_sigkill_mid_move_the_jigs_can_safety_stop_disables_the_drive(tmp_path):
+    """What no handler catches: the jig's CAN safety stop (can_safety = 2, armed for the run) sends
+    the quick stop after the --safety-window of silence on its SLCAN port."""
+    plan = tmp_path / "long402.toml"
+    plan.write_text(LONG_PLAN)
+    with bench() as b:
+        p = subprocess.Popen([JIGCTL, "test", str(plan), "--port", b.tcp_url, "--can-port", b.slcan_url,
+                              "--out", str(tmp_path), "--db", "none", "--yes", "--safety-window", "500"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 60
+            while not node(b).motion.moving:
+                assert p.poll() is None, "jigctl test ended before the move: %s" % (p.communicate(),)
+                assert time.monotonic() < deadline, "the move never started"
+                time.sleep(0.05)
+            time.sleep(0.3)
+            p.kill()
+            p.communicate(timeout=30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        deadline = time.monotonic() + 5
+        while not operation_disabled(b) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert operation_disabled(b), node(b).state
+        with Master(b.tcp_url, timeout=0.3) as m:
+            assert m.can_counters(1)["can_safety_stops"] >= 1
+
+
 LSS_PLAN = ('[plan]\nname = "lss402"\nversion = "1"\n[drive]\nprotocol = "cia402"\nnode_id = 5\n'
             '[[steps]]\nkind = "lss"\n[[steps]]\nkind = "identify"\n[[steps]]\nkind = "servo"\n'
             '[[steps]]\nkind = "move"\ndistance = 5000\nspeed = 20000\naccel = 500000\ndecel = 500000\n'
