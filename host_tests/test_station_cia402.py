@@ -69,6 +69,25 @@ def operation_disabled(b):
     return not nd.statusword() & 0x04 and not nd.motion.moving
 
 
+def test_frames_are_dated_by_the_jigs_slcan_timestamps_unwrapped_past_60_s():
+    from motorjig.station.drive_cia402 import StampedSlcanBus
+
+    bus = StampedSlcanBus(channel="loop://", bitrate=500000, sleep_after_open=0)  # what it writes comes back
+    try:
+        bus.serialPortOrig.write(b"t705105EA5F\rt7051050010\rT000005851AA0064\rr7050000A\rt705105\r")
+        got = []
+        while len(got) < 5:
+            msg = bus.recv(1.0)
+            assert msg is not None, got
+            got.append((msg.arbitration_id, round(msg.timestamp, 3)))
+    finally:
+        bus.shutdown()
+    # 59 999 ms, then the field wraps: 60.016 s; extended and remote frames carry it too;
+    # a line without a timestamp keeps python-can's own (this PC's) time
+    assert got[:4] == [(0x705, 59.999), (0x705, 60.016), (0x585, 60.1), (0x705, 60.01)]
+    assert got[4][1] > 1e9
+
+
 def test_cia402_smoke_passes_traced_by_tpdos_dated_by_the_jig(tmp_path):
     with bench() as b:
         rec = run(b, tmp_path)
