@@ -89,7 +89,9 @@ class CanLink:
         self.rx = self.tx = 0  # frames since open
         self.nodes = {}  # id -> row of the last scan
         self.heartbeats = {}  # id -> (state byte, time)
+        self.emcys = {}  # id -> (error code, error register, time) of its last EMCY
         self.scanning = False
+        self.lent = ""  # what has the port now (a CiA 402 test run of the Test tab): Open is refused
         self.keep = log_size
         self._od = None
         self._text = FrameText()  # frame names; with the EDS's objects once it is read
@@ -98,6 +100,9 @@ class CanLink:
         self._seq = 0
         self._log_lock = threading.Lock()
         self._lock = threading.RLock()  # one job (open, close, scan, an SDO transfer) at a time
+        from motorjig.desk.canaxis import CanAxis
+
+        self.axis = CanAxis(self)  # the CAN tab's CiA 402 axis: made safe before the port closes
 
     # --- the frame log -------------------------------------------------------------------------------
     def _frame(self, direction, can_id, ext, rtr, data, t=None):
@@ -105,6 +110,8 @@ class CanLink:
         data = bytes(data)
         if direction == "rx" and not ext and not rtr and 0x701 <= can_id <= 0x77F and data:
             self.heartbeats[can_id & 0x7F] = (data[0] & 0x7F, t)
+        elif direction == "rx" and not ext and not rtr and 0x81 <= can_id <= 0xFF and len(data) >= 3:
+            self.emcys[can_id & 0x7F] = (data[0] | data[1] << 8, data[2], t)
         ft = self._text
         try:
             text = cia301.describe_frame(can_id, data, ext, rtr, ft.od_name, ft.od_decode, ft.pdo_decode)
@@ -151,6 +158,8 @@ class CanLink:
                 self.url, self.bitrate // 1000, ", listen-only" if self.read_only else "", self.rx, self.tx)
         if self.state == "lost":
             return "port lost: %s" % self.reason
+        if self.lent:
+            return "lent to %s" % self.lent
         return "closed"
 
     def open(self, url=None, bitrate=None):
@@ -166,6 +175,8 @@ class CanLink:
         if not url:
             raise UserError("no SLCAN port: give the jig's third USB port (e.g. /dev/ttyACM2) or a pyserial URL")
         with self._lock:
+            if self.lent:
+                raise UserError("the SLCAN port is lent to %s: it comes back with its verdict" % self.lent)
             if self._net is not None:
                 raise UserError("the SLCAN port %s is open: close it first" % self.url)
             self._od_of_eds()  # a broken EDS is said before the port opens
@@ -188,11 +199,14 @@ class CanLink:
             with self._log_lock:
                 self.rx = self.tx = 0
             self.heartbeats.clear()
+            self.emcys.clear()
         return "SLCAN port %s open at %d kbit/s%s" % (url, bitrate // 1000,
                                                       ", listen-only (read-only Desk)" if self.read_only else "")
 
     def close(self):
-        """Close the port (python-can sends SLCAN's C); returns a sentence."""
+        """Close the port (python-can sends SLCAN's C); returns a sentence. A node the CAN axis enabled
+        (or the one it watches, when enabled) is quick-stopped and disabled first."""
+        problems = self.axis.make_safe() if self._net is not None and self.state == "open" else []
         with self._lock:
             net, self._net = self._net, None
             was = self.state
@@ -202,6 +216,8 @@ class CanLink:
                     return "closed (the port had been lost: %s)" % self.reason
                 raise UserError("the SLCAN port is not open")
             _quietly(net.disconnect)
+        if problems:
+            return "SLCAN port %s closed; making the axis safe first met: %s" % (self.url, "; ".join(problems))
         return "SLCAN port %s closed" % self.url
 
     def _lost(self, exc):

@@ -58,8 +58,8 @@ class CanTab:
         self.paused = False
 
     # --- actions --------------------------------------------------------------------------------------
-    async def act(self, fn, *args):
-        """Run a link method off the event loop; its sentence, or its failure's, in the tab."""
+    async def act(self, fn, *args, quiet=False):
+        """Run a link method off the event loop; its sentence (unless quiet), or its failure's, in the tab."""
         try:
             res = await run.io_bound(fn, *args)
         except UserError as exc:
@@ -68,7 +68,7 @@ class CanTab:
         except Exception as exc:  # a bug: one sentence on the page, never a traceback
             self._say("internal error (%s: %s)" % (type(exc).__name__, exc), error=True)
             return None
-        if isinstance(res, str):
+        if isinstance(res, str) and not quiet:
             self._say(res)
         return res
 
@@ -105,6 +105,7 @@ class CanTab:
                 self._sdo_card()
             with ui.card().classes("w-2/5"):
                 self._counters_card()
+        self._axis_card()
         self._log_card()
         ui.timer(REFRESH_S, self.refresh)
 
@@ -127,6 +128,95 @@ class CanTab:
             ui.label("Scan: python-canopen's scanner (an SDO upload of 0x1000 to ids 1..127), then each node's "
                      "name and identity by SDO; the NMT state is the node's last heartbeat.") \
                 .classes("text-caption text-grey-7")
+
+    def _axis_card(self):
+        """The CiA 402 axis (``canaxis.CanAxis``): its state, the power state machine, moves, jog, stops."""
+        ax = self.link.axis
+        with tid(ui.card(), "can-axis").classes("w-full"):
+            with ui.row().classes("items-end"):
+                ui.label("CiA 402 axis").classes("text-subtitle1")
+                self.axis_node = tid(ui.input("node", value="" if ax.node_id is None else str(ax.node_id)),
+                                     "can-axis-node").classes("w-20")
+                self.axis_node.on("blur", self._axis_watch)
+                self.axis_node.on("keydown.enter", self._axis_watch)
+                tid(ui.button("Enable", icon="power_settings_new", on_click=lambda: self._axis(ax.enable)),
+                    "btn-can-enable").props("color=green")
+                tid(ui.button("Disable", on_click=lambda: self._axis(ax.disable)), "btn-can-disable") \
+                    .props("outline")
+                tid(ui.button("Fault reset", on_click=lambda: self._axis(ax.fault_reset)), "btn-can-fault-reset") \
+                    .props("outline")
+                ui.separator().props("vertical")
+                tid(ui.button("Halt", on_click=lambda: self._axis(ax.halt)), "btn-can-halt").props("color=orange") \
+                    .tooltip("controlword bit 8: a decelerating stop, the drive stays enabled (STOP AXIS does it too)")
+                tid(ui.button("Quick stop", on_click=lambda: self._axis(ax.quick_stop)), "btn-can-quick-stop") \
+                    .props("color=red").tooltip("controlword QUICK STOP, as the drive's 0x605A says "
+                                                "(EMERGENCY STOP and Esc do it too)")
+            # the buttons above the status: a status line that grows or wraps never moves a held jog
+            # button from under the pointer (that would be a mouseleave: a release)
+            with ui.row().classes("items-end"):
+                self.axis_target = tid(ui.input("target / distance (counts)", value="10000"),
+                                       "can-axis-target").classes("w-44")
+                self.axis_speed = tid(ui.input("speed (counts/s)", value="20000"), "can-axis-speed").classes("w-32")
+                self.axis_acc = tid(ui.input("accel (counts/s²)", placeholder="drive's"), "can-axis-acc") \
+                    .classes("w-32")
+                self.axis_dec = tid(ui.input("decel (counts/s²)", placeholder="drive's"), "can-axis-dec") \
+                    .classes("w-32")
+                tid(ui.button("Move ABS", on_click=lambda: self._axis_move("abs")), "btn-can-move-abs")
+                tid(ui.button("Move REL", on_click=lambda: self._axis_move("rel")), "btn-can-move-rel") \
+                    .props("outline")
+                for sign, text in ((-1, "Jog −"), (1, "Jog +")):
+                    b = tid(ui.button(text), "btn-can-jog-%s" % ("minus" if sign < 0 else "plus")).props("outline")
+                    b.on("mousedown", lambda _, d=sign: self._jog_press(d))
+                    b.on("touchstart", lambda _, d=sign: self._jog_press(d))
+                    for ev in ("mouseup", "mouseleave", "touchend"):
+                        b.on(ev, lambda _: self._jog_release())
+            grid = (("state", "state (0x6041)"), ("mode", "mode (0x6061)"), ("position", "position (0x6064)"),
+                    ("velocity", "velocity (0x606C)"), ("following_error", "following error (0x60F4)"),
+                    ("fault", "fault (0x603F)"), ("emcy", "last EMCY"))
+            self.axis_fields = {}
+            with ui.grid(columns="auto 1fr").classes("gap-x-4 gap-y-0"):
+                for key, label in grid:
+                    ui.label(label).classes("text-grey-7")
+                    self.axis_fields[key] = tid(ui.label(""), "can-axis-" + key.replace("_", "-")).classes("font-mono")
+            self.axis_error = tid(ui.label(""), "can-axis-error").classes("text-red-9")
+            ui.label("Moves in profile position (0x6060 = 1, the new-set-point handshake); jog in profile velocity "
+                     "(0x6060 = 3) while the button is held, at the speed field's value. Enable follows the "
+                     "CiA 402 power state machine to OPERATION ENABLED; Disable quick-stops, then SWITCH ON "
+                     "DISABLED. Closing the port or the Desk disables a node enabled here first.") \
+                .classes("text-caption text-grey-7")
+        self.axis_jogging = False
+
+    async def _axis(self, fn, *args, quiet=False):
+        return await self.act(fn, *args, self.axis_node.value, quiet=quiet)
+
+    async def _axis_watch(self, _e=None):
+        if str(self.axis_node.value or "").strip():
+            await self.act(self.link.axis.watch, self.axis_node.value)
+
+    async def _axis_move(self, kind):
+        await self._axis(self.link.axis.move, kind, self.axis_target.value, self.axis_speed.value,
+                         self.axis_acc.value, self.axis_dec.value)
+
+    async def _jog_press(self, direction):
+        self.axis_jogging = True
+        # quiet: a notification popping up under the pointer would be a mouseleave (a release)
+        if await self._axis(self.link.axis.jog, direction, self.axis_speed.value, quiet=True) is None:
+            self.axis_jogging = False
+
+    async def _jog_release(self):
+        if self.axis_jogging:  # mouseleave fires without a press too
+            self.axis_jogging = False
+            await self.act(self.link.axis.jog_release, quiet=True)
+
+    def _refresh_axis(self):
+        ax = self.link.axis
+        if self.axis_jogging:
+            ax.jog_alive()
+        fields = ax.describe()
+        if self.changed("axis", repr(fields)):
+            for key, label in self.axis_fields.items():
+                label.text = fields.get(key, "")
+            self.axis_error.text = fields.get("error", "")
 
     def _sdo_card(self):
         with ui.card().classes("w-full"):
@@ -181,6 +271,10 @@ class CanTab:
             self._say("scan: %d node(s)%s" % (len(rows), ": " + found if found else " answered"))
             if rows and not str(self.sdo_node.value or "").strip():
                 self.sdo_node.value = str(rows[0]["id"])
+            cia402 = [r["id"] for r in rows if "402" in r.get("profile", "")]
+            if cia402 and not str(self.axis_node.value or "").strip():
+                self.axis_node.value = str(cia402[0])
+                await self._axis_watch()
 
     async def _nmt(self):
         await self.act(self.link.nmt, self.nmt_command.value, self.nmt_node.value)
@@ -233,6 +327,7 @@ class CanTab:
         if ch("state", summary):
             self.state.text = summary
             self.state.classes(replace="text-red-9" if link.state == "lost" else "")
+        self._refresh_axis()
         rows = link.node_rows()
         if ch("nodes", repr(rows)):
             self.nodes.rows = rows

@@ -181,9 +181,10 @@ class DeskPage:
                 tid(ui.label("READ-ONLY"), "read-only").classes("chip ro").tooltip(
                     "started with --read-only: the page shows the status and the runs and sends nothing")
             ui.space()
-            tid(ui.button("STOP AXIS", on_click=lambda: self.act(s.stop_axis)), "btn-stop").props("color=orange") \
-                .tooltip("decelerating stop of the selected axis (also ends a motion test or a scan)")
-            tid(ui.button("EMERGENCY STOP (Esc)", on_click=lambda: self.act(s.emergency_stop)),
+            tid(ui.button("STOP AXIS", on_click=lambda: self._stop(False)), "btn-stop").props("color=orange") \
+                .tooltip("decelerating stop of the selected axis (also ends a motion test or a scan; the CAN "
+                         "tab's CiA 402 axis: halt)")
+            tid(ui.button("EMERGENCY STOP (Esc)", on_click=lambda: self._stop(True)),
                 "btn-estop").props("color=red size=lg").classes("estop")
         ui.add_body_html(ESC_SCRIPT)
         ui.on("motorjig_estop", self._esc)
@@ -241,7 +242,17 @@ class DeskPage:
         self.s.viewers = max(0, self.s.viewers - 1)
 
     async def _esc(self, _e=None):
-        await self.act(self.s.emergency_stop)
+        await self._stop(True)
+
+    async def _stop(self, emergency):
+        """STOP AXIS / EMERGENCY STOP / Esc: the CAN tab's CiA 402 axis first (halt / quick stop, when its
+        port is open and a node is chosen: ``canaxis.CanAxis.stop``), then the Plus-R axes as before
+        (left out when only the CAN axis was there to stop)."""
+        axis = getattr(self.can_link, "axis", None)
+        can_said = await self.act(axis.stop, emergency) if axis is not None else None
+        if can_said and self.s.state in ("disconnected", "lost"):  # no Plus-R axis to stop, no run to abort
+            return
+        await self.act(self.s.emergency_stop if emergency else self.s.stop_axis)
 
     async def _reconnect(self):
         await self.act(self.s.reconnect)
