@@ -301,17 +301,23 @@ class CanAxis:
         return "node %d: jog released" % nid if was else "node %d: halt" % nid
 
     def _halt(self, nid):
+        """Halt (bit 8) a node in OPERATION ENABLED; False, with nothing sent, in any other state: its
+        controlword carries ENABLE OPERATION, which in READY TO SWITCH ON would switch the drive on."""
         self._stop_seq += 1
         self._jog_gen += 1
+        if self._state(nid)[0] != power402.OPERATION_ENABLED:
+            return False
         self._write(0x6040, CW_ENABLED | CW_HALT | CW_IMMEDIATE, nid=nid)
         if self._read(0x6061, nid=nid) == MODE_PV:
             self._write(0x60FF, 0, nid=nid)
+        return True
 
     def halt(self, node_id=None):
         """Controlword bit 8: the drive stops with its deceleration and stays enabled."""
         nid = self._take(node_id)
         self.jogging = 0
-        self._halt(nid)
+        if not self._halt(nid):
+            return "node %d is not in OPERATION ENABLED: nothing to halt" % nid
         return "node %d: halt (controlword bit 8; the drive stays enabled)" % nid
 
     def quick_stop(self, node_id=None):
@@ -341,8 +347,8 @@ class CanAxis:
             try:
                 if emergency:
                     self._write(0x6040, power402.COMMANDS[power402.QUICK_STOP], nid=nid)
-                else:
-                    self._halt(nid)
+                elif not self._halt(nid):
+                    continue  # not enabled: nothing moves, and a halt's controlword must not switch it on
                 said.append(str(nid))
             except UserError as exc:
                 problems.append(str(exc))

@@ -13,6 +13,11 @@ five times a second; the log shows the newest frames at the bottom, at most
 ``LOG_LINES`` of them, and at most ``PUSH_MAX`` new ones a tick (a busier bus is
 summed up in one line: Save log has all the link keeps). Every failure is one
 sentence in the tab (``can-message``) and a notification, never a traceback.
+
+The CiA 402 axis card drives one node through ``link.axis`` (``canaxis.CanAxis``):
+Enable, Disable, Fault reset, Halt, Quick stop, profile position moves and a jog held
+down (renewed every refresh while the button is held); the header's STOP AXIS,
+EMERGENCY STOP and Esc reach it through ``page.DeskPage._stop``.
 """
 
 import time

@@ -14,6 +14,8 @@ the reason beside them when the Desk has no capture port.
 The CAN tab (``cantab``) opens the jig's SLCAN port itself, apart from the Plus-R
 connection: its ``canlink.CanLink`` is one per server too.
 
+STOP AXIS, EMERGENCY STOP and Esc also halt / quick-stop the CAN tab's CiA 402 axis
+(``canaxis.CanAxis.stop``), before the Plus-R axes.
 Esc is EMERGENCY STOP wherever the focus is, except while a dialog or a dropdown
 is open: then Esc is theirs (it closes them) and stops nothing.
 """
