@@ -139,3 +139,21 @@ def test_a_cia402_plan_borrows_the_can_tabs_port_and_refuses_without_one(bench, 
     station._take_can_back(can)
     assert link.is_open and link.lent == ""
     assert state(link) == power402.SWITCH_ON_DISABLED  # made safe before it was lent
+
+
+def test_stopping_the_desk_mid_jog_leaves_the_node_standing_disabled(bench, link):
+    from motorjig.desk.server import stop_desk
+    from motorjig.desk.session import BusSession
+
+    ax = link.axis
+    ax.watch(5)
+    ax.enable()
+    ax.jog(1, "20000")
+    assert wait(lambda: ax._read(0x606C) == 20000)
+    stop_desk(BusSession(), can=link)  # what Ctrl-C, SIGTERM and SIGHUP end in
+    assert link.state == "closed"
+    link.open()
+    assert state(link) == power402.SWITCH_ON_DISABLED
+    p = ax._read(0x6064)
+    time.sleep(0.3)
+    assert ax._read(0x6064) == p and ax._read(0x606C) == 0
