@@ -418,7 +418,7 @@ def run_lss(test, bus, step, ctx):
     if ids is None:
         return
     m["vendor_id"], m["product_code"], m["serial"] = ids[0], ids[1], "%08X" % ids[3]
-    d.connect_node(wait_s=2.0)  # boots with its new id; then the trace TPDOs, heartbeat, operational
+    d.connect_node(wait_s=5.0)  # boots with its new id; then the trace TPDOs, heartbeat, operational
     m["node_id"] = d.node_id
     drive = test.test_record.metadata.setdefault("drive", {})
     drive.update(vendor_id=ids[0], product_code=ids[1], revision=ids[2], serial=ids[3], device_type=d.read(0x1000))
