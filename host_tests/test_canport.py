@@ -16,7 +16,7 @@ from jig import diag
 from jig import frame as F
 from jig import params as P
 from jig import slcan as S
-from jig.app import CAN_IDLE_PARK, CAN_PASSES, SLOW_US, App
+from jig.app import CAN_IDLE_PARK, SLOW_US, App
 from jig.canport import CAN_POLL_US, STALL_US
 from jig.parser import FrameParser
 from motorjig.sim.canbus import CanBus
@@ -444,10 +444,20 @@ def test_host_bytes_wake_the_slow_pass_where_the_port_can_say_so():
 
 
 # --- the port's own pass (due[1]): the host's lines reach the bus within CAN_POLL_US ------------
+def _count_port_passes(r):
+    """The ticks of the port's own passes (each asks the host's port for bytes once,
+    serve only when something waits) and of the slow passes."""
+    passes, slows = [], []
+    real_any, real_slow = r.app._can_any, r.app._slow
+    r.app._can_any = lambda: passes.append(r.app.hal.ticks_us()) or real_any()
+    r.app._slow = lambda now: slows.append(now) or real_slow(now)
+    return passes, slows
+
+
 def _count_passes(r):
     serves, slows = [], []
-    real_serve, real_slow = r.app.can.serve, r.app._slow
-    r.app.can.serve = lambda now: serves.append(now) or real_serve(now)
+    real_serve, real_slow = r.app._can_serve, r.app._slow
+    r.app._can_serve = lambda now: serves.append(now) or real_serve(now)
     r.app._slow = lambda now: slows.append(now) or real_slow(now)
     return serves, slows
 
@@ -455,15 +465,17 @@ def _count_passes(r):
 def test_open_the_ports_own_pass_comes_every_can_poll_us_and_the_slow_pass_keeps_its_period():
     r = Rig()
     r.say(b"O\r")
-    serves, slows = _count_passes(r)
+    passes, slows = _count_port_passes(r)
+    serves, _ = _count_passes(r)
     r.run(100000, step=5)  # the board's loop: a pass every 5 µs
-    gaps = [b - a for a, b in zip(serves, serves[1:])]
-    assert len(serves) >= 100000 // CAN_POLL_US - 2 and max(gaps) <= CAN_POLL_US + 5
+    gaps = [b - a for a, b in zip(passes, passes[1:])]
+    assert len(passes) >= 100000 // CAN_POLL_US - 2 and max(gaps) <= CAN_POLL_US + 5
     assert len(slows) <= 100000 // SLOW_US + 2  # open and idle: no more slow passes than closed
+    assert serves == []  # nothing to do: the loop looked, serve was not called
     r.say(b"C\r")
-    serves[:] = []
+    passes[:] = []
     r.run(50000, step=5)
-    assert serves == []  # closed: no pass of its own
+    assert passes == []  # closed: no pass of its own
 
 
 def test_a_host_line_reaches_the_bus_within_can_poll_us_of_its_usb_frame():
@@ -521,7 +533,7 @@ def test_a_simulation_skips_the_idle_ports_passes_on_their_grid():
     assert CAN_IDLE_PARK % CAN_POLL_US == 0
 
 
-def test_the_pump_runs_can_passes_passes_at_a_time_while_the_port_is_open():
+def test_the_pump_returns_for_the_ports_own_pass_while_the_port_is_open():
     r = Rig(fastpath=True)
     app = r.app
     if app.pump is None:
@@ -530,23 +542,35 @@ def test_the_pump_runs_can_passes_passes_at_a_time_while_the_port_is_open():
     real = app.pump
     app.pump = None
     r.say(b"O\r")
+    assert app.due[2] == 1
 
     def pump(ctx, k):
         calls.append(k)
         return real(ctx, k)
 
     app.pump = pump
-    app.run(3 * CAN_PASSES + 7)
-    assert sum(calls) == 3 * CAN_PASSES + 7 and max(calls) <= CAN_PASSES
-    serves, slows = _count_passes(r)
+    app.run(1)  # (the port's pass the say left due)
+    del calls[:]
+    app.run(157)  # the clock stands still: the passes all in one call
+    assert calls == [157]
+    passes, slows = _count_port_passes(r)
     for _ in range(20):
         r.clock.advance(CAN_POLL_US)
-        app.run(CAN_PASSES)
-    assert len(serves) == 20
+        app.run(50)
+    assert len(passes) == 20  # the pump came back for each one
+    serves, _ = _count_passes(r)
+    lines = app.can.lines
+    r.port.host_send(b"t1231AA\r")
+    for _ in range(20):  # (the bytes come in the next USB frame)
+        r.clock.advance(CAN_POLL_US)
+        app.run(50)
+    assert serves and app.can.lines == lines + 1  # a host line (then its TX end): served from the pump's return
     r.say(b"C\r")
+    assert app.due[2] == 0
     del calls[:]
-    app.run(3 * CAN_PASSES)
-    assert calls == [3 * CAN_PASSES]  # closed: the pump as before
+    app.due[1] = app.hal.ticks_us()  # (stale: closed, the pump does not look at it)
+    app.run(150)
+    assert calls == [150]  # closed: the pump as before
 
 
 def test_closed_and_idle_the_port_costs_the_slow_pass_one_any():

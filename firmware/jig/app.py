@@ -15,12 +15,13 @@ compare. ``run()`` loops forever (the board's main.py calls it). On the board, c
 through, the passes themselves run as machine code in ``jig.fastpath.pump``
 (docs/bridge.md, "The machine-code hot path"); elsewhere in the portable loop here.
 
-While the CAN port is open it has a pass of its own, ``CanPort.serve`` (the host's
-SLCAN lines in, frames both ways), at the tick ``due[1]``, every
-``canport.CAN_POLL_US``: nothing of the slow pass's work, so the host's frames
-reach the bus within a fraction of a frame time without the slow pass's cost. The
-pump returns only for ``due[0]``, so while the port is open ``run`` asks it for
-``CAN_PASSES`` passes at a time and looks at ``due[1]`` between them.
+While the CAN port is open (``due[2]`` = 1) it has a pass of its own at the tick
+``due[1]``, every ``canport.CAN_POLL_US``: nothing of the slow pass's work, so the
+host's frames reach the bus within a fraction of a frame time without the slow
+pass's cost. The loop (and the pump, which returns for ``due[1]`` as for
+``due[0]``) looks at the port's queues itself -- array compares and one ``any()``,
+no call -- and calls ``CanPort.serve`` (the host's SLCAN lines in, frames both
+ways) only when one of them has something in it.
 
 The HAL (docs/hal.md; implemented by ``jig.board`` and by the virtual bench)::
 
@@ -70,12 +71,18 @@ from jig.trace import Trace
 RX_CHUNK = const(256)
 HEARTBEAT_US = const(500000)
 SLOW_US = const(10000)  # the slow pass runs at least this often
-# While the CAN port is open the pump runs at most this many passes before run looks
-# at the port's tick (an idle pass is ~720 instructions at board prices: ~100 µs).
-CAN_PASSES = const(50)
 CAN_IDLE_PARK = const(1000000)  # wait_us: an idle CAN port's next pass parked this far on (a multiple of CAN_POLL_US)
 TICKS_MASK = const(0x3FFFFFFF)
 TICKS_HALF = const(0x20000000)
+# jig.canport's ring and FIFO indices (its consts are not folded here): CanPort.rs ...
+_RS_HEAD = const(0)
+_RS_TAIL = const(1)
+# ... and CanPort.ts
+_TS_HEAD = const(0)
+_TS_TAIL = const(1)
+_TS_DONE = const(2)
+_TS_REC = const(3)
+_TS_BUSY = const(4)
 PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
 
 
@@ -125,8 +132,9 @@ class App:
         self.handlers = Handlers(self)
         self.t_beat = hal.ticks_us()
         # due[0]: the tick at which the slow pass must next run (anyone may move it
-        # earlier); due[1]: the CAN port's own pass, while it is open (jig.canport)
-        self.due = array("i", [self.t_beat, self.t_beat])
+        # earlier); due[1]: the CAN port's own pass, while it is open (jig.canport),
+        # which due[2] says (1: open)
+        self.due = array("i", [self.t_beat, self.t_beat, 0])
         self.cut = cut
         self.ver8 = ver8  # (how this boot runs: the RESTART parameters may differ in RAM)
         self.up_baud = pr[P.P_UP_BAUD]
@@ -153,6 +161,11 @@ class App:
         self._down_read = self.down.read_into
         self._up_bytes = self.bridge.up_bytes
         self._down_bytes = self.bridge.down_bytes
+        self._can_serve = self._can_any = None  # the CAN port's pass: CanPort.serve, its host port's any
+        if self.can is not None:
+            self._can_serve = self.can.serve
+            if self.can.port is not None:
+                self._can_any = self.can.port.any
         self.base_echo = 0
         self.base_up_ovf = hal.up.overflows
         self.base_down_ovf = hal.down.overflows
@@ -259,7 +272,12 @@ class App:
         ticks = self._ticks
         due = self.due
         can = self.can
-        serving = can is not None and can.is_open
+        serve = self._can_serve
+        port_any = self._can_any
+        rs = ts = None
+        if can is not None:
+            rs = can.rs
+            ts = can.ts
         while passes != 0:
             passes -= 1
             # Driver bus first: a reply already in must be relayed before a new PC
@@ -278,46 +296,50 @@ class App:
             now = ticks()
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
                 self._slow(now)
-                serving = can is not None and can.is_open
-            elif serving and (now - due[1]) & TICKS_MASK < TICKS_HALF:
-                self._can_pass(now)
-                serving = can.is_open
+            elif due[2] and (now - due[1]) & TICKS_MASK < TICKS_HALF:
+                # the CAN port's own pass: serve only if something waits (the interrupts'
+                # ring, finished or stalled frames, answers, the host's bytes)
+                if (rs[_RS_TAIL] != rs[_RS_HEAD] or ts[_TS_REC] != ts[_TS_DONE]
+                        or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or can.out_n or port_any()):
+                    serve(now)
+                t = (due[1] + CAN_POLL_US) & TICKS_MASK  # the next a period on, on its grid
+                d = (t - now) & TICKS_MASK  # (ticks_add and ticks_diff inline: no calls)
+                if d == 0 or d >= TICKS_HALF:  # not after now: a period from now
+                    t = (now + CAN_POLL_US) & TICKS_MASK
+                due[1] = t
 
     def _run_pump(self, passes):
         """run() with the passes in jig.fastpath.pump, which returns to run the slow pass
-        (and, the CAN port open, every CAN_PASSES passes for the port's own pass)."""
+        or, the CAN port open, its own pass (the same as the portable loop's)."""
         pump = self.pump
         ctx = self.pump_ctx
         ticks = self._ticks
         due = self.due
         can = self.can
-        serving = can is not None and can.is_open
+        serve = self._can_serve
+        port_any = self._can_any
+        rs = ts = None
+        if can is not None:
+            rs = can.rs
+            ts = can.ts
         while True:
-            k = passes
-            if serving and (k < 0 or k > CAN_PASSES):
-                k = CAN_PASSES
-            left = pump(ctx, k)
+            left = pump(ctx, passes)
             if passes > 0:
-                passes -= k - left
+                passes = left
             now = ticks()
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
                 self._slow(now)
-                serving = can is not None and can.is_open
-            elif serving and (now - due[1]) & TICKS_MASK < TICKS_HALF:
-                self._can_pass(now)
-                serving = can.is_open
+            elif due[2] and (now - due[1]) & TICKS_MASK < TICKS_HALF:
+                if (rs[_RS_TAIL] != rs[_RS_HEAD] or ts[_TS_REC] != ts[_TS_DONE]
+                        or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or can.out_n or port_any()):
+                    serve(now)
+                t = (due[1] + CAN_POLL_US) & TICKS_MASK
+                d = (t - now) & TICKS_MASK
+                if d == 0 or d >= TICKS_HALF:
+                    t = (now + CAN_POLL_US) & TICKS_MASK
+                due[1] = t
             if passes == 0:
                 return
-
-    def _can_pass(self, now):
-        """The CAN port's own pass (due[1]); the next one a period on (on its grid)."""
-        self.can.serve(now)
-        due = self.due
-        t = (due[1] + CAN_POLL_US) & TICKS_MASK  # (ticks_add and ticks_diff inline: no calls)
-        d = (t - now) & TICKS_MASK
-        if d == 0 or d >= TICKS_HALF:  # not after now: a period from now
-            t = (now + CAN_POLL_US) & TICKS_MASK
-        due[1] = t
 
     def _slow(self, now):
         """Everything with a time in it; sets the next due tick."""

@@ -679,6 +679,7 @@ class CanPort:
         self.state = can.state()
         self.rs[RS_STATE_EV] = 1
         self.due[1] = self._ticks()  # the port's own passes from now on
+        self.due[2] = 1  # (the main loop and the pump watch due[1] while it is set)
         self._irqo = None
         self._irqo = can.irq(self._irq_cb, trigger=can.IRQ_RX | can.IRQ_TX | can.IRQ_STATE, hard=True)
         self.safety.reset()
@@ -688,6 +689,7 @@ class CanPort:
         """Close the controller; what the ring and the FIFO held is dropped."""
         can = self.can
         self.is_open = 0
+        self.due[2] = 0  # no pass of its own
         self.state = _STATE_STOPPED
         if can is not None:
             self._tx_count()

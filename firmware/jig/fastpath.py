@@ -24,8 +24,9 @@ relay the PC talks over, anything in state AWAIT_INT -- goes to the bridge's own
 never disagree about where the bridge is. The portable twin of this module is
 ``Bridge.up_bytes``/``down_bytes`` with those methods: the WebAssembly VM and
 store-and-forward run them, and the host tests run both and compare
-(``host_tests/test_fastpath.py``). ``pump`` returns when its passes are used up
-or the slow pass is due (``due[0]``), which ``App.run`` then runs.
+(``host_tests/test_fastpath.py``). ``pump`` returns when its passes are used up,
+the slow pass is due (``due[0]``) or, while the CAN port is open (``due[2]`` = 1),
+the port's own pass (``due[1]``), which ``App.run`` then runs.
 
 What a byte costs is mostly calls (a viper call with its pointer casts costs more
 than the parser's work on a byte), so the per-byte work has none of its own: the
@@ -252,8 +253,11 @@ def pump(ctx, passes: int) -> int:
         if avail == 0:
             avail = int(up_any())
             if avail == 0:  # an idle pass
-                if ((int(ticks()) - due[0]) & _MASK) < _HALF:
+                t = int(ticks())
+                if ((t - due[0]) & _MASK) < _HALF:
                     return passes
+                if due[2] != 0 and ((t - due[1]) & _MASK) < _HALF:
+                    return passes  # the CAN port's own pass (open: due[2] = 1)
                 continue
             side = 1
         while avail != 0:
@@ -709,5 +713,7 @@ def pump(ctx, passes: int) -> int:
                 side = 1
                 avail = int(up_any())
         if ((now - due[0]) & _MASK) < _HALF:  # (a pass that read input: by its last read's tick)
+            return passes
+        if due[2] != 0 and ((now - due[1]) & _MASK) < _HALF:
             return passes
     return 0
