@@ -53,6 +53,11 @@ def test_constants_mirror_the_modules_they_come_from():
     uart = _uartport_constants()  # (jig.uartport imports machine: read from its source)
     assert fastpath._ISR_TXFNF == uart["USART_ISR_TXFNF"] and fastpath._TDR == uart["USART_TDR_WORDS_AFTER_ISR"]
     assert fastpath._TX_FIFO_SPINS == uart["TX_FIFO_SPINS"]
+    from jig import canport
+
+    assert fastpath._CAN_POLL_US == canport.CAN_POLL_US
+    for name in ("RS_HEAD", "RS_TAIL", "TS_HEAD", "TS_TAIL", "TS_DONE", "TS_REC", "TS_BUSY"):
+        assert getattr(fastpath, "_" + name) == getattr(canport, name) == getattr(app, "_" + name), name
 
 
 def _uartport_constants():

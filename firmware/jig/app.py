@@ -133,8 +133,9 @@ class App:
         self.t_beat = hal.ticks_us()
         # due[0]: the tick at which the slow pass must next run (anyone may move it
         # earlier); due[1]: the CAN port's own pass, while it is open (jig.canport),
-        # which due[2] says (1: open)
-        self.due = array("i", [self.t_beat, self.t_beat, 0])
+        # which due[2] says (1: open); due[3]: answers the port has not taken yet (its
+        # out_n after its last pass: the pump cannot see CanPort.out_n)
+        self.due = array("i", [self.t_beat, self.t_beat, 0, 0])
         self.cut = cut
         self.ver8 = ver8  # (how this boot runs: the RESTART parameters may differ in RAM)
         self.up_baud = pr[P.P_UP_BAUD]
@@ -300,8 +301,9 @@ class App:
                 # the CAN port's own pass: serve only if something waits (the interrupts'
                 # ring, finished or stalled frames, answers, the host's bytes)
                 if (rs[_RS_TAIL] != rs[_RS_HEAD] or ts[_TS_REC] != ts[_TS_DONE]
-                        or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or can.out_n or port_any()):
+                        or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or due[3] or port_any()):
                     serve(now)
+                    due[3] = can.out_n
                 t = (due[1] + CAN_POLL_US) & TICKS_MASK  # the next a period on, on its grid
                 d = (t - now) & TICKS_MASK  # (ticks_add and ticks_diff inline: no calls)
                 if d == 0 or d >= TICKS_HALF:  # not after now: a period from now
@@ -331,8 +333,9 @@ class App:
                 self._slow(now)
             elif due[2] and (now - due[1]) & TICKS_MASK < TICKS_HALF:
                 if (rs[_RS_TAIL] != rs[_RS_HEAD] or ts[_TS_REC] != ts[_TS_DONE]
-                        or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or can.out_n or port_any()):
+                        or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or due[3] or port_any()):
                     serve(now)
+                    due[3] = can.out_n
                 t = (due[1] + CAN_POLL_US) & TICKS_MASK
                 d = (t - now) & TICKS_MASK
                 if d == 0 or d >= TICKS_HALF:
@@ -356,6 +359,7 @@ class App:
         can = self.can
         if can is not None:
             can.poll(now)
+            self.due[3] = can.out_n  # (for the port's own pass)
         cap = self.capture
         stream = -1
         if cap.port is not None or cap.cs[0]:  # (CS_ON) commands to read, or records to move

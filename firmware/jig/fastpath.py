@@ -26,7 +26,10 @@ never disagree about where the bridge is. The portable twin of this module is
 store-and-forward run them, and the host tests run both and compare
 (``host_tests/test_fastpath.py``). ``pump`` returns when its passes are used up,
 the slow pass is due (``due[0]``) or, while the CAN port is open (``due[2]`` = 1),
-the port's own pass (``due[1]``), which ``App.run`` then runs.
+the port's own pass (``due[1]``) with something to do, which ``App.run`` then
+runs (with nothing to do -- its ring, FIFO and answers empty (``due[3]`` = 0), no
+byte from the host -- the pump only moves ``due[1]`` a period on, as ``App.run``
+would).
 
 What a byte costs is mostly calls (a viper call with its pointer casts costs more
 than the parser's work on a byte), so the per-byte work has none of its own: the
@@ -52,6 +55,15 @@ except ImportError:  # CPython: run the source as plain Python
 from jig.compat import const, ptr8, ptr16, ptr32  # noqa: F401 (casts under viper)
 
 _RX_CHUNK = const(256)  # app.RX_CHUNK
+# jig.canport: its own pass's period, its ring's (CanPort.rs) and FIFO's (CanPort.ts) indices
+_CAN_POLL_US = const(100)
+_RS_HEAD = const(0)
+_RS_TAIL = const(1)
+_TS_HEAD = const(0)
+_TS_TAIL = const(1)
+_TS_DONE = const(2)
+_TS_REC = const(3)
+_TS_BUSY = const(4)
 _MASK = const(0x3FFFFFFF)
 _HALF = const(0x20000000)
 _STUFF = const(0xAA)
@@ -194,6 +206,14 @@ def context(app):
     enc = native_source()  # jig.native: put_body and stuff (as Python on CPython)
     up_fifo, up_regs = _fifo(app.up)
     down_fifo, down_regs = _fifo(app.down)
+    # the CAN port's queues and its host port's any (looked at only while it is open: due[2])
+    can_rs = can_ts = _NO_REGS
+    can_any = up.any
+    if app.can is not None:
+        can_rs = app.can.rs
+        can_ts = app.can.ts
+        if app._can_any is not None:
+            can_any = app._can_any
 
     return (up.any, up.readinto, up.de, up.write, app.up.raw_part, app.up.drain, app.up.early,
             down.any, down.readinto, down.de, app.down.raw_part, app.down.drain, app.down.early,
@@ -203,7 +223,8 @@ def context(app):
             TABLES, b.pc_event, b.down_event, b.bs, app.counters.v, app.due, app.params.ram, b.hdr, b.tail,
             TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS,
             app.handlers.handle, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
-            crc.TABLE, app.capture.cs, app.capture.ring, app.capture.put, b.xt, up_fifo, up_regs, down_fifo, down_regs)
+            crc.TABLE, app.capture.cs, app.capture.ring, app.capture.put, b.xt, up_fifo, up_regs, down_fifo, down_regs,
+            can_rs, can_ts, can_any)
 
 
 @micropython.viper
@@ -215,7 +236,8 @@ def pump(ctx, passes: int) -> int:
      up_parser, up_st, up_rx, up_body, down_parser, down_st, down_rx, down_body,
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
      flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
-     crc_table, cs_arr, cap_ring, cap_put, xt_arr, up_fifo, up_regs, down_fifo, down_regs) = ctx
+     crc_table, cs_arr, cap_ring, cap_put, xt_arr, up_fifo, up_regs, down_fifo, down_regs,
+     can_rs, can_ts, can_any) = ctx
     head = int(head_obj)
     reply = ptr8(reply_buf)
     ust = ptr32(up_st)
@@ -241,6 +263,8 @@ def pump(ctx, passes: int) -> int:
     ureg = ptr32(up_regs)
     dq = int(down_fifo)
     dreg = ptr32(down_regs)
+    crs = ptr32(can_rs)
+    cts = ptr32(can_ts)
     while passes != 0:
         if passes > 0:
             passes -= 1
@@ -257,7 +281,17 @@ def pump(ctx, passes: int) -> int:
                 if ((t - due[0]) & _MASK) < _HALF:
                     return passes
                 if due[2] != 0 and ((t - due[1]) & _MASK) < _HALF:
-                    return passes  # the CAN port's own pass (open: due[2] = 1)
+                    # the CAN port's own pass (open: due[2] = 1): App.run's when something
+                    # waits (its ring, its FIFO, answers: due[3], the host's bytes) ...
+                    if (due[3] != 0 or crs[_RS_TAIL] != crs[_RS_HEAD] or cts[_TS_REC] != cts[_TS_DONE]
+                            or (cts[_TS_BUSY] == 0 and cts[_TS_TAIL] != cts[_TS_HEAD]) or int(can_any()) != 0):
+                        return passes
+                    # ... else only the next one a period on, on its grid (as App.run)
+                    t1 = (due[1] + _CAN_POLL_US) & _MASK
+                    d = (t1 - t) & _MASK
+                    if d == 0 or d >= _HALF:
+                        t1 = (t + _CAN_POLL_US) & _MASK
+                    due[1] = t1
                 continue
             side = 1
         while avail != 0:
