@@ -102,7 +102,8 @@ class CanTab:
             self.state = tid(ui.label(link.summary()), "can-state").classes("q-ml-md")
         self.message = tid(ui.label(""), "can-message").classes("text-grey-9")
         if link.read_only:
-            ui.label("read-only Desk: the port is opened listen-only (SLCAN's L); scan, SDO and NMT are refused") \
+            ui.label("read-only Desk: the port is opened listen-only (SLCAN's L) and only listened to (no scan, SDO, NMT "
+                     "or axis commands)") \
                 .classes("text-caption text-grey-7")
         self._nodes_card(NMT_CHOICES)
         with ui.row().classes("w-full no-wrap items-start"):
