@@ -136,6 +136,9 @@ def test_a_cia402_plan_borrows_the_can_tabs_port_and_refuses_without_one(bench, 
     assert link.state == "closed" and link.summary() == "lent to the test run (cia402-smoke)"
     with pytest.raises(UserError, match=r"the SLCAN port is lent to the test run \(cia402-smoke\)"):
         link.open()
+    with pytest.raises(UserError, match=r"the SLCAN port is lent to the test run \(cia402-smoke\)"):
+        link.axis.enable()
+    assert link.axis.describe() == {"state": "the SLCAN port is lent to the test run (cia402-smoke)"}
     station._take_can_back(can)
     assert link.is_open and link.lent == ""
     assert state(link) == power402.SWITCH_ON_DISABLED  # made safe before it was lent

@@ -443,7 +443,8 @@ class CanAxis:
         if self.node_id is None:
             return {"state": "no node chosen"}
         if not self.link.is_open:
-            return {"state": "the SLCAN port is not open"}
+            return {"state": "the SLCAN port is lent to %s" % self.link.lent if self.link.lent
+                    else "the SLCAN port is not open"}
         if not st or st.get("node") != self.node_id:
             return {"state": "reading node %d ..." % self.node_id}
         out = {}

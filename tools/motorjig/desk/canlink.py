@@ -232,6 +232,8 @@ class CanLink:
         if self.state == "lost":
             raise UserError("the SLCAN port was lost (%s): close it and open it again" % self.reason)
         if net is None:
+            if self.lent:
+                raise UserError("the SLCAN port is lent to %s: it comes back with its verdict" % self.lent)
             raise UserError("the SLCAN port is not open: choose it and press Open")
         return net
 
