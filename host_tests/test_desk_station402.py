@@ -9,7 +9,9 @@ operator session: the axis panel enables node 5 and a move reads back its target
 a jog goes while held and stops when released, Esc quick-stops a long move, Disable
 switches it off, the overcurrent fault is named and Enable refused until Fault reset,
 closing the port with the node enabled disables it first, and cia402-smoke passes from
-the Test tab on the port the CAN tab lends it. Every wait is bounded and polls the page.
+the Test tab on the port the CAN tab lends it. Last, on a Desk with its own bench
+(``--bench --drivers 2 --can-nodes 5``), cia402-smoke passes from the Test tab with the
+CAN tab never opened. Every wait is bounded and polls the page.
 """
 
 import os
@@ -196,12 +198,24 @@ def test_cia402_smoke_passes_from_the_test_tab_on_the_lent_can_port(desk):
     b.type("can-axis-dec", "2000000")
     b.click("btn-can-move-abs")
     b.wait_for(lambda: position(b) == 0 and "target reached" in axis(b, "state"), 10, "back at 0")
-    first = b.driver.current_window_handle
     b.tab("tab-plan")
     b.choose("plan-select", "cia402-smoke 1.0")
     assert "CAN node 5" in b.text("plan-info")
+    result = run_plan_from_test_tab(b, "cia402-smoke 1.0", "SN-402")
+    assert result == "PASS", b.text("steps")
+    b.tab("tab-can")  # the port comes back to the CAN tab, open as it was
+    b.wait_for(lambda: b.text("can-state").startswith("open: %s" % desk.slcan), 10, "the CAN tab's port back")
+    wait_state(b, "SWITCH ON DISABLED")
+
+
+def run_plan_from_test_tab(b, label, serial):
+    """Start label for serial from the Test tab (Enter in the serial field), up to three times
+    while the verdict is not PASS; returns the last verdict word."""
+    first = b.driver.current_window_handle
+    b.tab("tab-plan")
+    b.choose("plan-select", label)
     for attempt in range(1, 4):
-        b.type("serial", "SN-402-%d" % attempt)
+        b.type("serial", "%s-%d" % (serial, attempt))
         field(b, "serial").send_keys(Keys.ENTER)
         result = b.wait_for(lambda: b.text("verdict-word") if b.visible("verdict") else "", 60, "the verdict")
         for handle in b.driver.window_handles:  # a passing run opens its report in a tab of its own
@@ -211,7 +225,23 @@ def test_cia402_smoke_passes_from_the_test_tab_on_the_lent_can_port(desk):
         b.driver.switch_to.window(first)
         if result == "PASS":
             break
-    assert result == "PASS", b.text("steps")
-    b.tab("tab-can")  # the port comes back to the CAN tab, open as it was
-    b.wait_for(lambda: b.text("can-state").startswith("open: %s" % desk.slcan), 10, "the CAN tab's port back")
-    wait_state(b, "SWITCH ON DISABLED")
+    return result
+
+
+def test_on_the_desks_own_bench_cia402_smoke_passes_with_the_can_tab_never_opened(tmp_path):
+    """`jigctl gui --bench --can-nodes 5`: the Test tab takes the bench's SLCAN port itself."""
+    proc = browser = None
+    try:
+        proc, page = B.start_desk("--bench", "--drivers", "2", "--can-nodes", "5", "--timeout", "300",
+                                  "--out", str(tmp_path / "results"), "--db", "none")
+        browser = B.Browser()
+        browser.open(page)
+        b = browser
+        result = run_plan_from_test_tab(b, "cia402-smoke 1.0", "SN-402-BENCH")
+        assert result == "PASS", b.text("steps")
+        b.tab("tab-can")
+        assert b.text("can-state") == "closed"  # as it was: the run did not leave it open
+    finally:
+        if browser is not None:
+            browser.close()
+        B.stop(proc)
