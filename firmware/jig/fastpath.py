@@ -748,6 +748,13 @@ def pump(ctx, passes: int) -> int:
                 avail = int(up_any())
         if ((now - due[0]) & _MASK) < _HALF:  # (a pass that read input: by its last read's tick)
             return passes
-        if due[2] != 0 and ((now - due[1]) & _MASK) < _HALF:
-            return passes
+        if due[2] != 0 and ((now - due[1]) & _MASK) < _HALF:  # (as in an idle pass, above)
+            if (due[3] != 0 or crs[_RS_TAIL] != crs[_RS_HEAD] or cts[_TS_REC] != cts[_TS_DONE]
+                    or (cts[_TS_BUSY] == 0 and cts[_TS_TAIL] != cts[_TS_HEAD]) or int(can_any()) != 0):
+                return passes
+            t1 = (due[1] + _CAN_POLL_US) & _MASK
+            d = (t1 - now) & _MASK
+            if d == 0 or d >= _HALF:
+                t1 = (now + _CAN_POLL_US) & _MASK
+            due[1] = t1
     return 0
