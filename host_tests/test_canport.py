@@ -368,6 +368,7 @@ def test_the_ports_local_counter_constants_are_the_counters_modules():
 
     for name in ("CC_RX", "CC_TX", "CC_RX_LOST", "CC_RX_OVERRUNS", "CC_TX_FAILED", "CC_LINES"):
         assert getattr(canport, "_" + name) == getattr(K, name), name
+    assert canport._EV_CMD == S.EV_CMD and canport._EV_BAD == S.EV_BAD
 
 
 def test_can_counter_names_cover_the_slcan_error_kinds_and_are_documented():

@@ -116,6 +116,10 @@ _CC_RX_OVERRUNS = const(3)
 _CC_TX_FAILED = const(4)
 _CC_LINES = const(17)
 
+# slcan's reader events (S.EV_CMD would be a lookup at run time; the test checks them)
+_EV_CMD = const(1)
+_EV_BAD = const(2)
+
 _RX_MASK = const(255)  # RX_FRAMES - 1
 _TX_MASK = const(63)  # TX_FRAMES - 1
 
@@ -198,7 +202,9 @@ class CanPort:
             except (TypeError, ValueError, OSError):
                 pass
         self._irqo = None
-        self.record = getattr(getattr(app, "capture", None), "can_frame", None)  # (does nothing while not recording)
+        cap = getattr(app, "capture", None)
+        self.record = getattr(cap, "can_frame", None)  # (does nothing while not recording ...
+        self.rec_on = getattr(cap, "cs", None) or bytearray(1)  # ... [0]: CS_ON, so it is called only while it does)
         self.lost_seen = 0  # rx lost + overruns at the last look (F's overrun bits)
         self.t_full = -1  # tick the TX FIFO was found full with the host's bytes waiting (-1: not full)
         self.safety = CanSafety(self, app.params, app.counters)
@@ -237,7 +243,7 @@ class CanPort:
                 return
             if f & _IRQ_RX:
                 self._rx(can)
-            if f & _IRQ_TX:
+            if f & _IRQ_TX and self.ts[TS_BUSY]:
                 self._tx_end(f)
             if f & _IRQ_STATE:
                 self.rs[RS_STATE_EV] = 1
@@ -248,6 +254,7 @@ class CanPort:
         rs = self.rs
         cv = self.cv
         data = self.rx_data
+        ticks = self._ticks  # (a bound method made once: can.recv here would allocate one)
         while can.recv(lst) is not None:
             cv[_CC_RX] += 1
             if lst[3] & _RECV_ERR_OVERRUN:
@@ -265,7 +272,7 @@ class CanPort:
             n = len(mv)
             self.rx_dlc[head] = n
             copy(data, head << 3, mv, 0, n)
-            t = self._ticks()
+            t = ticks()
             self.rx_tick[head] = t
             rs[RS_HEAD] = nxt
             if head == tail:
@@ -435,17 +442,21 @@ class CanPort:
         """Count (and record) the frames whose transmission has ended."""
         ts = self.ts
         cv = self.cv
-        record = self.record
-        while ts[TS_REC] != ts[TS_DONE]:
-            k = ts[TS_REC]
-            if self.tx_ok[k]:
+        record = self.record if self.rec_on[0] else None
+        tx_ok = self.tx_ok
+        k = ts[TS_REC]
+        done = ts[TS_DONE]
+        while k != done:
+            if tx_ok[k]:
                 cv[_CC_TX] += 1
                 if record is not None:
                     copy(self.frame, 0, self.tx_data, k << 3, 8)
                     record(self.tx_tick[k], self.tx_id[k], self.tx_fl[k], self.tx_dlc[k], self.frame, 1)
             else:
                 cv[_CC_TX_FAILED] += 1
-            ts[TS_REC] = (k + 1) & _TX_MASK
+            k = (k + 1) & _TX_MASK
+            ts[TS_REC] = k
+            done = ts[TS_DONE]  # (the TX interrupt may have ended another)
 
     def queue_frame(self, can_id, ext, rtr, data, dlc):
         """Put one frame into the TX FIFO (data[0:dlc]); False if it is full."""
@@ -459,7 +470,8 @@ class CanPort:
         self.tx_dlc[h] = dlc
         copy(self.tx_data, h << 3, data, 0, dlc)
         ts[TS_HEAD] = nxt
-        self._kick()
+        if not ts[TS_BUSY] and not ts[TS_HOLD]:  # (_kick, inline)
+            self._send_next()
         return True
 
     # --- the host's side ---------------------------------------------------------------
@@ -501,12 +513,15 @@ class CanPort:
         port = self.port
         r = self.reader
         ts = self.ts
+        buf = self.inb
+        inv = self.inv
+        frames = self.is_open and not self.listen
         got = 0
         while got < IN_PER_POLL:
             k = (STAGE - self.out_n) // 3
             if k > IN_CHUNK:
                 k = IN_CHUNK
-            if self.is_open and not self.listen and not ts[TS_HOLD]:
+            if frames and not ts[TS_HOLD]:
                 room = ((ts[TS_REC] - ts[TS_HEAD] - 1) & _TX_MASK) * LINE_MIN
                 if room:
                     self.t_full = -1
@@ -521,19 +536,41 @@ class CanPort:
                         return
             if k <= 0 or not port.any():
                 return
-            n = port.readinto(self.inv[k])
+            n = port.readinto(inv[k])
             if not n:
                 return
             got += n
-            buf = self.inb
             i = 0
             while i < n:
                 i = r.feed(buf, i, n, now)
                 ev = r.ev
-                if ev == S.EV_CMD:
-                    self._command(r, now)
-                elif ev == S.EV_BAD:
+                if ev == _EV_CMD:
+                    c = r.cmd
+                    if (c == 0x74 or c == 0x54) and frames:  # t T on an open port: the frame path, inline
+                        self._frame_line(r, now)
+                    else:
+                        self._command(r, now)
+                        frames = self.is_open and not self.listen  # (it may have opened or closed the port)
+                elif ev == _EV_BAD:
                     self._put(_BEL)
+
+    def _frame_line(self, r, now):
+        """A t/T line on an open port (not listen-only): ``_command``'s frame case
+        without its dispatch (the line the host sends most)."""
+        cv = self.cv
+        cv[_CC_LINES] += 1
+        o = self.out_n
+        if self.ts[TS_HOLD]:
+            self.out[o] = _BEL
+        elif self.queue_frame(r.can_id, r.ext, 0, r.data, r.dlc):
+            self.out[o] = _CR
+        else:
+            cv[K.CC_TX_REFUSED] += 1
+            self.flags |= F_TX_FULL
+            self.out[o] = _BEL
+        self.out_n = o + 1
+        self.lines += 1
+        self.t_host = now
 
     def _command(self, r, now):
         c = r.cmd
@@ -609,35 +646,53 @@ class CanPort:
         """Frames from the ring to the host (and the recorder), as the port takes them."""
         rs = self.rs
         cv = self.cv
-        record = self.record
+        record = self.record if self.rec_on[0] else None
         frame = self.frame
         lost = cv[_CC_RX_LOST] + cv[_CC_RX_OVERRUNS]
         if lost != self.lost_seen:
             self.lost_seen = lost
             self.flags |= F_RX_FULL | F_OVERRUN
+        rx_id = self.rx_id
+        rx_fl = self.rx_fl
+        rx_dlc = self.rx_dlc
+        rx_data = self.rx_data
+        out = self.out
+        seen = self.seen
+        encode = S.encode_frame
+        stamps = self.stamps
         sent = 0
-        while rs[RS_TAIL] != rs[RS_HEAD]:
-            if STAGE - self.out_n < LINE_MAX:
-                before = self.out_n
+        o = self.out_n
+        k = rs[RS_TAIL]
+        while k != rs[RS_HEAD]:
+            if STAGE - o < LINE_MAX:
+                self.out_n = o
                 self._flush()
-                sent += before - self.out_n
-                if STAGE - self.out_n < LINE_MAX or sent >= OUT_PER_POLL:
+                sent += o - self.out_n
+                o = self.out_n
+                if STAGE - o < LINE_MAX or sent >= OUT_PER_POLL:
                     return
-            k = rs[RS_TAIL]
-            can_id = self.rx_id[k]
-            fl = self.rx_fl[k]
-            dlc = self.rx_dlc[k]
-            copy(frame, 0, self.rx_data, k << 3, dlc)
-            t = self.rx_tick[k]
-            if fl == 0:
-                self._note_node(can_id)
-            if record is not None:
-                record(t, can_id, fl, dlc, frame, 0)
+            can_id = rx_id[k]
+            fl = rx_fl[k]
+            dlc = rx_dlc[k]
+            copy(frame, 0, rx_data, k << 3, dlc)
+            if fl == 0 and 0x581 <= can_id <= 0x77F:  # (_note_node, inline)
+                if can_id >= 0x701:
+                    n = can_id - 0x700
+                    seen[n >> 3] |= 1 << (n & 7)
+                elif can_id <= 0x5FF:
+                    n = can_id - 0x580
+                    seen[n >> 3] |= 1 << (n & 7)
             stamp = -1
-            if self.stamps:
-                stamp = (self.t_ms + ticks_diff(t, self.t_ref) // 1000) % STAMP_PERIOD_MS
-            self.out_n = S.encode_frame(self.out, self.out_n, can_id, fl & 1, fl >> 1, frame, dlc, stamp)
-            rs[RS_TAIL] = (k + 1) & _RX_MASK
+            if record is not None or stamps:
+                t = self.rx_tick[k]
+                if record is not None:
+                    record(t, can_id, fl, dlc, frame, 0)
+                if stamps:
+                    stamp = (self.t_ms + ticks_diff(t, self.t_ref) // 1000) % STAMP_PERIOD_MS
+            o = encode(out, o, can_id, fl & 1, fl >> 1, frame, dlc, stamp)
+            k = (k + 1) & _RX_MASK
+            rs[RS_TAIL] = k
+            self.out_n = o
 
     def _note_node(self, can_id):
         """A CANopen node's boot-up/heartbeat (0x701..0x77F) or SDO reply (0x581..0x5FF)."""
