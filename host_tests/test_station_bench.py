@@ -151,7 +151,7 @@ def test_a_connection_lost_mid_run_ends_it_as_error_with_the_record(tmp_path):
 def test_ctrl_c_ends_with_an_emergency_stop_and_servo_off(tmp_path):
     plan = tmp_path / "long.toml"
     plan.write_text('[plan]\nname = "long"\nversion = "1"\n[drive]\nslave = 2\n'
-                    '[[steps]]\nkind = "servo"\n[[steps]]\nkind = "move"\ndistance = 200000\nspeed = 5000\n')
+                    '[[steps]]\nkind = "servo"\n[[steps]]\nkind = "move"\ndistance = 200000\nspeed = 5000\ntimeout_s = 60\n')
     with bench(wiring=False) as b:
         p = subprocess.Popen([JIGCTL, "test", str(plan), "--port", b.tcp_url, "--yes", "--out", str(tmp_path)],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

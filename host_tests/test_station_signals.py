@@ -29,7 +29,7 @@ JIGCTL = os.path.join(os.path.dirname(sys.executable), "jigctl")
 DRIVE = 2
 LONG_PLAN = ('[plan]\nname = "long"\nversion = "1"\n[drive]\nslave = 2\n'
              '[[steps]]\nkind = "servo"\n[[steps]]\nkind = "move"\nname = "long_move"\n'
-             'distance = 200000\nspeed = 5000\n')
+             'distance = 200000\nspeed = 5000\ntimeout_s = 60\n')
 
 
 def long_plan(tmp_path, text=LONG_PLAN):

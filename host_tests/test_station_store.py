@@ -198,6 +198,22 @@ def test_a_run_is_stored_with_every_measurement(db):
         assert st.run(999) is None
 
 
+def test_a_cia402_run_is_stored_with_its_node_and_identity(db, capsys):
+    rec = record("node5-00000402-53490005", "PASS", T0_MS, [("identify", [meas("device_type", 0x20192)])],
+                 plan="cia402-smoke")
+    rec["metadata"]["drive"] = {"protocol": "cia402", "node_id": 5, "bitrate": 500000, "eds": "motorjig-cia402.eds",
+                                "device_type": 0x20192, "vendor_id": 0x4D4A4947, "product_code": 0x402,
+                                "revision": 0x10000, "serial": 0x53490005}
+    with S.open_store(db) as st:
+        run_id = st.add_run(rec)
+        d = st.run(run_id)["drive"]
+    assert d == {"slave": 5, "protocol": S.CIA402, "slave_type": 0x20192,
+                 "name": "vendor 0x4D4A4947 product 0x00000402 rev 0x00010000 serial 0x53490005"}
+    code, out, err = jigctl(capsys, "results", "--db", db, "show", str(run_id))
+    assert code == 0, err
+    assert "drive: CiA 402, CAN node 5, device type 0x00020192 (vendor 0x4D4A4947" in out
+
+
 def test_yield_and_cpk_against_the_numbers_worked_out_by_hand(db):
     store_known(db)
     with S.open_store(db) as st:

@@ -292,6 +292,25 @@ def _value(v):
     return None, None if v is None else str(v)
 
 
+# drive_protocol in the runs table: a Plus-R drive's variant (6 Ver6, 8 Ver8) or CIA402 for a CiA 402
+# drive (whose drive_slave is then its node id and drive_slave_type its device type 0x1000).
+CIA402 = 402
+
+
+def _protocol_code(drive):
+    if drive.get("protocol") == "cia402":
+        return CIA402
+    return _int(drive.get("protocol"))
+
+
+def _identity_name(drive):
+    """'vendor 0x4D4A4947 product 0x00000402 rev 0x00010000 serial 0x53490005' for a CiA 402 drive."""
+    if drive.get("protocol") != "cia402" or drive.get("vendor_id") is None:
+        return None
+    return "vendor 0x%08X product 0x%08X rev 0x%08X serial 0x%08X" % tuple(
+        _int(drive.get(k)) or 0 for k in ("vendor_id", "product_code", "revision", "serial"))
+
+
 def _int(v):
     try:
         return int(v)
@@ -324,8 +343,9 @@ def _flatten(record, files):
            "plan_hash": md_.get("plan_hash") or None, "plan_file": md_.get("plan_file") or None,
            "dut": str(record.get("dut_id") or "unknown"), "station": str(record.get("station_id") or ""),
            "operator": operator_name(md_.get("operator")),
-           "drive_slave": _int(drive.get("slave")), "drive_protocol": _int(drive.get("protocol")),
-           "drive_slave_type": _int(drive.get("slave_type")), "drive_name": drive.get("name"),
+           "drive_slave": _int(drive.get("slave", drive.get("node_id"))), "drive_protocol": _protocol_code(drive),
+           "drive_slave_type": _int(drive.get("slave_type", drive.get("device_type"))),
+           "drive_name": drive.get("name") or _identity_name(drive),
            "start_ms": start, "end_ms": _ms(record.get("end_time_millis")),
            "verdict": str(record.get("outcome") or "ERROR").upper(), "details": details,
            "stored_ms": int(time.time() * 1000)}
