@@ -660,3 +660,30 @@ def test_can_probe_under_cpython():
 
     assert can_probe.rx_alloc(20)[1] and can_probe.tx_alloc(20)[1] and can_probe.idle_alloc(50)[1]
     assert can_probe.open_idle_alloc(50)[1]
+
+
+def test_the_ports_own_pass_does_a_bounded_piece_of_work():
+    """One pass moves at most RX_PER_SERVE frames to the host and reads at most
+    IN_PER_SERVE bytes from it (an RS-485 frame behind it waits for no more); the
+    rest goes in the next passes, none lost."""
+    from jig.canport import IN_PER_SERVE, RX_PER_SERVE
+
+    r = Rig()
+    r.say(b"O\r")
+    can = r.app.can
+    rs = can.rs
+    for k in range(10):
+        r.peer.transmit(0x100 + k, False, False, b"\x00")
+    r.clock.advance(5000)  # on the bus, into the ring: no pass meanwhile
+    assert (rs[0] - rs[1]) & 255 == 10
+    can.serve(r.app.hal.ticks_us())
+    assert (rs[0] - rs[1]) & 255 == 10 - RX_PER_SERVE
+    lines = b"".join(b"t%03X10%d\r" % (0x200 + k, k) for k in range(10))  # 8 bytes a line
+    r.port.host_send(lines)
+    r.clock.advance(2000)  # (in the next USB frame)
+    n = can.lines
+    can.serve(r.app.hal.ticks_us())
+    assert 0 < can.lines - n <= IN_PER_SERVE // 8
+    r.run(20000)
+    assert rs[0] == rs[1] and can.lines - n == 10
+    assert len(r.heard) == 10 and r.port.host_read().count(b"\r") >= 20

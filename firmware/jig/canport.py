@@ -16,8 +16,10 @@ The port's ``write`` never blocks: lines it does not take wait in the ring.
 
 The port's own pass: while the port is open the main loop calls ``serve`` every
 ``CAN_POLL_US`` (its tick in ``app.due[1]``; the first frame into an empty ring
-pulls it to now): the host's lines in, frames both ways -- one ``any()`` and a
-few compares when there is nothing to do, and none of the slow pass's work. On the board the host's
+pulls it to now): the host's lines in, frames both ways -- at most
+``IN_PER_SERVE`` bytes from the host and ``RX_PER_SERVE`` frames to it a pass, and
+none of the slow pass's work; with nothing to do the main loop (or the pump) only
+looks at its queues and calls one ``any()``, not ``serve``. On the board the host's
 bytes cannot wake the loop (``USB_VCP.irq`` is a soft callback, which never runs
 inside the machine-code pump), so this period is what a host line waits for at
 most: less than a frame time at 1 Mbit/s (47-135 µs). The slow pass (``poll``)
@@ -59,7 +61,11 @@ STAGE = const(256)  # bytes of SLCAN lines / answers handed to the port per writ
 LINE_MAX = const(31)  # "T" + 8 id + 1 dlc + 16 data + 4 stamp + CR
 LINE_MIN = const(6)  # the shortest frame line: "t" + 3 id + DLC + CR
 IN_CHUNK = const(64)  # bytes read from the host per readinto
-IN_PER_POLL = const(512)  # at most this many a pass
+IN_PER_POLL = const(512)  # at most this many a slow pass
+# The port's own pass does a bounded piece of work, so that an RS-485 frame arriving
+# meanwhile waits for little more than one host line and a few frames: at most
+IN_PER_SERVE = const(32)  # bytes from the host (a frame line and a bit: > 14 000 lines/s)
+RX_PER_SERVE = const(4)  # and frames to the host a pass (40 000 frames/s: more than a CAN bus carries)
 OUT_PER_POLL = const(2048)  # bytes of lines handed to the port a pass, at most
 CAN_POLL_US = const(100)  # while open the port's own pass (serve) comes this often
 STALL_US = const(250000)  # a full TX FIFO that sent nothing this long: the host's frames are refused again
@@ -321,18 +327,19 @@ class CanPort:
 
     def serve(self, now):
         """The port's own pass while open (``app.due[1]``): the controller's finished
-        frames counted, the host's lines in, the ring's frames out; nothing more.
-        With nothing to do: one ``any()`` and a few compares."""
+        frames counted, the host's lines in, the ring's frames out (a bounded piece of
+        each; the rest in the next pass); nothing more. The main loop calls it only
+        when one of them has something waiting."""
         ts = self.ts
         if ts[TS_REC] != ts[TS_DONE]:
             self._tx_count()  # (first: the entries it frees are room for the host's frames)
         if self.out_n:
             self._flush()
         if self.port.any():
-            self._read(now)
+            self._read(now, IN_PER_SERVE)
         rs = self.rs
         if rs[RS_TAIL] != rs[RS_HEAD]:
-            self._rx_out()
+            self._rx_out(RX_PER_SERVE)
         if not ts[TS_BUSY] and ts[TS_TAIL] != ts[TS_HEAD]:
             self._kick()  # (the controller's queue was full)
         if self.out_n:
@@ -497,7 +504,7 @@ class CanPort:
             self.out[o + i] = s[i]
         self.out_n = o + len(s)
 
-    def _read(self, now):
+    def _read(self, now, most=IN_PER_POLL):
         """Read the host's lines and act on them; an answer for each line must fit the
         stage (at most 3 bytes of answer a byte of input: "V" CR -> "V1013" CR).
 
@@ -517,10 +524,12 @@ class CanPort:
         inv = self.inv
         frames = self.is_open and not self.listen
         got = 0
-        while got < IN_PER_POLL:
+        while got < most:
             k = (STAGE - self.out_n) // 3
             if k > IN_CHUNK:
                 k = IN_CHUNK
+            if k > most - got:
+                k = most - got
             if frames and not ts[TS_HOLD]:
                 room = ((ts[TS_REC] - ts[TS_HEAD] - 1) & _TX_MASK) * LINE_MIN
                 if room:
@@ -642,8 +651,9 @@ class CanPort:
         self._put(_HEX[f & 15])
         self._put(_CR)
 
-    def _rx_out(self):
-        """Frames from the ring to the host (and the recorder), as the port takes them."""
+    def _rx_out(self, most=RX_FRAMES):
+        """Frames from the ring to the host (and the recorder), as the port takes them;
+        at most ``most`` of them."""
         rs = self.rs
         cv = self.cv
         record = self.record if self.rec_on[0] else None
@@ -663,7 +673,8 @@ class CanPort:
         sent = 0
         o = self.out_n
         k = rs[RS_TAIL]
-        while k != rs[RS_HEAD]:
+        while k != rs[RS_HEAD] and most > 0:
+            most -= 1
             if STAGE - o < LINE_MAX:
                 self.out_n = o
                 self._flush()
