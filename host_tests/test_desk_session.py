@@ -637,6 +637,7 @@ name = "long"
 mode = "inc"
 distance = 200000
 speed = 5000
+timeout_s = 60
 """
 
 GOLDEN = """\

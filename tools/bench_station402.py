@@ -1,0 +1,100 @@
+"""CiA 402 station benchmark (part of `make bench`): prints figures, asserts nothing.
+
+Runs plans/cia402-eol.toml on the real-time virtual bench through the jig's CAN port
+(its SLCAN port, python-canopen on the PC side; a healthy simulated CiA 402 drive at node 5
+wired as the plan says) at 500 kbit/s and 1 Mbit/s, and splits each run's wall time as
+tools/bench_station.py does for the Plus-R plan:
+
+* motion: the time the axis was moving in the moves and the homing (their measured durations),
+* bus: the time the station waited for answers (the drive's SDO replies and the jig's PC-port
+  round trips; during a move that overlaps the motion),
+* steps: the time inside the step functions; engine = run - steps (OpenHTF, the pre-flight, the
+  outputs: JSON, JUnit, HTML).
+
+And the moves' TPDO trace rate (statusword, position, velocity, following error, sampled by the
+drive and dated by the jig's clock). Goal (issue 25): >= 500 Hz at 1 Mbit/s.
+"""
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+for sub in ("firmware", "tools"):
+    p = os.path.join(ROOT, sub)
+    if p not in sys.path:
+        sys.path.insert(0, p)
+
+from motorjig.sim import Bench  # noqa: E402
+from motorjig.station import load_plan, run_plan  # noqa: E402
+
+EOL = os.path.join(ROOT, "plans", "cia402-eol.toml")
+NODE = 5
+
+
+def motion_seconds(plan, record):
+    """Seconds the axis moved: the moves' and the homing's measured durations."""
+    kinds = {s.name: s.kind for s in plan.steps}
+    total = 0.0
+    for ph in record["phases"]:
+        if kinds.get(ph["name"]) in ("move", "home"):
+            total += ph["measurements"]["duration"]["measured_value"] or 0.0
+    return total
+
+
+def sample_rates(plan, record):
+    kinds = {s.name: s.kind for s in plan.steps}
+    return [ph["measurements"]["sample_rate"]["measured_value"] for ph in record["phases"]
+            if kinds.get(ph["name"]) == "move"]
+
+
+def one_run(bitrate, out_dir):
+    plan = load_plan(EOL)
+    plan.drive.bitrate = bitrate  # the plan says 500 kbit/s; the same drive on a 1 Mbit/s bus too
+    with Bench(driver_ids=(2,), can_nodes=(NODE,), can_bitrate=bitrate, pty=False, wiring=plan.wiring) as b:
+        t0 = time.monotonic()
+        ctx = run_plan(plan, b.tcp_url, can_port=b.slcan_url, out_dir=out_dir, out=None, timeout_ms=300,
+                       confirm=lambda m: True)
+        wall = time.monotonic() - t0
+    return plan, ctx, wall
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", type=int, default=2, help="runs per bitrate (default 2)")
+    args = ap.parse_args(argv)
+    if args.runs < 1:
+        print("error: --runs must be at least 1", file=sys.stderr)
+        return 2
+    print("CiA 402 station benchmark: plans/cia402-eol.toml on the real-time bench, node %d through the "
+          "jig's SLCAN port" % NODE)
+    print("  %-9s %7s %7s %7s %7s %7s %7s %12s %12s" % ("bitrate", "run s", "motion", "bus", "steps", "engine",
+                                                       "steps n", "engine/step", "TPDO Hz"))
+    with tempfile.TemporaryDirectory() as out:
+        for bitrate in (500000, 1000000):
+            for _ in range(args.runs):
+                plan, ctx, wall = one_run(bitrate, out)
+                rec = ctx.record
+                label = "%d k" % (bitrate // 1000)
+                if rec["outcome"] != "PASS":
+                    print("  %-9s the run did not pass (%s: %s): no figures" % (
+                        label, rec["outcome"],
+                        "; ".join(d.get("description", "") for d in rec.get("outcome_details", []))[:120]))
+                    continue
+                in_steps = sum(t for _, t, _ in ctx.timings)
+                bus = sum(b for _, _, b in ctx.timings)
+                n = len(ctx.timings)
+                rates = sample_rates(plan, rec)
+                print("  %-9s %7.2f %7.2f %7.2f %7.2f %7.2f %7d %9.1f ms %6.1f-%-6.1f"
+                      % (label, wall, motion_seconds(plan, rec), bus, in_steps, wall - in_steps, n,
+                         (wall - in_steps) / n * 1000, min(rates), max(rates)))
+    print("  (motion: moves and homing; bus: waiting for SDO replies and the jig's round trips, overlapping")
+    print("   the motion while a move is traced; engine = run - steps: OpenHTF, pre-flight, outputs;")
+    print("   TPDO Hz: the moves' trace, sampled by the drive, dated by the jig; goal >= 500 Hz at 1 Mbit/s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
