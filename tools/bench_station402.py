@@ -5,7 +5,8 @@ Runs plans/cia402-eol.toml on the real-time virtual bench through the jig's CAN 
 wired as the plan says) at 500 kbit/s and 1 Mbit/s, and splits each run's wall time as
 tools/bench_station.py does for the Plus-R plan:
 
-* motion: the time the axis was moving in the moves and the homing (their measured durations),
+* motion: the time the axis was moving in the moves and the homing (their measured durations) and
+  in the limit-sensor and stop-response steps (their traces' moving span), as for the Plus-R plan,
 * bus: the time the station waited for answers (the drive's SDO replies and the jig's PC-port
   round trips; during a move that overlaps the motion),
 * steps: the time inside the step functions; engine = run - steps (OpenHTF, the pre-flight, the
@@ -30,24 +31,10 @@ for sub in ("firmware", "tools"):
 from motorjig.sim import Bench  # noqa: E402
 from motorjig.station import load_plan, run_plan  # noqa: E402
 
+from bench_station import motion_seconds, sample_rates  # noqa: E402  (the same split, the same plan kinds)
+
 EOL = os.path.join(ROOT, "plans", "cia402-eol.toml")
 NODE = 5
-
-
-def motion_seconds(plan, record):
-    """Seconds the axis moved: the moves' and the homing's measured durations."""
-    kinds = {s.name: s.kind for s in plan.steps}
-    total = 0.0
-    for ph in record["phases"]:
-        if kinds.get(ph["name"]) in ("move", "home"):
-            total += ph["measurements"]["duration"]["measured_value"] or 0.0
-    return total
-
-
-def sample_rates(plan, record):
-    kinds = {s.name: s.kind for s in plan.steps}
-    return [ph["measurements"]["sample_rate"]["measured_value"] for ph in record["phases"]
-            if kinds.get(ph["name"]) == "move"]
 
 
 def one_run(bitrate, out_dir):
@@ -90,7 +77,7 @@ def main(argv=None):
                 print("  %-9s %7.2f %7.2f %7.2f %7.2f %7.2f %7d %9.1f ms %6.1f-%-6.1f"
                       % (label, wall, motion_seconds(plan, rec), bus, in_steps, wall - in_steps, n,
                          (wall - in_steps) / n * 1000, min(rates), max(rates)))
-    print("  (motion: moves and homing; bus: waiting for SDO replies and the jig's round trips, overlapping")
+    print("  (motion: moves, homing, limit and stop steps; bus: waiting for SDO replies and the jig's round trips, overlapping")
     print("   the motion while a move is traced; engine = run - steps: OpenHTF, pre-flight, outputs;")
     print("   TPDO Hz: the moves' trace, sampled by the drive, dated by the jig; goal >= 500 Hz at 1 Mbit/s)")
     return 0
