@@ -6,6 +6,7 @@ records its arguments and prints what the real tool would.
 
 import io
 import os
+import shutil
 import stat
 import subprocess
 import sys
@@ -469,6 +470,28 @@ def test_build_script_make_command_and_flag_change(tmp_path):
     env2 = dict(env, MPY_CROSS_FLAGS="-march=armv7m")
     assert sh("build_firmware.sh", str(mp), str(build), board, env=env2).returncode == 0
     assert not (build / "frozen_mpy").exists()
+
+
+def test_build_script_starts_clean_when_the_board_configuration_changes(tmp_path):
+    mp, env = fake_micropython(tmp_path)
+    build = tmp_path / "build"
+    board = tmp_path / "board"
+    shutil.copytree(os.path.join(flash.ROOT, "boards", "STM32H7_JIG"), board)
+    assert sh("build_firmware.sh", str(mp), str(build), str(board), env=env).returncode == 0
+    (build / "genhdr").mkdir()
+    (build / "genhdr" / "qstrdefs.generated.h").write_text("stale")
+    r = sh("build_firmware.sh", str(mp), str(build), str(board), env=env)
+    assert r.returncode == 0 and (build / "genhdr").exists()  # same board: the build folder is kept
+    with open(board / "mpconfigboard.h", "a") as f:
+        f.write("#define MICROPY_HW_USB_CDC_NUM_CHANGED (1)\n")
+    r = sh("build_firmware.sh", str(mp), str(build), str(board), env=env)
+    assert r.returncode == 0, r.stderr
+    assert "building from clean" in r.stdout and not (build / "genhdr").exists()
+    # a build folder from before the stamp existed is started clean as well
+    (build / ".board-config").unlink()
+    (build / "genhdr").mkdir()
+    r = sh("build_firmware.sh", str(mp), str(build), str(board), env=env)
+    assert "building from clean" in r.stdout and not (build / "genhdr").exists()
 
 
 def test_build_script_names_missing_submodules_and_tools(tmp_path):

@@ -88,6 +88,22 @@ if [ ! -f "$flags_stamp" ] || [ "$(cat "$flags_stamp")" != "$MPY_CROSS_FLAGS" ];
     printf '%s' "$MPY_CROSS_FLAGS" >"$flags_stamp"
 fi
 
+# --- board configuration: start clean when it changes -----------------------------------
+# The port's incremental build does not notice a changed mpconfigboard.h everywhere: after
+# the board gained a third CDC port and machine.CAN, a build over the old folder failed on
+# stale generated qstrs ("redeclaration of enumerator"). So a change of any board file
+# (or of the MicroPython tree's version) empties the build folder first.
+board_stamp="$BUILD/.board-config"
+board_sum=$( (printf '%s\n' "$version"; cat "$BOARD_DIR"/*) | sha256sum | cut -d' ' -f1)
+if { [ -f "$board_stamp" ] && [ "$(cat "$board_stamp")" != "$board_sum" ]; } \
+   || { [ ! -f "$board_stamp" ] && [ -e "$BUILD/firmware.elf" ]; }; then
+    say "the board configuration (or the MicroPython version) changed since the last build: building from clean"
+    find "$BUILD" -mindepth 1 -maxdepth 1 ! -name 'mpy-cross.log' -exec rm -rf {} +
+    printf '%s' "$MPY_CROSS_FLAGS" >"$flags_stamp"
+fi
+mkdir -p "$BUILD"
+printf '%s' "$board_sum" >"$board_stamp"
+
 mpy_lib="$BUILD/no-micropython-lib"
 empty_micropython_lib "$mpy_lib"
 
