@@ -6,9 +6,10 @@ documentation never drifts from the code. ``--check`` fails (exit 1) if the comm
 is not what the tables give; host_tests/test_power402.py runs that check.
 """
 
-import argparse
 import os
 import sys
+
+import docgen
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_OUTPUT = os.path.join(ROOT, "docs", "cia402-states.md")
@@ -135,33 +136,8 @@ def render():
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description="Generate the CiA 402 power state machine's documentation from "
-                                             "motorjig.can.power402.")
-    ap.add_argument("--check", action="store_true", help="exit 1 if the file differs from the generated text")
-    ap.add_argument("--output", default=DEFAULT_OUTPUT, help="file to write or check (default: docs/cia402-states.md)")
-    args = ap.parse_args(argv)
-    text = render()
-    if args.check:
-        try:
-            with open(args.output, encoding="utf-8") as f:
-                current = f.read()
-        except OSError as e:
-            print("gen_cia402_doc: cannot read %s: %s" % (args.output, e.strerror))
-            return 1
-        if current != text:
-            print("gen_cia402_doc: %s is out of date; run: python tools/gen_cia402_doc.py" % args.output)
-            return 1
-        print("gen_cia402_doc: %s is up to date" % args.output)
-        return 0
-    try:
-        os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
-        with open(args.output, "w", encoding="utf-8") as f:
-            f.write(text)
-    except OSError as e:
-        print("gen_cia402_doc: cannot write %s: %s" % (args.output, e.strerror))
-        return 1
-    print("gen_cia402_doc: wrote %s" % args.output)
-    return 0
+    return docgen.main(argv, "gen_cia402_doc", "Generate the CiA 402 power state machine's documentation from motorjig.can.power402.",
+                       DEFAULT_OUTPUT, render)
 
 
 if __name__ == "__main__":

@@ -6,9 +6,10 @@ code. ``--check`` fails (exit 1) if the committed file is not what the table giv
 host_tests/test_parser.py runs that check.
 """
 
-import argparse
 import os
 import sys
+
+import docgen
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_OUTPUT = os.path.join(ROOT, "docs", "parser-states.md")
@@ -74,47 +75,15 @@ def render():
     w("```mermaid")
     w("stateDiagram-v2")
     w("    [*] --> %s" % states[0])
-    for s, row in enumerate(parser.TRANSITIONS):
-        # One edge per next state; its label lists the byte classes, grouped by action
-        # (no ':' or ';' inside a label: Mermaid reads those as syntax).
-        edges = {}
-        for c, (action, nxt) in enumerate(row):
-            edges.setdefault(nxt, {}).setdefault(action, []).append(classes[c])
-        for nxt in sorted(edges):
-            parts = ["%s (%s)" % (", ".join(cls), actions[a]) for a, cls in sorted(edges[nxt].items())]
-            w("    %s --> %s: %s" % (states[s], states[nxt], " / ".join(parts)))
+    out.extend(docgen.table_edges(parser.TRANSITIONS, states, classes, actions))
     w("```")
     w("")
     return "\n".join(out)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description="Generate the parser state documentation from jig.parser.TRANSITIONS.")
-    ap.add_argument("--check", action="store_true", help="exit 1 if the file differs from the generated text")
-    ap.add_argument("--output", default=DEFAULT_OUTPUT, help="file to write or check (default: docs/parser-states.md)")
-    args = ap.parse_args(argv)
-    text = render()
-    if args.check:
-        try:
-            with open(args.output, encoding="utf-8") as f:
-                current = f.read()
-        except OSError as e:
-            print("gen_parser_doc: cannot read %s: %s" % (args.output, e.strerror))
-            return 1
-        if current != text:
-            print("gen_parser_doc: %s is out of date; run: python tools/gen_parser_doc.py" % args.output)
-            return 1
-        print("gen_parser_doc: %s is up to date" % args.output)
-        return 0
-    try:
-        os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
-        with open(args.output, "w", encoding="utf-8") as f:
-            f.write(text)
-    except OSError as e:
-        print("gen_parser_doc: cannot write %s: %s" % (args.output, e.strerror))
-        return 1
-    print("gen_parser_doc: wrote %s" % args.output)
-    return 0
+    return docgen.main(argv, "gen_parser_doc", "Generate the parser state documentation from jig.parser.TRANSITIONS.",
+                       DEFAULT_OUTPUT, render)
 
 
 if __name__ == "__main__":
