@@ -3,16 +3,21 @@
 Each generator renders one Markdown file from the code's own tables; ``main`` gives them
 the same ``--check``/``--output`` interface (write the file, or exit 1 if the committed file
 is not what the tables give), and ``table_edges`` draws a byte-driven transition table
-(``TRANSITIONS[state][byte class] = (action, next state)``) as Mermaid edges.
+(``TRANSITIONS[state][byte class] = (action, next state)``) of a firmware module as Markdown
+tables and Mermaid edges.
 """
 
 import argparse
+import importlib
 import os
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def main(argv, name, description, default_output, render):
     """The generator ``name``'s command line: write ``render()`` to the output, or ``--check`` it."""
-    rel = os.path.relpath(default_output, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    rel = os.path.relpath(default_output, ROOT)
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--check", action="store_true", help="exit 1 if the file differs from the generated text")
     ap.add_argument("--output", default=default_output, help="file to write or check (default: %s)" % rel)
@@ -39,6 +44,38 @@ def main(argv, name, description, default_output, render):
         return 1
     print("%s: wrote %s" % (name, args.output))
     return 0
+
+
+def firmware_table(module, action_help, name):
+    """Import ``jig.<module>`` (a byte-driven table) and check ``action_help`` still matches its actions."""
+    firmware = os.path.join(ROOT, "firmware")
+    if firmware not in sys.path:
+        sys.path.insert(0, firmware)
+    mod = importlib.import_module("jig." + module)
+    if len(action_help) != len(mod.ACTION_NAMES):
+        raise SystemExit("%s: %s.ACTION_NAMES changed; update ACTION_HELP" % (name, module))
+    return mod
+
+
+def table_rows(transitions, states, actions, counted=()):
+    """Markdown rows of the transition table: per byte class its action and the next state."""
+    lines = []
+    for s, row in enumerate(transitions):
+        cells = []
+        for action, nxt in row:
+            if action in counted:
+                target = "stay, last → " + states[nxt]
+            else:
+                target = "stay" if nxt == s else "→ " + states[nxt]
+            cells.append("%s, %s" % (actions[action], target))
+        lines.append("| **%s** | %s |" % (states[s], " | ".join(cells)))
+    return lines
+
+
+def action_rows(actions, action_help):
+    """The Markdown table of the actions and what each does."""
+    return ["| action | meaning |", "| --- | --- |"] + [
+        "| %s | %s |" % (name, help_text) for name, help_text in zip(actions, action_help)]
 
 
 def table_edges(transitions, states, classes, actions, counted=()):

@@ -11,7 +11,7 @@ import sys
 
 import docgen
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = docgen.ROOT
 DEFAULT_OUTPUT = os.path.join(ROOT, "docs", "cia402-states.md")
 
 # Mermaid ids of the states (their names have spaces).

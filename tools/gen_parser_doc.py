@@ -11,7 +11,7 @@ import sys
 
 import docgen
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = docgen.ROOT
 DEFAULT_OUTPUT = os.path.join(ROOT, "docs", "parser-states.md")
 
 # What each action does, in the order of parser.ACTION_NAMES.
@@ -29,12 +29,7 @@ ACTION_HELP = (
 
 
 def render():
-    if os.path.join(ROOT, "firmware") not in sys.path:
-        sys.path.insert(0, os.path.join(ROOT, "firmware"))
-    from jig import parser
-
-    if len(ACTION_HELP) != len(parser.ACTION_NAMES):
-        raise SystemExit("gen_parser_doc: parser.ACTION_NAMES changed; update ACTION_HELP")
+    parser = docgen.firmware_table("parser", ACTION_HELP, "gen_parser_doc")
     states, classes, actions = parser.STATE_NAMES, parser.CLASS_NAMES, parser.ACTION_NAMES
     out = []
     w = out.append
@@ -56,19 +51,11 @@ def render():
     w("")
     w("| state | " + " | ".join("byte %s" % c for c in classes) + " |")
     w("| --- | " + " | ".join("---" for _ in classes) + " |")
-    for s, row in enumerate(parser.TRANSITIONS):
-        cells = []
-        for action, nxt in row:
-            target = "stay" if nxt == s else "→ " + states[nxt]
-            cells.append("%s, %s" % (actions[action], target))
-        w("| **%s** | %s |" % (states[s], " | ".join(cells)))
+    out.extend(docgen.table_rows(parser.TRANSITIONS, states, actions))
     w("")
     w("## Actions")
     w("")
-    w("| action | meaning |")
-    w("| --- | --- |")
-    for name, help_text in zip(actions, ACTION_HELP):
-        w("| %s | %s |" % (name, help_text))
+    out.extend(docgen.action_rows(actions, ACTION_HELP))
     w("")
     w("## Diagram")
     w("")

@@ -11,7 +11,7 @@ import sys
 
 import docgen
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = docgen.ROOT
 DEFAULT_OUTPUT = os.path.join(ROOT, "docs", "slcan-states.md")
 
 # What each action does, in the order of slcan.ACTION_NAMES.
@@ -39,12 +39,7 @@ ACTION_HELP = (
 
 
 def render():
-    if os.path.join(ROOT, "firmware") not in sys.path:
-        sys.path.insert(0, os.path.join(ROOT, "firmware"))
-    from jig import slcan
-
-    if len(ACTION_HELP) != len(slcan.ACTION_NAMES):
-        raise SystemExit("gen_slcan_doc: slcan.ACTION_NAMES changed; update ACTION_HELP")
+    slcan = docgen.firmware_table("slcan", ACTION_HELP, "gen_slcan_doc")
     states, classes, actions = slcan.STATE_NAMES, slcan.CLASS_NAMES, slcan.ACTION_NAMES
     out = []
     w = out.append
@@ -97,22 +92,11 @@ def render():
     w("")
     w("| state | " + " | ".join("`%s`" % c if c != "other" else "other" for c in classes) + " |")
     w("| --- | " + " | ".join("---" for _ in classes) + " |")
-    for s, row in enumerate(slcan.TRANSITIONS):
-        cells = []
-        for action, nxt in row:
-            if action in slcan.COUNTED:
-                target = "stay, last → " + states[nxt]
-            else:
-                target = "stay" if nxt == s else "→ " + states[nxt]
-            cells.append("%s, %s" % (actions[action], target))
-        w("| **%s** | %s |" % (states[s], " | ".join(cells)))
+    out.extend(docgen.table_rows(slcan.TRANSITIONS, states, actions, counted=slcan.COUNTED))
     w("")
     w("## Actions")
     w("")
-    w("| action | meaning |")
-    w("| --- | --- |")
-    for name, help_text in zip(actions, ACTION_HELP):
-        w("| %s | %s |" % (name, help_text))
+    out.extend(docgen.action_rows(actions, ACTION_HELP))
     w("")
     w("## Errors")
     w("")
