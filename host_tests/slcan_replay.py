@@ -287,18 +287,10 @@ def _run(r, bursts, span, rounds, chunk, out):
 def alloc_per_line(caps, chunk=0, rounds=5, reader_class=SlcanReader):
     """(bytes allocated, lines read) over ``rounds`` replays after a warm-up, with the
     collector off: everything the loop touches exists before the first reading."""
-    import gc
+    from vm_probe import heap_growth  # on the VM's /lib beside this file
 
     bursts, span = timeline(caps)
     r = reader_class()
     out = bytearray(32)
     _run(r, bursts, span, 2, chunk, out)
-    gc.collect()
-    gc.disable()
-    try:
-        a0 = gc.mem_alloc()
-        count = _run(r, bursts, span, rounds, chunk, out)
-        a1 = gc.mem_alloc()
-    finally:
-        gc.enable()
-    return a1 - a0, count
+    return heap_growth(_run, r, bursts, span, rounds, chunk, out)

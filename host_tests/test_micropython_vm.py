@@ -12,17 +12,13 @@ missing -- except when CI=true, where that is a failure.
 
 import glob
 import os
-import shutil
-import subprocess
-import warnings
 
 import pytest
 
 import capture_format as cf
+import wasm_vm
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-RUNNER = os.path.join(HERE, "wasm", "run_vm.mjs")
-PACKAGE = os.path.join(HERE, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
 CAPTURES = sorted(glob.glob(os.path.join(HERE, "captures", "*.cap")))
 NAMES = [os.path.basename(p) for p in CAPTURES]
 
@@ -50,36 +46,9 @@ print(*vm_probe.alloc_per_frame(bursts, span, rounds=3, parser_class=Leaky))
 """
 
 
-def _missing():
-    if shutil.which("node") is None:
-        return "node is not installed (Debian: apt-get install nodejs npm)"
-    if not os.path.isdir(PACKAGE):
-        return "host_tests/wasm/node_modules is missing (run tools/setup.sh, which needs npm)"
-    return None
-
-
 @pytest.fixture(scope="module")
 def vm_output():
-    why = _missing()
-    if why:
-        if os.environ.get("CI") == "true":
-            pytest.fail("MicroPython VM replay is required in CI: " + why)
-        # A warning shows in pytest's summary even with -q, so the skip is not silent.
-        warnings.warn("MicroPython VM replay skipped: " + why)
-        pytest.skip(why)
-    result = subprocess.run(["node", RUNNER, VM_CODE % (NAMES,)], capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, "the VM run failed:\n" + result.stderr[-3000:]
-    sections = {}
-    current = None
-    for line in result.stdout.splitlines():
-        if line.startswith("@@"):
-            head = line.split()
-            current = head[0][2:]
-            sections[current] = head[1:]
-            sections[current + "_lines"] = []
-        elif current:
-            sections[current + "_lines"].append(line)
-    return sections
+    return wasm_vm.sections(VM_CODE % (NAMES,))
 
 
 def test_vm_is_micropython_without_viper(vm_output):

@@ -15,17 +15,13 @@ missing -- except when CI=true, where that is a failure.
 
 import glob
 import os
-import shutil
-import subprocess
-import warnings
 
 import pytest
 
 import slcan_replay as sr
+import wasm_vm
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-RUNNER = os.path.join(HERE, "wasm", "run_vm.mjs")
-PACKAGE = os.path.join(HERE, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
 CAPTURES = sorted(glob.glob(os.path.join(HERE, "captures", "slcan", "*.slcan")))
 NAMES = [os.path.basename(p) for p in CAPTURES]
 CHUNKS = (0, 1, 7, 64)
@@ -61,41 +57,14 @@ print(*sr.alloc_per_line(caps[:1], 0, 3, Leaky))
 """
 
 
-def _missing():
-    if shutil.which("node") is None:
-        return "node is not installed (Debian: apt-get install nodejs npm)"
-    if not os.path.isdir(PACKAGE):
-        return "host_tests/wasm/node_modules is missing (run tools/setup.sh, which needs npm)"
-    return None
-
-
 @pytest.fixture(scope="module")
 def vm_output():
-    why = _missing()
-    if why:
-        if os.environ.get("CI") == "true":
-            pytest.fail("MicroPython VM replay is required in CI: " + why)
-        warnings.warn("MicroPython VM replay of the SLCAN captures skipped: " + why)
-        pytest.skip(why)
-    files = ["--file", "slcan_replay.py=" + os.path.join(HERE, "slcan_replay.py")]
+    files = {"slcan_replay.py": os.path.join(HERE, "slcan_replay.py")}
     for path in CAPTURES:
         base = path[: -len(".slcan")]
         for p in (path, base + ".expect"):
-            files += ["--file", "%s=%s" % (os.path.basename(p), p)]
-    result = subprocess.run(["node", RUNNER] + files + [VM_CODE % (NAMES, CHUNKS)], capture_output=True, text=True,
-                            timeout=300)
-    assert result.returncode == 0, "the VM run failed:\n" + result.stderr[-3000:]
-    sections = {}
-    current = None
-    for line in result.stdout.splitlines():
-        if line.startswith("@@"):
-            head = line.split()
-            current = head[0][2:]
-            sections[current] = head[1:]
-            sections[current + "_lines"] = []
-        elif current:
-            sections[current + "_lines"].append(line)
-    return sections
+            files[os.path.basename(p)] = p
+    return wasm_vm.sections(VM_CODE % (NAMES, CHUNKS), files, "MicroPython VM replay of the SLCAN captures")
 
 
 def test_vm_is_micropython(vm_output):

@@ -10,6 +10,8 @@ missing, so only the replay and throughput parts apply).
   frame-by-frame comparison with CPython;
 * ``alloc_per_frame(...)``: heap growth with the collector disabled while a stream
   is parsed over and over, after a warm-up (goal: 0 bytes per frame);
+* ``heap_growth(fn, *args)``: that measurement for any call (host_tests/slcan_replay.py
+  uses it too);
 * ``throughput(...)``: bytes and frames per second of the parser on a stream.
 """
 
@@ -79,15 +81,23 @@ def alloc_per_frame(bursts, span, ver8=False, bulk=True, chunk=64, rounds=20, pa
     p = parser_class(ver8, 5000, bulk, 1)  # byte_us=1: the timing estimate runs too
     dst = bytearray(MAX_BODY)
     _run(p, bursts, span, 2, chunk, dst)
+    return heap_growth(_run, p, bursts, span, rounds, chunk, dst)
+
+
+def heap_growth(fn, *args):
+    """(bytes allocated, fn's result) while ``fn(*args)`` runs with the collector off.
+
+    Warm up first: what exists before the first reading does not count.
+    """
     gc.collect()
     gc.disable()
     try:
         a0 = gc.mem_alloc()
-        frames = _run(p, bursts, span, rounds, chunk, dst)
+        result = fn(*args)
         a1 = gc.mem_alloc()
     finally:
         gc.enable()
-    return a1 - a0, frames
+    return a1 - a0, result
 
 
 def print_alloc(paths_v6, paths_v8, rounds=20):

@@ -1,0 +1,53 @@
+"""Run code on the MicroPython WebAssembly VM (host_tests/wasm/run_vm.mjs under Node) from a test.
+
+``sections(code, files, what)`` runs ``code`` on the VM, with ``files`` ({name: path}) put in
+/data, and splits what it prints into sections: a line ``@@name a b`` starts section ``name``
+(its words in ``out[name]``), the lines after it are ``out[name + "_lines"]``. Without node or
+host_tests/wasm/node_modules the test is skipped with the reason shown as a warning (so a -q
+run still says so), except when CI=true, where that is a failure.
+"""
+
+import os
+import shutil
+import subprocess
+import warnings
+
+import pytest
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RUNNER = os.path.join(HERE, "wasm", "run_vm.mjs")
+PACKAGE = os.path.join(HERE, "wasm", "node_modules", "@micropython", "micropython-webassembly-pyscript")
+
+
+def missing():
+    """Why the VM cannot run here, or None."""
+    if shutil.which("node") is None:
+        return "node is not installed (Debian: apt-get install nodejs npm)"
+    if not os.path.isdir(PACKAGE):
+        return "host_tests/wasm/node_modules is missing (run tools/setup.sh, which needs npm)"
+    return None
+
+
+def sections(code, files=None, what="MicroPython VM replay"):
+    why = missing()
+    if why:
+        if os.environ.get("CI") == "true":
+            pytest.fail("%s is required in CI: %s" % (what, why))
+        warnings.warn("%s skipped: %s" % (what, why))
+        pytest.skip(why)
+    args = []
+    for name, path in (files or {}).items():
+        args += ["--file", "%s=%s" % (name, path)]
+    result = subprocess.run(["node", RUNNER] + args + [code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, "the VM run failed:\n" + result.stderr[-3000:]
+    out = {}
+    current = None
+    for line in result.stdout.splitlines():
+        if line.startswith("@@"):
+            head = line.split()
+            current = head[0][2:]
+            out[current] = head[1:]
+            out[current + "_lines"] = []
+        elif current:
+            out[current + "_lines"].append(line)
+    return out
