@@ -7,11 +7,11 @@ import os
 
 import pytest
 
-from motorjig import cli
 from motorjig.can import EDS_PATH, paramset402
 from motorjig.can import objects as O
 from motorjig.station import plan as P
 from motorjig.station import schema
+from test_station_plans import check, refused, write
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLANS = os.path.join(ROOT, "plans")
@@ -36,32 +36,6 @@ speed = 5000
 """
 
 PARAMS_STEP = '\n[[steps]]\nkind = "parameters"\nfile = "set.toml"\nmode = "%s"\n'
-
-
-def check(capsys, path):
-    capsys.readouterr()
-    rc = cli.main(["test", "--check", str(path)])
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def write(tmp_path, text, name="plan.toml"):
-    path = tmp_path / name
-    path.write_text(text)
-    return path
-
-
-def refused(capsys, tmp_path, text, line, key, words, path=None):
-    """--check exits 2 with one sentence: file:line: key: ... words ... (file: the plan, or ``path``)."""
-    plan = write(tmp_path, text)
-    rc, out, err = check(capsys, plan)
-    assert rc == 2, (out, err)
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    prefix = "jigctl: %s:%d: %s: " % (path or plan, line, key)
-    assert err.startswith(prefix), (prefix, err)
-    for w in words:
-        assert w in err, (w, err)
-    return err
 
 
 def with_set(tmp_path, objects, mode="verify"):

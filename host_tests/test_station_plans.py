@@ -45,13 +45,14 @@ def write(tmp_path, text, name="plan.toml"):
     return path
 
 
-def refused(capsys, tmp_path, text, line, key, words):
-    """--check exits 2 with one sentence: path:line: key: ... words ..."""
-    path = write(tmp_path, text)
-    rc, out, err = check(capsys, path)
+def refused(capsys, tmp_path, text, line, key, words, path=None):
+    """--check exits 2 with one sentence: file:line: key: ... words ... (file: the plan, or ``path``;
+    test_station_plan402 uses it too)."""
+    plan = write(tmp_path, text)
+    rc, out, err = check(capsys, plan)
     assert rc == 2, (out, err)
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    prefix = "jigctl: %s%s: " % (path, ":%d" % line if line else "")
+    prefix = "jigctl: %s%s: " % (path or plan, ":%d" % line if line else "")
     assert err.startswith(prefix), (prefix, err)
     if key:
         assert err[len(prefix):].startswith(key + ": "), err
