@@ -141,14 +141,18 @@ EOL_FAULTS = {
     "no-origin": ("home", {"homing_attained"}),
     "missed-heartbeat": ("bus-health", {"heartbeat_jitter"}),
     "dead-input": ("io", {"relay_2_on"}),
+    "param": ("parameters", {"x6065_00"}),  # following error window off its golden value
+    "sdo-abort": ("parameters", {"x6065_00"}),  # a node that aborts the read of one object
 }
+# the value each fault is set with (None: the fault's default)
+EOL_FAULT_VALUES = {"dead-input": 16, "param": "0x6065=500", "sdo-abort": "0x06040047@0x6065"}
 
 
 @pytest.mark.parametrize("fault", list(EOL_FAULTS))
 def test_each_fault_fails_cia402_eol_at_its_step_and_leaves_the_drive_disabled(tmp_path, fault):
     step, measurements = EOL_FAULTS[fault]
     with eol_bench() as b:
-        b.sim.set_fault("can:" + fault, 16 if fault == "dead-input" else None, NODE)
+        b.sim.set_fault("can:" + fault, EOL_FAULT_VALUES.get(fault), NODE)
         rec = run(b, tmp_path, EOL)
         assert operation_disabled(b), node(b).state
     assert rec["outcome"] == "FAIL", failed(rec)

@@ -88,6 +88,15 @@ MODE_PROFILE_POSITION = 1
 MODE_HOMING = 6
 
 
+class SdoRefused(JigError):
+    """The drive answered an SDO request with an abort: a definite answer about the drive (a step
+    can judge it), unlike silence (the link). ``code`` is the CiA 301 abort code."""
+
+    def __init__(self, message, code):
+        super().__init__(message)
+        self.code = code
+
+
 class StampedSlcanBus(slcanBus):
     """python-can's slcan bus with the jig's receive timestamps (``Z1``) as ``msg.timestamp``,
     seconds on the jig's clock; sends are serialised (the SYNC thread and python-canopen's)."""
@@ -292,8 +301,8 @@ class Cia402Drive(Drive):
                 obj = self.node.sdo[index]
                 return (obj[sub] if not isinstance(obj, canopen.sdo.SdoVariable) else obj).raw
             except canopen.SdoAbortedError as exc:
-                raise JigError("node %d refused to read 0x%04X:%02X: %s" % (
-                    self.node_id, index, sub, cia301.abort_text(exc.code))) from None
+                raise SdoRefused("node %d refused to read 0x%04X:%02X: %s" % (
+                    self.node_id, index, sub, cia301.abort_text(exc.code)), exc.code) from None
             except (canopen.SdoCommunicationError, can.CanError, OSError) as exc:
                 raise JigError("node %d, reading 0x%04X:%02X: %s" % (self.node_id, index, sub, exc)) from None
             finally:
