@@ -8,6 +8,7 @@ does for the Desk, so a run's report opens in a new tab) and, when asked, saves
 downloads into a folder.
 """
 
+import contextlib
 import os
 import shutil
 import socket
@@ -130,6 +131,32 @@ def stop(proc):
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait(5)
+
+
+class Started(list):
+    """What a test has started (processes, browsers), for ``started()`` to end."""
+
+    def browser(self, page, **kw):
+        """A Browser on page, closed with the rest."""
+        b = Browser(**kw)
+        self.append(b)
+        b.open(page)
+        return b
+
+
+@contextlib.contextmanager
+def started():
+    """A ``Started`` list to put a test's processes in: on the way out, however the block ends,
+    its browsers are closed and its processes stopped, the newest first."""
+    things = Started()
+    try:
+        yield things
+    finally:
+        for thing in reversed(things):
+            if isinstance(thing, Browser):
+                thing.close()
+            else:
+                stop(thing)
 
 
 class Browser:

@@ -23,18 +23,13 @@ if WHY_NOT and os.environ.get("CI") != "true":
 def desk():
     if WHY_NOT:  # in CI the setup installs the browser, so its absence is a failure
         pytest.fail("browser tests cannot run: " + WHY_NOT)
-    bench = page_proc = browser = None
-    try:
+    with B.started() as run:
         bench, url = B.start_bench()
+        run.append(bench)
         page_proc, page = B.start_desk("--port", url, "--timeout", "300")
-        browser = B.Browser()
-        browser.open(page)
+        run.append(page_proc)
+        browser = run.browser(page)
         yield type("Desk", (), {"bench": bench, "bench_url": url, "proc": page_proc, "url": page, "b": browser})
-    finally:
-        if browser is not None:
-            browser.close()
-        B.stop(page_proc)
-        B.stop(bench)
 
 
 def lamp(b, flag):

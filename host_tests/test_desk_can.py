@@ -33,18 +33,13 @@ def _url_after(lines, words):
 def desk():
     if WHY_NOT:  # in CI the setup installs the browser, so its absence is a failure
         pytest.fail("browser tests cannot run: " + WHY_NOT)
-    proc = browser = None
-    try:
+    with B.started() as run:
         proc, page = B.start_desk("--bench", "--drivers", "2", "--can-nodes", "5,6", "--timeout", "300")
+        run.append(proc)
         slcan = _url_after(proc.early, "SLCAN port")
         pc = _url_after(proc.early, "other programs can use")
-        browser = B.Browser()
-        browser.open(page)
+        browser = run.browser(page)
         yield type("Desk", (), {"proc": proc, "url": page, "b": browser, "slcan": slcan, "pc": pc})
-    finally:
-        if browser is not None:
-            browser.close()
-        B.stop(proc)
 
 
 def nodes(b):

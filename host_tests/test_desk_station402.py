@@ -36,20 +36,14 @@ def desk(tmp_path_factory):
     if WHY_NOT:
         pytest.fail("browser tests cannot run: " + WHY_NOT)
     tmp = tmp_path_factory.mktemp("desk-station402")
-    bench = page_proc = browser = None
-    try:
+    with B.started() as run:
         bench, pc = B.start_bench("2", "--can-nodes", "5", "--fault", "can:5:overcurrent=%d" % OVERCURRENT_MS)
+        run.append(bench)
         slcan = re.search(r"socket://\S+", B._read_until(bench, "slcan: socket://", 20)).group(0)
         page_proc, page = B.start_desk("--port", pc, "--can-port", slcan, "--timeout", "300",
                                        "--out", str(tmp / "results"), "--db", "none", "--operator", "tester")
-        browser = B.Browser()
-        browser.open(page)
-        yield type("Desk", (), {"b": browser, "slcan": slcan, "pc": pc})
-    finally:
-        if browser is not None:
-            browser.close()
-        B.stop(page_proc)
-        B.stop(bench)
+        run.append(page_proc)
+        yield type("Desk", (), {"b": run.browser(page), "slcan": slcan, "pc": pc})
 
 
 def field(b, testid):
@@ -230,18 +224,12 @@ def run_plan_from_test_tab(b, label, serial):
 
 def test_on_the_desks_own_bench_cia402_smoke_passes_with_the_can_tab_never_opened(tmp_path):
     """`jigctl gui --bench --can-nodes 5`: the Test tab takes the bench's SLCAN port itself."""
-    proc = browser = None
-    try:
+    with B.started() as run:
         proc, page = B.start_desk("--bench", "--drivers", "2", "--can-nodes", "5", "--timeout", "300",
                                   "--out", str(tmp_path / "results"), "--db", "none")
-        browser = B.Browser()
-        browser.open(page)
-        b = browser
+        run.append(proc)
+        b = run.browser(page)
         result = run_plan_from_test_tab(b, "cia402-smoke 1.0", "SN-402-BENCH")
         assert result == "PASS", b.text("steps")
         b.tab("tab-can")
         assert b.text("can-state") == "closed"  # as it was: the run did not leave it open
-    finally:
-        if browser is not None:
-            browser.close()
-        B.stop(proc)
