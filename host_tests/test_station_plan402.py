@@ -11,29 +11,10 @@ from motorjig.can import EDS_PATH, paramset402
 from motorjig.can import objects as O
 from motorjig.station import plan as P
 from motorjig.station import schema
-from test_station_plans import check, refused, write
+from test_station_plans import GOOD as GOOD_PLUSR
+from test_station_plans import PLANS, ROOT, check, refused, write
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PLANS = os.path.join(ROOT, "plans")
-
-GOOD = """\
-[plan]
-name = "t"
-version = "1"
-
-[drive]
-protocol = "cia402"
-node_id = 5
-
-[[steps]]
-kind = "servo"
-on = true
-
-[[steps]]
-kind = "move"
-distance = 1000
-speed = 5000
-"""
+GOOD = GOOD_PLUSR.replace("slave = 2\n", 'protocol = "cia402"\nnode_id = 5\n')  # the same plan on a CiA 402 node
 
 PARAMS_STEP = '\n[[steps]]\nkind = "parameters"\nfile = "set.toml"\nmode = "%s"\n'
 
