@@ -238,22 +238,6 @@ def report(cap, every_split=False, reader_class=SlcanReader):
 
 # --- allocation probe (MicroPython: gc.mem_alloc) -----------------------------------
 
-def timeline(caps):
-    """All captures as one list of [time, bytes] bursts, each capture after the previous
-    one plus a silence longer than the line timeout; returns (bursts, span)."""
-    bursts = []
-    clock = 0
-    for cap in caps:
-        last = 0
-        for t, data in cap.bursts:
-            bursts.append([clock + t, data])
-            last = t
-        if cap.end > last:
-            last = cap.end
-        clock += last + 2000000
-    return bursts, clock
-
-
 def _run(r, bursts, span, rounds, chunk, out):
     """Feed the bursts ``rounds`` times in pieces of ``chunk`` bytes (0: whole bursts),
     write every frame read back as a line with encode_frame; returns the lines read."""
@@ -287,9 +271,10 @@ def _run(r, bursts, span, rounds, chunk, out):
 def alloc_per_line(caps, chunk=0, rounds=5, reader_class=SlcanReader):
     """(bytes allocated, lines read) over ``rounds`` replays after a warm-up, with the
     collector off: everything the loop touches exists before the first reading."""
-    from vm_probe import heap_growth  # on the VM's /lib beside this file
+    from vm_probe import heap_growth, join_bursts  # on the VM's /lib beside this file
 
-    bursts, span = timeline(caps)
+    # the captures one after the other, with a silence longer than the line timeout between
+    bursts, span = join_bursts([(cap.bursts, cap.end) for cap in caps], 2000000)
     r = reader_class()
     out = bytearray(32)
     _run(r, bursts, span, 2, chunk, out)

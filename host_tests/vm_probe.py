@@ -35,17 +35,23 @@ def load_bursts(paths):
     Each capture's timeline is shifted to start after the previous one plus a long
     silence, so partial frames at a capture's end time out as they do in the file.
     """
+    caps = [capture_format.load(path) for path in paths]
+    return join_bursts([(cap.bursts, cap.end_gap) for cap in caps], 100000)
+
+
+def join_bursts(timelines, silence):
+    """One list of [time, bytes] bursts from (bursts, end) timelines, each after the previous
+    one's last burst (or its end, if later) plus ``silence``; returns (bursts, span)."""
     bursts = []
     clock = 0
-    for path in paths:
-        cap = capture_format.load(path)
+    for part, end in timelines:
         last = 0
-        for t, data in cap.bursts:
+        for t, data in part:
             bursts.append([clock + t, bytes(data)])
             last = t
-        if cap.end_gap > last:
-            last = cap.end_gap
-        clock += last + 100000
+        if end > last:
+            last = end
+        clock += last + silence
     return bursts, clock
 
 
