@@ -1,7 +1,6 @@
 """FrameParser unit behaviour: the table itself, the feed contract, timeouts, limits."""
 
 import os
-import sys
 
 import pytest
 
@@ -45,11 +44,7 @@ def test_byte_classes():
 
 
 def test_generated_state_doc_is_committed_and_current():
-    sys.path.insert(0, os.path.join(ROOT, "tools"))
-    try:
-        import gen_parser_doc
-    finally:
-        sys.path.pop(0)
+    import gen_parser_doc  # tools/ is on the path (conftest)
     with open(os.path.join(ROOT, "docs", "parser-states.md"), encoding="utf-8") as f:
         assert f.read() == gen_parser_doc.render(), "run: python tools/gen_parser_doc.py"
 

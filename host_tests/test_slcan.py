@@ -24,7 +24,6 @@
 
 import glob
 import os
-import sys
 import time
 
 import pytest
@@ -113,11 +112,7 @@ def test_byte_classes():
 
 
 def test_generated_state_doc_is_committed_and_current():
-    sys.path.insert(0, os.path.join(ROOT, "tools"))
-    try:
-        import gen_slcan_doc
-    finally:
-        sys.path.pop(0)
+    import gen_slcan_doc  # tools/ is on the path (conftest)
     with open(os.path.join(ROOT, "docs", "slcan-states.md"), encoding="utf-8") as f:
         assert f.read() == gen_slcan_doc.render(), "run: python tools/gen_slcan_doc.py"
 
