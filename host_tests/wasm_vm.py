@@ -4,7 +4,8 @@
 /data, and splits what it prints into sections: a line ``@@name a b`` starts section ``name``
 (its words in ``out[name]``), the lines after it are ``out[name + "_lines"]``. Without node or
 host_tests/wasm/node_modules the test is skipped with the reason shown as a warning (so a -q
-run still says so), except when CI=true, where that is a failure.
+run still says so), except when CI=true, where that is a failure. ``assert_same_report`` compares
+a capture replay report the VM printed with CPython's.
 """
 
 import os
@@ -51,3 +52,13 @@ def sections(code, files=None, what="MicroPython VM replay"):
         elif current:
             out[current + "_lines"].append(line)
     return out
+
+
+def assert_same_report(got, expected, captures):
+    """The VM's replay report is CPython's, line for line (the first line that differs is the
+    one shown), and each of the captures met its check with every strategy agreeing."""
+    assert len(got) == len(expected)
+    for want_line, got_line in zip(expected, got):
+        assert got_line == want_line
+    assert [line.strip() for line in got].count("check ok") == captures
+    assert [line.strip() for line in got].count("strategies all same") == captures
