@@ -70,6 +70,15 @@ def position(b):
         return None
 
 
+def move_abs(b, target, speed, accel):
+    """An absolute move from the axis panel (accel both ways), waited for until it is read back."""
+    for key, value in (("target", target), ("speed", speed), ("acc", accel), ("dec", accel)):
+        b.type("can-axis-" + key, str(value))
+    b.click("btn-can-move-abs")
+    b.wait_for(lambda: position(b) == target and "target reached" in axis(b, "state"), 10,
+               "position %d read back" % target)
+
+
 def message(b):
     return b.text("can-message")
 
@@ -90,12 +99,7 @@ def test_enable_then_a_move_reads_back_its_target(desk):
     b = desk.b
     b.click("btn-can-enable")
     wait_state(b, "OPERATION ENABLED")
-    b.type("can-axis-target", "8000")
-    b.type("can-axis-speed", "20000")
-    b.type("can-axis-acc", "200000")
-    b.type("can-axis-dec", "200000")
-    b.click("btn-can-move-abs")
-    b.wait_for(lambda: position(b) == 8000 and "target reached" in axis(b, "state"), 10, "position 8000 read back")
+    move_abs(b, 8000, 20000, 200000)
     assert axis(b, "velocity") == "0" and axis(b, "following-error") == "0"
     b.type("can-axis-target", "-3000")
     b.click("btn-can-move-rel")
@@ -186,12 +190,7 @@ def test_cia402_smoke_passes_from_the_test_tab_on_the_lent_can_port(desk):
     # smoke's moves go out by 10000 and back to 0: from 0 they are short (the bench's overcurrent is for longer ones)
     b.click("btn-can-enable")
     wait_state(b, "OPERATION ENABLED")
-    b.type("can-axis-target", "0")
-    b.type("can-axis-speed", "200000")
-    b.type("can-axis-acc", "2000000")
-    b.type("can-axis-dec", "2000000")
-    b.click("btn-can-move-abs")
-    b.wait_for(lambda: position(b) == 0 and "target reached" in axis(b, "state"), 10, "back at 0")
+    move_abs(b, 0, 200000, 2000000)
     b.tab("tab-plan")
     b.choose("plan-select", "cia402-smoke 1.0")
     assert "CAN node 5" in b.text("plan-info")
