@@ -44,7 +44,7 @@ class Run:
 
     def assert_one_sentence(self):
         lines = [ln for ln in self.err.splitlines() if ln.strip()]
-        assert len(lines) == 1 and lines[0].startswith("jigctl: ") and lines[0].endswith("."), self.err
+        assert len(lines) == 1 and lines[0].startswith("jigctl: ") and lines[0].endswith((".", "?")), self.err
         assert "Traceback" not in self.err
 
 

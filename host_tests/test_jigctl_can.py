@@ -45,7 +45,7 @@ class Run:
         assert rc == code, (argv, rc, self.out, self.err)
         if code not in (0, 1):
             lines = [ln for ln in self.err.splitlines() if ln.strip()]
-            assert len(lines) == 1 and lines[0].startswith("jigctl: ") and lines[0].endswith("."), self.err
+            assert len(lines) == 1 and lines[0].startswith("jigctl: ") and lines[0].endswith((".", "?")), self.err
             assert "Traceback" not in self.err
         return self.out
 
