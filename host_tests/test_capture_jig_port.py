@@ -185,12 +185,14 @@ class ClosingServer:
 
 def start_fails(url, wait):
     """The sentence of the PortError a start on url raises (the port closed after it)."""
-    cap = JigCapture(url)
+    cap = None
     try:
         with pytest.raises(PortError) as exc:
+            cap = JigCapture(url)  # (a reset may already come while the port opens)
             cap.start(wait=wait)
     finally:
-        cap.close()
+        if cap is not None:
+            cap.close()
     return str(exc.value)
 
 
