@@ -171,31 +171,45 @@ def test_a_node_that_does_not_answer_ends_the_run_as_an_error_saying_so(tmp_path
     assert any("node 7 does not answer" in d["description"] for d in rec["outcome_details"]), rec["outcome_details"]
 
 
+def long_run_moving(b, tmp_path, *extra):
+    """`jigctl test` of LONG_PLAN on bench b in a process of its own, returned once node 5 moves."""
+    plan = tmp_path / "long402.toml"
+    plan.write_text(LONG_PLAN)
+    p = subprocess.Popen([JIGCTL, "test", str(plan), "--port", b.tcp_url, "--can-port", b.slcan_url,
+                          "--out", str(tmp_path), "--db", "none", "--yes", *extra],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not node(b).motion.moving:
+            assert p.poll() is None, "jigctl test ended before the move: %s" % (p.communicate(),)
+            assert time.monotonic() < deadline, "the move never started"
+            time.sleep(0.05)
+    except BaseException:
+        p.kill()
+        raise
+    time.sleep(0.3)
+    return p
+
+
+def wait_operation_disabled(b, within_s=5.0):
+    deadline = time.monotonic() + within_s
+    while not operation_disabled(b) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert operation_disabled(b), node(b).state
+
+
 def test_sigkill_mid_move_the_jigs_can_safety_stop_disables_the_drive(tmp_path):
     """What no handler catches: the jig's CAN safety stop (can_safety = 2, armed for the run) sends
     the quick stop after the --safety-window of silence on its SLCAN port."""
-    plan = tmp_path / "long402.toml"
-    plan.write_text(LONG_PLAN)
     with bench() as b:
-        p = subprocess.Popen([JIGCTL, "test", str(plan), "--port", b.tcp_url, "--can-port", b.slcan_url,
-                              "--out", str(tmp_path), "--db", "none", "--yes", "--safety-window", "500"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        p = long_run_moving(b, tmp_path, "--safety-window", "500")
         try:
-            deadline = time.monotonic() + 60
-            while not node(b).motion.moving:
-                assert p.poll() is None, "jigctl test ended before the move: %s" % (p.communicate(),)
-                assert time.monotonic() < deadline, "the move never started"
-                time.sleep(0.05)
-            time.sleep(0.3)
             p.kill()
             p.communicate(timeout=30)
         finally:
             if p.poll() is None:
                 p.kill()
-        deadline = time.monotonic() + 5
-        while not operation_disabled(b) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert operation_disabled(b), node(b).state
+        wait_operation_disabled(b)
         with Master(b.tcp_url, timeout=0.3) as m:
             assert m.can_counters(1)["can_safety_stops"] >= 1
 
@@ -246,27 +260,14 @@ def test_a_plan_for_a_cia402_drive_needs_the_can_port(tmp_path):
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_a_signal_mid_move_leaves_the_drive_disabled(tmp_path, sig):
-    plan = tmp_path / "long402.toml"
-    plan.write_text(LONG_PLAN)
     with bench() as b:
-        p = subprocess.Popen([JIGCTL, "test", str(plan), "--port", b.tcp_url, "--can-port", b.slcan_url,
-                              "--out", str(tmp_path), "--db", "none", "--yes"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        p = long_run_moving(b, tmp_path)
         try:
-            deadline = time.monotonic() + 60
-            while not node(b).motion.moving:
-                assert p.poll() is None, "jigctl test ended before the move: %s" % (p.communicate(),)
-                assert time.monotonic() < deadline, "the move never started"
-                time.sleep(0.05)
-            time.sleep(0.3)
             p.send_signal(sig)
             out, err = p.communicate(timeout=60)
         finally:
             if p.poll() is None:
                 p.kill()
-        deadline = time.monotonic() + 5
-        while not operation_disabled(b) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert operation_disabled(b), node(b).state
+        wait_operation_disabled(b)
     assert p.returncode == 2, (out, err)
     assert "ABORTED" in out and "Traceback" not in err
