@@ -111,7 +111,10 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 # transaction's 52 bytes of records 12 020, minus its 3 880 with nothing to stream,
 # plus 2 000 for a full 256-byte write's copy). The firmware streams in the drive's
 # turnaround (jig.capture: the stream window), so those stalls mostly cost nothing.
+# An idle pass (both ports' any(), a tick, the line watch's look at the USARTs' BUSY
+# flags; `make test-qemu`, board prices): how late the loop sees a start bit.
 M7_HZ = 400e6
+IDLE_PASS_INSTR = 713
 PASS_INSTR = 1385  # one main-loop pass that read input, without the bytes
 FORWARD_INSTR_PER_BYTE = 452  # each byte read (parse + forward/relay share)
 SLOW_PASS_INSTR = 18920
@@ -124,16 +127,16 @@ def _us(instr):
     return instr / M7_HZ * 1e6
 
 
-# (us/pass, us/byte, us/slow pass[, us/capture write]): SimHAL.cpu_model
-JIG_CPU_MODEL = (_us(PASS_INSTR), _us(FORWARD_INSTR_PER_BYTE), _us(SLOW_PASS_INSTR))
+# (us/pass, us/byte, us/slow pass, us/capture write, us/idle pass): SimHAL.cpu_model
+JIG_CPU_MODEL = (_us(PASS_INSTR), _us(FORWARD_INSTR_PER_BYTE), _us(SLOW_PASS_INSTR), 0.0, _us(IDLE_PASS_INSTR))
 JIG_CPU_MODEL_CAPTURE = (_us(PASS_INSTR), _us(FORWARD_INSTR_PER_BYTE + CAPTURE_INSTR_PER_BYTE),
-                         _us(CAPTURE_SLOW_PASS_INSTR), _us(CAPTURE_WRITE_INSTR))
+                         _us(CAPTURE_SLOW_PASS_INSTR), _us(CAPTURE_WRITE_INSTR), _us(IDLE_PASS_INSTR))
 
 POLL_SLAVE = 2
 
 
 def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model=JIG_CPU_MODEL,
-                 stream_chunk=1, warmup=3, capture=False, pre_us=None):
+                 stream_chunk=1, warmup=3, capture=False, pre_us=None, line_watch=True):
     """A pyserial-style master polls GetAllStatus from driver 2 on the virtual timeline.
 
     The PC sends, waits for the complete reply frame and sends the next request at
@@ -143,13 +146,15 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
     rep_hop_us (driver's last stop bit -> jig's last stop bit of the relayed reply),
     each the mean over the n polls (min and max in *_hop_min/max_us), and where the hop
     goes: req_lag_us / rep_lag_us, first start bit in -> first start bit out (the first
-    byte's own wire time, the DE pre-delay, the CPU until it is sent: ``pre_us``), the
-    rest of the hop being what the frame lost on the way (a transmitter that ran
-    dry). ``capture``: the
+    byte's own wire time, then what of the DE pre-delay was still running when the
+    pass that read it was done -- ``req_pre_left_us`` / ``rep_pre_left_us``, with the
+    pass's CPU from ``cpu_model`` --, then the CPU until it is sent), the rest of the
+    hop being what the frame lost on the way (a transmitter that ran dry). ``capture``: the
     jig records both buses (parameter 13) and streams the records to its capture
     port, which a host reads (``records``: how many reached it, ``lost``: how many
     the jig could not keep). ``pre_us``: the jig's DE pre-delay (parameter 6; None: its
-    default). Raises RuntimeError if a poll gets no good reply.
+    default). ``line_watch=False``: the jig takes a bus when a frame's first byte is
+    in, not at its start bit (the ports show no USART ISR). Raises RuntimeError if a poll gets no good reply.
     """
     kw = dict(driver_ids=(POLL_SLAVE,), baud=baud, turnaround_us=DRIVER_TURNAROUND_US, record=False,
               stream_chunk=stream_chunk)
@@ -161,20 +166,31 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
             params[P.P_CAPTURE] = 1
         if pre_us is not None:
             params[P.P_DE_PRE_US] = pre_us
-        b = SimBench(jig_params=params, cpu_model=cpu_model, **kw)
+        b = SimBench(jig_params=params, cpu_model=cpu_model, line_watch=line_watch, **kw)
         if capture:
             b.capture.host_open()
     ends = {}  # node name -> end of its last segment on the wire
     starts = {}  # node name -> start of its first segment in this poll
+    rises = {}  # node name -> when its DE went up for its first segment in this poll
 
     def seen(seg, data):
         if data:
             ends[seg.node.name] = seg.end
             starts.setdefault(seg.node.name, seg.t0)
+            rises.setdefault(seg.node.name, seg.node.t_rise)
 
     b.up_bus.monitor = seen
     b.down_bus.monitor = seen
-    req_hops, rep_hops, req_lags, rep_lags = [], [], [], []
+    req_hops, rep_hops, req_lags, rep_lags, req_pre, rep_pre = [], [], [], [], [], []
+    pre = 0.0 if direct else b.app.params.get(P.P_DE_PRE_US)
+    first_cpu = cpu_model[0] + cpu_model[1]  # the pass that reads a frame's first byte on its own
+    bt = 10e6 / baud
+
+    def pre_left(src, out):
+        """What of the DE pre-delay still ran when the pass that read src's first byte was done."""
+        ready = starts[src] + bt + first_cpu
+        return max(0.0, min(rises[out] + pre - ready, starts[out] - ready))
+
     t_start = None
     wire = b""
     for i in range(warmup + n):
@@ -182,6 +198,7 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
             t_start = b.clock.now
         ends.clear()
         starts.clear()
+        rises.clear()
         wire, data = b.request(POLL_SLAVE, F.GET_ALL_STATUS, timeout_us=1e6)
         if data is None or data[0] != 0:
             raise RuntimeError("%d baud%s: poll %d got no good GetAllStatus reply"
@@ -191,6 +208,8 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
             rep_hops.append(ends["jig-up"] - ends["driver-%d" % POLL_SLAVE])
             req_lags.append(starts["jig-down"] - starts["pc"])
             rep_lags.append(starts["jig-up"] - starts["driver-%d" % POLL_SLAVE])
+            req_pre.append(pre_left("pc", "jig-down"))
+            rep_pre.append(pre_left("driver-%d" % POLL_SLAVE, "jig-up"))
     period = (b.clock.now - t_start) / n
     out = dict(baud=baud, direct=direct, rate=1e6 / period, period_us=period,
                req_bytes=len(F.encode(POLL_SLAVE, F.GET_ALL_STATUS)), rep_bytes=len(wire), byte_us=10e6 / baud)
@@ -198,7 +217,7 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
         out.update(forward_mode=forward_mode,
                    req_hop_us=sum(req_hops) / n, rep_hop_us=sum(rep_hops) / n,
                    req_lag_us=sum(req_lags) / n, rep_lag_us=sum(rep_lags) / n,
-                   pre_us=b.app.params.get(P.P_DE_PRE_US),
+                   pre_us=pre, req_pre_left_us=sum(req_pre) / n, rep_pre_left_us=sum(rep_pre) / n,
                    req_hop_min_us=min(req_hops), req_hop_max_us=max(req_hops),
                    rep_hop_min_us=min(rep_hops), rep_hop_max_us=max(rep_hops),
                    jig_cpu_us=b.hal.cpu_us)
@@ -220,15 +239,16 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
           % (DRIVER_TURNAROUND_US, cpu_model[0], cpu_model[1]))
     print("   %d + %d instructions at %.0f MHz, 1 instruction per cycle: an assumption)"
           % (round(cpu_model[0] * M7_HZ / 1e6), round(cpu_model[1] * M7_HZ / 1e6), M7_HZ / 1e6))
-    print("   + the slow pass %d instructions)" % round(cpu_model[2] * M7_HZ / 1e6) if len(cpu_model) > 2 else "")
+    print("   + the slow pass %d instructions%s)" % (round(cpu_model[2] * M7_HZ / 1e6), "; an idle pass %d" % round(
+        cpu_model[4] * M7_HZ / 1e6) if len(cpu_model) > 4 else "") if len(cpu_model) > 2 else "")
     direct = {baud: polling_rate(baud, direct=True, n=n) for baud in P.BAUD_RATES}
-    for title, mode, capture, model, pre in (
-            ("cut-through (param 12 = 0)", P.CUT_THROUGH, False, cpu_model, None),
-            ("store-and-forward (param 12 = 1)", P.STORE_AND_FORWARD, False, cpu_model, None),
+    for title, mode, capture, model, watch in (
+            ("cut-through (param 12 = 0)", P.CUT_THROUGH, False, cpu_model, True),
+            ("store-and-forward (param 12 = 1)", P.STORE_AND_FORWARD, False, cpu_model, True),
             ("cut-through, recording both buses (param 13 = 1), the capture port read by a host", P.CUT_THROUGH,
-             True, capture_model, None),
-            ("cut-through, DE pre-delay 1 us (param 6 = 1; default 10): what a transceiver that enables in"
-             " < 1 us allows", P.CUT_THROUGH, False, cpu_model, 1)):
+             True, capture_model, True),
+            ("cut-through without the line watch (DE up when a frame's first byte is in, not at its start bit:"
+             " before)", P.CUT_THROUGH, False, cpu_model, False)):
         cut = mode == P.CUT_THROUGH
         print("    %s:" % title)
         if capture:
@@ -241,7 +261,7 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
         for baud in P.BAUD_RATES:
             d = direct[baud]
             try:
-                j = polling_rate(baud, forward_mode=mode, n=n, cpu_model=model, capture=capture, pre_us=pre)
+                j = polling_rate(baud, forward_mode=mode, n=n, cpu_model=model, capture=capture, line_watch=watch)
             except RuntimeError as exc:  # a firmware that loses replies: say so, measure the rest
                 print("    %7d %10.1f  FAILED: %s" % (baud, d["rate"], exc))
                 continue
@@ -250,7 +270,8 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
                 bt = j["byte_us"]
                 hop = (j["req_hop_us"] + j["rep_hop_us"]) / 2
                 lag = (j["req_lag_us"] + j["rep_lag_us"]) / 2
-                parts = [hop / bt, j["pre_us"] / bt, (lag - bt - j["pre_us"]) / bt, (hop - lag) / bt]
+                pre = (j["req_pre_left_us"] + j["rep_pre_left_us"]) / 2
+                parts = [hop / bt, pre / bt, (lag - bt - pre) / bt, (hop - lag) / bt]
                 split = "  %5.2f = 1 + %.2f + %.2f + %.2f" % tuple(max(0.0, x) for x in parts)  # (no -0.00)
             print("    %7d %10.1f %10.1f %6.1f%% %11.1f %11.1f %8.1f%s%s"
                   % (baud, d["rate"], j["rate"], 100.0 * j["rate"] / d["rate"], j["req_hop_us"],
@@ -259,9 +280,12 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
     print("    (hop = last stop bit of the frame on one bus -> last stop bit of the same frame leaving the")
     print("     jig on the other; a wire would add 0. Cut through, in byte times, the mean of both hops: the")
     print("     first byte's own wire time (the jig must have it before it can send it: a header's AA goes on")
-    print("     at once, it does not wait for its CC), the DE pre-delay before its start bit, the CPU until")
-    print("     it is sent (the pass that read it, and one it may have queued behind), and what the frame")
-    print("     lost on the way after that (the transmitter running dry: 0 while the CPU keeps up))")
+    print("     at once, it does not wait for its CC), what of the DE pre-delay (%d us) still ran when the pass"
+          % P.TABLE[P.P_DE_PRE_US][5])
+    print("     that read it was done (the line watch raises DE at the byte's start bit, so the pre-delay runs")
+    print("     while it arrives), the CPU until it is sent (that pass, and one it may have queued behind),")
+    print("     and what the frame lost on the way after that (the transmitter running dry: 0 while the CPU")
+    print("     keeps up))")
 
 
 def timeline(baud):

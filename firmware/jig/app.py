@@ -57,7 +57,7 @@ from array import array
 from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
-from jig.bridge import Bridge
+from jig.bridge import ARM_BYTES, Bridge
 from jig.canport import CAN_POLL_US, CanPort
 from jig.capture import QUIET_US, Capture
 from jig.compat import NATIVE, const, ticks_add, ticks_diff
@@ -275,6 +275,10 @@ class App:
         can = self.can
         serve = self._can_serve
         port_any = self._can_any
+        bridge = self.bridge
+        watch = bridge.watch_lines if bridge.up_isr is not None or bridge.down_isr is not None else None
+        up_st = up_parser.st
+        down_st = down_parser.st
         rs = ts = None
         if can is not None:
             rs = can.rs
@@ -295,6 +299,8 @@ class App:
                 if n:
                     up_bytes(up_parser, up_rx, n, ticks())
             now = ticks()
+            if watch and not d and not u:
+                watch(up_st, down_st, now)  # a byte starting: DE up on the other bus now
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
                 self._slow(now)
             elif due[2] and (now - due[1]) & TICKS_MASK < TICKS_HALF:
@@ -383,8 +389,13 @@ class App:
         self.due[0] = due
 
     def _gap(self, p, from_pc, now, due):
-        """Drop a partial frame after a silence longer than the inter-byte timeout."""
+        """Drop a partial frame after a silence longer than the inter-byte timeout; let
+        the other bus go if a byte seen starting here armed it and never came."""
         st = p.st
+        rs = self.down if from_pc else self.up
+        armed = rs.early[1]
+        if armed >= 0 and ticks_diff(now, armed) > ARM_BYTES * st[_parser.S_BYTE_US]:
+            rs.disarm()  # (idle passes do it first: Bridge.watch_lines)
         if st[_parser.S_STATE] == _parser.HUNT:
             return due
         if self.bridge.gap(p, from_pc, now):

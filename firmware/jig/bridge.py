@@ -53,7 +53,7 @@ from jig.counters import (C_ABORTS, C_BROADCASTS, C_CUT_CORRUPT, C_CUT_TRUNCATED
                           C_LOCAL_ERRORS, C_RELAY_CORRUPT, C_REPLIES, C_STALE, C_TIMEOUTS, C_UNAWAITED, C_UP_IN,
                           C_UP_OUT)
 from jig.parser import (A_END, A_RESYNC, A_STORE, A_STUFF_ERROR, EV_DROP, EV_FRAME, EV_HEAD, EV_START, HEADER, HUNT,
-                        MIN_BODY, S_DROP_N, S_EVENT, S_N, S_STATE, S_T_LAST, S_WHY, TABLES)
+                        MIN_BODY, S_BYTE_US, S_DROP_N, S_EVENT, S_N, S_STATE, S_T_LAST, S_WHY, TABLES)
 from jig.compat import const, ticks_diff
 from jig.params import P_INTERBYTE_US, P_REPLY_TIMEOUT_MS, P_SLAVE_ID
 
@@ -219,6 +219,8 @@ _V_OVERLONG = const(4)
 _V_RESYNC = const(6)
 _V_SHORT = const(3)
 _V_TIMEOUT = const(5)
+ISR_BUSY = const(1 << 16)  # USART_ISR.BUSY (RM0433): a byte is being received (start bit seen)
+ARM_BYTES = const(2)  # an armed bus is let go if no byte came within this many byte times
 _PIECE = const(16)  # bytes of a paced reply written at a time (the USART's transmit FIFO)
 _SHORT_STUB = const(3 << 8)  # _V_SHORT << 8: a stub ended with a tail (const() takes no imported name)
 
@@ -245,6 +247,15 @@ def drop_verdict(st):
     return _V_BAD_CRC
 
 
+def _isr_block(rs):
+    """The USART ISR of rs's port as a word-indexed block, or None: only a plain port's,
+    and only where it is an object (an address is for the machine-code pump)."""
+    isr = getattr(rs.port, "isr", None)
+    if not rs.plain or isr is None or isinstance(isr, int):
+        return None
+    return isr
+
+
 class Bridge:
     def __init__(self, hal, up, down, handlers, params, counters, ver8=False, cut_through=True, due=None,
                  capture=None, down_parser=None):
@@ -261,6 +272,12 @@ class Bridge:
         # Cut through between plain ports, the other bus is taken (DE up) and the AA
         # sent on as soon as a byte that can start a header is in (``_early``).
         self.early_ok = cut_through and up.plain and down.plain
+        # ... and earlier still, at the start bit of that byte (``watch_lines``), where
+        # the receiving port shows its USART's ISR as a word-indexed block (``isr``:
+        # the simulated ports; on the board the machine-code pump reads the register
+        # itself, and this portable loop runs only store-and-forward there).
+        self.up_isr = _isr_block(up) if self.early_ok else None
+        self.down_isr = _isr_block(down) if self.early_ok else None
         self.head = 3 if ver8 else 2  # id, [sync], type
         # due[0]: tick by which the app's slow pass must run (the reply deadline).
         self.due = due if due is not None else array("i", [0])
@@ -661,6 +678,38 @@ class Bridge:
                 self._watch_line(now)
         elif rs.early[0] >= 0:
             self._drop_early(rs)
+        elif rs.early[1] >= 0 and st[S_STATE] == HUNT:
+            rs.disarm()  # the byte whose start armed it was no AA
+
+    def watch_lines(self, up_st, down_st, now):
+        """An idle pass, cut through: a byte starting on a bus (its USART's BUSY flag)
+        where a frame's AA would go on at once (``_early``: from the PC while the
+        bridge is idle, from the drivers while a reply is awaited), after a silence of
+        a byte time or more (a frame's first byte, not one of a stream of noise), with
+        its parser hunting for a header: take the other bus now (``Rs485.arm``), so
+        the DE pre-delay runs while the byte arrives instead of after it. ``_early``
+        goes on when the byte is in, or lets the bus go if it is no AA; an idle pass
+        lets it go if none came within ``ARM_BYTES`` byte times (the slow pass too:
+        ``App._gap``)."""
+        down = self.down
+        if down.early[1] >= 0 and (now - down.early[1]) & _TICKS_MASK > ARM_BYTES * up_st[S_BYTE_US]:
+            down.disarm()
+        up = self.up
+        if up.early[1] >= 0 and (now - up.early[1]) & _TICKS_MASK > ARM_BYTES * down_st[S_BYTE_US]:
+            up.disarm()
+        bs = self.bs
+        if bs[B_FWD] or bs[B_REL]:
+            return
+        state = bs[B_STATE]
+        if state == IDLE:
+            isr, st, rs = self.up_isr, up_st, self.down
+        elif state == AWAIT_PC:
+            isr, st, rs = self.down_isr, down_st, self.up
+        else:
+            return
+        if (isr is not None and isr[0] & ISR_BUSY and st[S_STATE] == HUNT and rs.early[0] < 0
+                and rs.early[1] < 0 and (now - st[S_T_LAST]) & _TICKS_MASK > st[S_BYTE_US]):
+            rs.arm(now)
 
     def _drop_early(self, rs):
         """No header followed the AA sent on early: let rs go (no copy to record)."""

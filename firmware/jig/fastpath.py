@@ -52,7 +52,7 @@ try:
     import micropython
 except ImportError:  # CPython: run the source as plain Python
     from jig.compat import micropython_shim as micropython
-from jig.compat import const, ptr8, ptr16, ptr32  # noqa: F401 (casts under viper)
+from jig.compat import NATIVE, const, ptr8, ptr16, ptr32  # noqa: F401 (casts under viper)
 
 _RX_CHUNK = const(256)  # app.RX_CHUNK
 # jig.canport: its own pass's period, its ring's (CanPort.rs) and FIFO's (CanPort.ts) indices
@@ -108,6 +108,8 @@ _A_STUFF_ERROR = const(8)
 _CRC_AT = const(512)  # jig.native: the CRC table's first u16 in parser.TABLES
 # jig.uartport: the USART's transmit FIFO
 _ISR_TXFNF = const(1 << 7)
+_ISR_BUSY = const(1 << 16)  # jig.bridge.ISR_BUSY: a byte is being received
+_ARM_BYTES = const(2)  # jig.bridge.ARM_BYTES
 _TDR = const(3)  # USART_TDR_WORDS_AFTER_ISR
 _TX_FIFO_SPINS = const(1 << 20)
 # jig.bridge
@@ -193,6 +195,16 @@ def _fifo(rs):
     return 1, regs
 
 
+def _line_isr(rs):
+    """(1, the port's USART ISR) where the pump may watch its line for a start bit
+    (``Bridge.watch_lines``): a plain port with ``isr`` (an address on the board, a
+    word-indexed object in the simulation), else (0, a dummy)."""
+    isr = getattr(rs.port, "isr", None)
+    if not rs.plain or isr is None or (isinstance(isr, int) and not NATIVE):
+        return 0, _NO_REGS
+    return 1, isr
+
+
 def context(app):
     """What ``pump`` works with, bound once (a tuple: pump unpacks it at each call)."""
     b = app.bridge
@@ -206,6 +218,8 @@ def context(app):
     enc = native_source()  # jig.native: put_body and stuff (as Python on CPython)
     up_fifo, up_regs = _fifo(app.up)
     down_fifo, down_regs = _fifo(app.down)
+    up_watch, up_isr = _line_isr(app.up)
+    down_watch, down_isr = _line_isr(app.down)
     # the CAN port's queues and its host port's any (looked at only while it is open: due[2])
     can_rs = can_ts = _NO_REGS
     can_any = up.any
@@ -224,7 +238,7 @@ def context(app):
             TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS,
             app.handlers.handle, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
             crc.TABLE, app.capture.cs, app.capture.ring, app.capture.put, b.xt, up_fifo, up_regs, down_fifo, down_regs,
-            can_rs, can_ts, can_any)
+            can_rs, can_ts, can_any, up_watch & down_watch, up_isr, down_isr)
 
 
 @micropython.viper
@@ -237,7 +251,7 @@ def pump(ctx, passes: int) -> int:
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
      flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
      crc_table, cs_arr, cap_ring, cap_put, xt_arr, up_fifo, up_regs, down_fifo, down_regs,
-     can_rs, can_ts, can_any) = ctx
+     can_rs, can_ts, can_any, line_watch, up_isr, down_isr) = ctx
     head = int(head_obj)
     reply = ptr8(reply_buf)
     ust = ptr32(up_st)
@@ -265,6 +279,9 @@ def pump(ctx, passes: int) -> int:
     dreg = ptr32(down_regs)
     crs = ptr32(can_rs)
     cts = ptr32(can_ts)
+    lw = int(line_watch)  # 1: watch both lines for a frame's first start bit (Bridge.watch_lines)
+    uisr = ptr32(up_isr)
+    disr = ptr32(down_isr)
     while passes != 0:
         if passes > 0:
             passes -= 1
@@ -278,6 +295,27 @@ def pump(ctx, passes: int) -> int:
             avail = int(up_any())
             if avail == 0:  # an idle pass
                 t = int(ticks())
+                # Bridge.watch_lines: an armed bus whose byte never came is let go ...
+                if dearly[1] >= 0 and ((t - dearly[1]) & _MASK) > _ARM_BYTES * ust[_S_BYTE_US]:
+                    dearly[1] = -1  # Rs485.disarm
+                    down_de(0)
+                if uearly[1] >= 0 and ((t - uearly[1]) & _MASK) > _ARM_BYTES * dst[_S_BYTE_US]:
+                    uearly[1] = -1
+                    up_de(0)
+                if lw != 0 and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
+                    # ... and a frame's first byte starting takes the other bus now (DE up),
+                    # so the pre-delay runs while the byte arrives
+                    state = bs[_B_STATE]
+                    if state == _IDLE:
+                        if ((uisr[0] & _ISR_BUSY) != 0 and ust[_S_STATE] == _HUNT and dearly[0] < 0
+                                and dearly[1] < 0 and ((t - ust[_S_T_LAST]) & _MASK) > ust[_S_BYTE_US]):
+                            down_de(1)  # Rs485.arm
+                            dearly[1] = t
+                    elif state == _AWAIT_PC:
+                        if ((disr[0] & _ISR_BUSY) != 0 and dst[_S_STATE] == _HUNT and uearly[0] < 0
+                                and uearly[1] < 0 and ((t - dst[_S_T_LAST]) & _MASK) > dst[_S_BYTE_US]):
+                            up_de(1)
+                            uearly[1] = t
                 if ((t - due[0]) & _MASK) < _HALF:
                     return passes
                 if due[2] != 0 and ((t - due[1]) & _MASK) < _HALF:
@@ -453,8 +491,12 @@ def pump(ctx, passes: int) -> int:
                                     up_queue(hdr_buf, 1, 1)
                             else:
                                 cs[_CS_START + _CH_PC_OUT] = now
-                                up_de(1)
-                                wait = int(ram[_P_DE_PRE_US])
+                                if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
+                                    wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                    uearly[1] = -1
+                                else:
+                                    up_de(1)
+                                    wait = int(ram[_P_DE_PRE_US])
                                 if wait > 0:
                                     sleep(wait)
                                 up_queue(hdr_buf, 0, 2)
@@ -495,8 +537,12 @@ def pump(ctx, passes: int) -> int:
                                 up_queue(hdr_buf, 1, k - 1)
                             else:
                                 cs[_CS_START + _CH_PC_OUT] = now
-                                up_de(1)
-                                wait = int(ram[_P_DE_PRE_US])
+                                if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
+                                    wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                    uearly[1] = -1
+                                else:
+                                    up_de(1)
+                                    wait = int(ram[_P_DE_PRE_US])
                                 if wait > 0:
                                     sleep(wait)
                                 up_queue(hdr_buf, 0, k)
@@ -543,8 +589,12 @@ def pump(ctx, passes: int) -> int:
                                 down_queue(hdr_buf, 1, 1)
                         else:
                             cs[_CS_START + _CH_DRV_OUT] = now
-                            down_de(1)
-                            wait = int(ram[_P_DE_PRE_US])
+                            if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
+                                wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                dearly[1] = -1
+                            else:
+                                down_de(1)
+                                wait = int(ram[_P_DE_PRE_US])
                             if wait > 0:
                                 sleep(wait)
                             down_queue(hdr_buf, 0, 2)
@@ -660,8 +710,12 @@ def pump(ctx, passes: int) -> int:
                             uearly[0] = -1  # (the reply's AA has gone)
                             up_write(txbuf, 1, m - 1)
                         else:
-                            up_de(1)
-                            wait = int(ram[_P_DE_PRE_US])
+                            if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
+                                wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                uearly[1] = -1
+                            else:
+                                up_de(1)
+                                wait = int(ram[_P_DE_PRE_US])
                             if wait > 0:
                                 sleep(wait)
                             up_write(txbuf, 0, m)
@@ -696,9 +750,14 @@ def pump(ctx, passes: int) -> int:
                 # Bridge._early: an AA that may start a reply's header goes on to the PC at once
                 if dst[_S_STATE] == _HEADER:
                     if uearly[0] < 0 and bs[_B_STATE] == _AWAIT_PC and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
-                        up_de(1)  # Rs485.raise_early
-                        uearly[0] = now
-                        wait = int(ram[_P_DE_PRE_US])
+                        # Rs485.raise_early
+                        uearly[0] = uearly[1] if uearly[1] >= 0 else now
+                        if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
+                            wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                            uearly[1] = -1
+                        else:
+                            up_de(1)
+                            wait = int(ram[_P_DE_PRE_US])
                         if wait > 0:
                             sleep(wait)
                         cs[_CS_START + _CH_PC_OUT] = int(ticks())  # (the copy's start: its AA handed over)
@@ -717,13 +776,21 @@ def pump(ctx, passes: int) -> int:
                     if post != 0:
                         sleep(post)
                     up_de(0)
+                elif uearly[1] >= 0 and dst[_S_STATE] == _HUNT:
+                    uearly[1] = -1  # Rs485.disarm: the byte whose start armed it was no AA
+                    up_de(0)
             else:
                 # Bridge._early: an AA that may start a PC header goes on to the driver bus at once
                 if ust[_S_STATE] == _HEADER:
                     if dearly[0] < 0 and bs[_B_STATE] == _IDLE and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
-                        down_de(1)  # Rs485.raise_early
-                        dearly[0] = now
-                        wait = int(ram[_P_DE_PRE_US])
+                        # Rs485.raise_early
+                        dearly[0] = dearly[1] if dearly[1] >= 0 else now
+                        if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
+                            wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                            dearly[1] = -1
+                        else:
+                            down_de(1)
+                            wait = int(ram[_P_DE_PRE_US])
                         if wait > 0:
                             sleep(wait)
                         cs[_CS_START + _CH_DRV_OUT] = int(ticks())  # (the copy's start: its AA handed over)
@@ -741,6 +808,9 @@ def pump(ctx, passes: int) -> int:
                     post = int(ram[_P_DE_POST_US])
                     if post != 0:
                         sleep(post)
+                    down_de(0)
+                elif dearly[1] >= 0 and ust[_S_STATE] == _HUNT:
+                    dearly[1] = -1  # Rs485.disarm: the byte whose start armed it was no AA
                     down_de(0)
             avail = 0
             if side == 0:

@@ -10,7 +10,11 @@ bit of the last part. On a plain port the bus may be taken early
 arrives on the other bus): DE up, the pre-delay, and that AA goes on at once, as
 on a wire; the ``begin`` that follows sends its header from the CC, and
 ``drop_early`` lets the bus go if no header followed (the line then carried a lone
-AA, as a wire would have). Where the port can queue bytes for its transmitter
+AA, as a wire would have). The bus may be taken earlier still, when that byte's
+start bit is seen on the other bus (``arm``: DE up, nothing sent): the pre-delay
+then runs while the byte arrives, and whoever takes the bus next (``raise_early``,
+``begin``) waits only for what is left of it; ``disarm`` lets it go if no AA came.
+Where the port can queue bytes for its transmitter
 (``port.queue``/``port.drain``: the USART's transmit FIFO on the board), the
 pieces of such a frame are queued and the CPU goes on while they go out;
 ``finish`` drains the transmitter before DE drops. So DE is never dropped with
@@ -31,7 +35,7 @@ counted. A port that declares ``echo_free`` (receiver off whenever DE is up, as
 from array import array
 
 from jig import mem
-from jig.compat import const
+from jig.compat import const, ticks_diff
 
 BITS_PER_BYTE = const(10)  # 8N1: start + 8 data + stop
 _AA = b"\xaa"  # the header's first byte, sent ahead of the rest (raise_early)
@@ -54,9 +58,10 @@ class Rs485:
         self.echo_bytes = 0  # bytes discarded as echo
         self.t_tx_start = 0  # tick when the last ``send`` took the bus
         # early[0]: tick at which DE went up ahead of a frame and its AA was sent
-        # (``raise_early``), -1: it did not. An array: the machine-code pump
-        # (jig.fastpath) shares it.
-        self.early = array("i", [-1])
+        # (``raise_early``), -1: it did not. early[1]: tick at which DE went up as a
+        # byte started on the other bus, nothing sent yet (``arm``), -1: not armed.
+        # An array: the machine-code pump (jig.fastpath) shares it.
+        self.early = array("i", [-1, -1])
         self._keep = 0  # bytes still to deliver before the echo to skip
         self._skip = 0  # echo bytes still to skip
         self._expect = 0  # bytes in the receive buffer, as last seen (echo bookkeeping)
@@ -113,9 +118,7 @@ class Rs485:
                 if n > 1:
                     self.raw_part(buf, off + 1, n - 1)
                 return
-            self._de(1)
-            if self.pre_us:
-                self._sleep(self.pre_us)
+            self._take()
             self.raw_part(buf, off, n)
             return
         if self.track_echo:
@@ -154,17 +157,48 @@ class Rs485:
         if self.track_echo:
             self._note_echo()
 
+    def _take(self):
+        """Plain port: DE up and the pre-delay; if the bus was armed, DE is up already
+        and only what is left of the pre-delay is waited."""
+        early = self.early
+        armed = early[1]
+        if armed < 0:
+            self._de(1)
+            if self.pre_us:
+                self._sleep(self.pre_us)
+            return
+        early[1] = -1
+        if self.pre_us:
+            left = self.pre_us - ticks_diff(self._ticks(), armed)
+            if left > 0:
+                self._sleep(left)
+
     def raise_early(self):
         """Plain port: an AA that may start a header came in on the other bus: take
         this bus (DE up, the pre-delay) and send the AA on now, a byte time before its
         CC can be in; the next ``begin`` sends the header from the CC, or
         ``drop_early`` ends it."""
-        if self.early[0] < 0:
-            self._de(1)
-            self.early[0] = self._ticks()
-            if self.pre_us:
-                self._sleep(self.pre_us)
+        early = self.early
+        if early[0] < 0:
+            early[0] = early[1] if early[1] >= 0 else self._ticks()
+            self._take()
             self.raw_part(_AA, 0, 1)
+
+    def arm(self, now):
+        """Plain port: a byte is arriving on the other bus (its start bit is seen) where
+        a frame's AA would go on at once: DE up now, nothing sent, so the pre-delay
+        runs while the byte arrives. ``raise_early``/``begin`` go on from here,
+        ``disarm`` ends it."""
+        early = self.early
+        if early[0] < 0 and early[1] < 0:
+            self._de(1)
+            early[1] = now
+
+    def disarm(self):
+        """The byte seen starting was no AA, or never came: DE down (nothing was sent)."""
+        if self.early[1] >= 0:
+            self.early[1] = -1
+            self._de(0)
 
     def drop_early(self):
         """No header followed the AA sent early: let the bus go (as ``finish``)."""

@@ -174,6 +174,8 @@ class UartPort:
         # any buffer laid out like ISR..TDR in the tests); without them the port has
         # only the blocking write.
         self.regs = self._isr
+        # ``isr``: where the pump watches the line for a start bit (ISR.BUSY, jig.bridge.watch_lines)
+        self.isr = self._isr
         if self._isr is None:
             self.queue = None
             self.drain = None

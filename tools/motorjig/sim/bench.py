@@ -151,6 +151,7 @@ class JigRunner:
         self.polls = 0
         self.t_last_run = None
         self.same_instant = 0
+        self.missed = False  # a wake came while a poll ran (a start bit seen during a slow pass)
         self._reschedule()
 
     def wake(self):
@@ -167,7 +168,8 @@ class JigRunner:
             return  # superseded by an earlier poll
         self.t_next = None
         if self.in_poll:
-            return  # the running poll reschedules when it returns
+            self.missed = True  # the running poll reschedules when it returns, at once
+            return
         self.in_poll = True
         try:
             self.hal.begin_pass()
@@ -179,6 +181,11 @@ class JigRunner:
 
     def _reschedule(self):
         w = self.app.wait_us()
+        if self.missed:
+            # The board's loop runs on after a long pass and would see what woke us then
+            # (a start bit: the line watch): an idle pass now.
+            self.missed = False
+            w = 0
         if w < 0:
             return
         # Bytes that came in while the poll was blocked in a write are handled at once
@@ -204,6 +211,8 @@ class SimBench:
     on the virtual timeline (see ``hal``); default (0, 0). ``wiring``: the jig's I/O
     wired to a drive (a ``Wiring`` or a TOML file; its slave, else the first driver).
     ``faults``: (slave or None, name, value) each, as ``set_fault``.
+    ``line_watch=False``: the jig's ports show no USART ISR (``hal.SimIsr``), so it
+    takes a bus at a frame's first byte, not at its start bit (the bench's "before").
     """
 
     def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
@@ -211,7 +220,7 @@ class SimBench:
                  echo_down=False, record=True, servo_on=False, start_us=None, jig_ver8=None,
                  ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0), fastpath=None,
                  wiring=None, faults=(), can_nodes=(), can_bitrate=500000, can_node_factory=None, can=None,
-                 direct_can=False):
+                 direct_can=False, line_watch=True):
         """``ver8``: the default variant of the jig and every driver. ``jig_ver8``
         (None: ``ver8``) sets the jig's protocol parameter; ``ver8_drivers`` (None:
         every driver follows ``ver8``) lists the ids of the Ver8 drivers, all others
@@ -272,7 +281,7 @@ class SimBench:
         self.fs = fs if fs is not None else SimFS()
         self.hal = SimHAL(self.clock, self.up_bus, self.down_bus, self.fs, rxsize=rxsize,
                           echo_up=echo_up, echo_down=echo_down, record=record, cpu_model=cpu_model,
-                          can_bus=None if self.can_adapter is not None else self.can_bus)
+                          can_bus=None if self.can_adapter is not None else self.can_bus, line_watch=line_watch)
         if settings or fresh:
             self.write_params(settings)
         self.runner = JigRunner(self.clock, self.hal, DEFAULT_FASTPATH if fastpath is None else fastpath)

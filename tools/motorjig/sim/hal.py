@@ -10,13 +10,15 @@ filesystem that can lose power in the middle of a write.
 The ports are streaming receivers on their buses (see ``link``): bytes reach the
 ring buffer one chunk at a time while a frame is still arriving, as the UART
 interrupt would put them there. ``SimHAL.cpu_model`` = (µs per pass, µs per byte
-[, µs per slow pass [, µs per capture write]]) charges the jig's CPU time on the
+[, µs per slow pass [, µs per capture write [, µs per idle pass]]]) charges the jig's CPU time on the
 virtual timeline: the first read that returns bytes in a main-loop pass advances
 the clock by the per-pass cost, and every read by the per-byte cost times the
 bytes it returned, so whatever the pass does with them (forwarding, answering)
 happens that much later; each slow pass costs its share where it feeds the
-watchdog, and each write that hands records to the capture port its own. Bytes
-keep arriving meanwhile. Default (0, 0): the CPU is infinitely fast.
+watchdog, and each write that hands records to the capture port its own; an idle
+pass is how late the loop sees a start bit (``SimIsr``: the USART's BUSY flag,
+which the pump watches while idle). Bytes keep arriving meanwhile. Default (0, 0):
+the CPU is infinitely fast.
 
 The jig's I/O can be wired to a simulated drive (``SimBench(wiring=...)``):
 ``input_source`` adds bits to what ``get_inputs`` returns, computed when it is
@@ -89,10 +91,29 @@ class SimFS:
         self.files.pop(path, None)
 
 
+class SimIsr:
+    """A port's USART ISR as the pump reads it (``isr[0]``): only BUSY (bit 16, a
+    byte is being received) is modelled, set from the start bit of a transmission
+    on the bus until its end, as the main loop sees it: ``SimPort.busy_delay``
+    after the start bit (the USART confirms a start bit in half a bit; an idle pass
+    of the loop may be under way)."""
+
+    BUSY = 1 << 16
+
+    def __init__(self, port):
+        self.port = port
+
+    def __getitem__(self, i):
+        if i != 0:
+            raise IndexError("SimIsr: only the ISR word (0) is modelled")
+        p = self.port
+        return self.BUSY if p.bus.receiving(p.node, p.busy_delay) else 0
+
+
 class SimPort:
     """One jig UART + RS-485 transceiver on a simulated bus."""
 
-    def __init__(self, hal, bus, name, rxsize=4096, echo=False):
+    def __init__(self, hal, bus, name, rxsize=4096, echo=False, line_watch=True):
         self.hal = hal
         self.bus = bus
         self.node = bus.add_node(name, self._rx, echo=echo, record=hal.record, stream=True)
@@ -102,6 +123,12 @@ class SimPort:
         self.echo_free = not echo  # a receiver that hears our own transmission: echo
         self.t_last = 0
         self.writes = []  # (t_start, t_end, bytes) of every write, if hal.record
+        # The USART's ISR.BUSY (SimIsr): the main loop sees a start bit half a bit after
+        # it began plus an idle pass (SimHAL.cpu_model's fifth figure), and is woken then.
+        self.isr = SimIsr(self) if line_watch else None
+        self.busy_delay = 0.5e6 / self.baud + hal.us_per_idle_pass
+        if line_watch:
+            self.node.on_start = self._start
 
     @property
     def overflows(self):
@@ -154,6 +181,9 @@ class SimPort:
         self.node.hw_pre_us = pre16 * bit_us / 16
         self.node.hw_post_us = post16 * bit_us / 16
         return True
+
+    def _start(self, seg):
+        self.hal.clock.at(seg.t0 + self.busy_delay, self.hal.on_rx)
 
     def _rx(self, data, t):
         self.ring.write(data, len(data), int(t) & 0x3FFFFFFF)
@@ -279,7 +309,7 @@ class SimCapturePort:
 class SimHAL:
     def __init__(self, clock, up_bus, down_bus, fs=None, param_path="/flash/jigparams.bin",
                  rxsize=4096, echo_up=False, echo_down=False, record=True, cpu_model=(0.0, 0.0),
-                 capture_tx=CDC_TX_SIZE, can_bus=None):
+                 capture_tx=CDC_TX_SIZE, can_bus=None, line_watch=True):
         self.clock = clock
         self.up_bus = up_bus
         self.down_bus = down_bus
@@ -298,10 +328,11 @@ class SimHAL:
         self.up = None
         self.down = None
         self.rx_callback = None  # the bench's "wake the main loop"
-        model = tuple(float(x) for x in cpu_model) + (0.0, 0.0)
-        if len(cpu_model) not in (2, 3, 4):
-            raise ValueError("cpu_model: (us per pass, us per byte[, us per slow pass[, us per capture write]])")
-        self.us_per_pass, self.us_per_byte, self.us_per_slow_pass, us_per_write = model[:4]
+        model = tuple(float(x) for x in cpu_model) + (0.0, 0.0, 0.0)
+        if len(cpu_model) not in (2, 3, 4, 5):
+            raise ValueError("cpu_model: (us per pass, us per byte[, us per slow pass[, us per capture write"
+                             "[, us per idle pass]]])")
+        self.us_per_pass, self.us_per_byte, self.us_per_slow_pass, us_per_write, self.us_per_idle_pass = model[:5]
         if min(model) < 0:
             raise ValueError("cpu_model: times must not be negative")
         self.pass_charged = True  # set False by the bench at the start of each pass
@@ -309,6 +340,7 @@ class SimHAL:
         self.capture = SimCapturePort(clock, capture_tx)  # jig.capture's port (the second USB CDC)
         self.capture.cpu_us_per_write = us_per_write
         self.can_bus = can_bus
+        self.line_watch = line_watch  # the ports show their USART's ISR.BUSY (SimIsr)
         self.can = None  # the FDCAN1 controller once opened (canhal.SimCan)
         self.slcan = None
         if can_bus is not None:
@@ -337,8 +369,8 @@ class SimHAL:
     def open(self, up_baud, down_baud):
         self.up_bus.set_baud(up_baud)
         self.down_bus.set_baud(down_baud)
-        self.up = SimPort(self, self.up_bus, "jig-up", self.rxsize, self.echo_up)
-        self.down = SimPort(self, self.down_bus, "jig-down", self.rxsize, self.echo_down)
+        self.up = SimPort(self, self.up_bus, "jig-up", self.rxsize, self.echo_up, self.line_watch)
+        self.down = SimPort(self, self.down_bus, "jig-down", self.rxsize, self.echo_down, self.line_watch)
 
     def ticks_us(self):
         return self.clock.ticks_us()

@@ -104,6 +104,7 @@ class Node:
         self.last_byte = -1  # the last byte we queued (corruption looks across pieces)
         self.corrupt_hold = False  # a frame of ours was corrupted and its tail is not sent yet
         self.corrupt_esc = False  # while holding: the last byte was an unpaired 0xAA
+        self.on_start = None  # fn(segment): another node's transmission starts (a UART's start bit)
 
     def corrupt(self, n=1):
         """Flip a bit (see ``flip_for_crc``) in each of our next n transmissions."""
@@ -220,6 +221,9 @@ class Bus:
         self.in_flight.append(seg)
         if node.auto_de:
             node.set_de(1, t0)
+        for nd in self.nodes:
+            if nd.on_start is not None and nd is not node and data:
+                clock.at(t0, nd.on_start, seg)
         n = len(data)
         if n > 1 and self._streamed(node):
             seg.got = bytearray()
@@ -228,6 +232,18 @@ class Bus:
         else:
             clock.at(seg.end, self._deliver, seg)
         return seg.end
+
+    def receiving(self, node, delay=0.0):
+        """Is a byte of another node's arriving at node now (a UART's ISR.BUSY: from
+        its start bit, seen ``delay`` µs after the segment began, to the segment's
+        end)? Only what is on the line counts: a sender's DE must be up."""
+        now = self.clock.now
+        for seg in self.in_flight:
+            other = seg.node
+            if (other is not node and seg.t0 + delay <= now < seg.end
+                    and (other.de or other.auto_de or other.hw_de)):
+                return True
+        return False
 
     def _overlapping(self, seg):
         for other in self.in_flight:
