@@ -415,6 +415,9 @@ class App:
             return 0
         now = hal.ticks_us()
         d = ticks_diff(self.due[0], now)
+        # a bus armed by the line watch is let go by an idle pass ARM_BYTES byte times on
+        d = _armed_wait(self.down, self.up_parser, now, d)
+        d = _armed_wait(self.up, self.down_parser, now, d)
         can = self.can
         if can is not None and can.is_open:
             due = self.due
@@ -428,6 +431,16 @@ class App:
             else:
                 due[1] = ticks_add(now, w + CAN_IDLE_PARK)
         return d if d > 0 else 0
+
+
+def _armed_wait(rs, p, now, d):
+    """The smaller of d and the µs until an idle pass would let rs go (armed by a
+    start bit on p's bus that has not become a byte)."""
+    armed = rs.early[1]
+    if armed < 0:
+        return d
+    w = ARM_BYTES * p.st[_parser.S_BYTE_US] + 1 - ticks_diff(now, armed)
+    return w if w < d else d
 
 
 def _earlier(due, now, wait):

@@ -183,6 +183,7 @@ _STUB = const(3 << 8)  # V_SHORT << 8: the verdict of a stub ended with a tail
 
 
 _NO_REGS = array("i", [0, 0, 0, 0])  # (a register block for a port without one: never written)
+_NO_ISR = array("i", [0])  # (an ISR for a port without one: never BUSY; never written)
 
 
 def _fifo(rs):
@@ -196,13 +197,13 @@ def _fifo(rs):
 
 
 def _line_isr(rs):
-    """(1, the port's USART ISR) where the pump may watch its line for a start bit
-    (``Bridge.watch_lines``): a plain port with ``isr`` (an address on the board, a
-    word-indexed object in the simulation), else (0, a dummy)."""
+    """The port's USART ISR where the pump may watch its line for a start bit
+    (``Bridge.watch_lines``): a plain port's ``isr`` (an address on the board, a
+    word-indexed object in the simulation), else a block of zeros (never BUSY)."""
     isr = getattr(rs.port, "isr", None)
     if not rs.plain or isr is None or (isinstance(isr, int) and not NATIVE):
-        return 0, _NO_REGS
-    return 1, isr
+        return _NO_ISR
+    return isr
 
 
 def context(app):
@@ -218,8 +219,8 @@ def context(app):
     enc = native_source()  # jig.native: put_body and stuff (as Python on CPython)
     up_fifo, up_regs = _fifo(app.up)
     down_fifo, down_regs = _fifo(app.down)
-    up_watch, up_isr = _line_isr(app.up)
-    down_watch, down_isr = _line_isr(app.down)
+    up_isr = _line_isr(app.up)
+    down_isr = _line_isr(app.down)
     # the CAN port's queues and its host port's any (looked at only while it is open: due[2])
     can_rs = can_ts = _NO_REGS
     can_any = up.any
@@ -238,7 +239,7 @@ def context(app):
             TIMEOUT_MULTIPLIER, FLAT_NEXT, FLAT_FLAGS,
             app.handlers.handle, app.handlers, app.handlers.after_reply, b.reply, b.body, b.txbuf, b.head, enc.put_body, enc.stuff,
             crc.TABLE, app.capture.cs, app.capture.ring, app.capture.put, b.xt, up_fifo, up_regs, down_fifo, down_regs,
-            can_rs, can_ts, can_any, up_watch & down_watch, up_isr, down_isr)
+            can_rs, can_ts, can_any, up_isr, down_isr)
 
 
 @micropython.viper
@@ -251,7 +252,7 @@ def pump(ctx, passes: int) -> int:
      tables, pc_event, down_event, bs_arr, v_arr, due_arr, ram, hdr_buf, tail, tmult_buf, next_buf,
      flags_buf, handle, handlers, after_reply, reply_buf, reply_body, txbuf, head_obj, put_body, stuff,
      crc_table, cs_arr, cap_ring, cap_put, xt_arr, up_fifo, up_regs, down_fifo, down_regs,
-     can_rs, can_ts, can_any, line_watch, up_isr, down_isr) = ctx
+     can_rs, can_ts, can_any, up_isr, down_isr) = ctx
     head = int(head_obj)
     reply = ptr8(reply_buf)
     ust = ptr32(up_st)
@@ -279,7 +280,7 @@ def pump(ctx, passes: int) -> int:
     dreg = ptr32(down_regs)
     crs = ptr32(can_rs)
     cts = ptr32(can_ts)
-    lw = int(line_watch)  # 1: watch both lines for a frame's first start bit (Bridge.watch_lines)
+    # the lines' USART ISRs (Bridge.watch_lines; without them a block of zeros: never BUSY)
     uisr = ptr32(up_isr)
     disr = ptr32(down_isr)
     while passes != 0:
@@ -296,15 +297,16 @@ def pump(ctx, passes: int) -> int:
             if avail == 0:  # an idle pass
                 t = int(ticks())
                 # Bridge.watch_lines: an armed bus whose byte never came is let go ...
-                if dearly[1] >= 0 and ((t - dearly[1]) & _MASK) > _ARM_BYTES * ust[_S_BYTE_US]:
-                    dearly[1] = -1  # Rs485.disarm
-                    down_de(0)
-                if uearly[1] >= 0 and ((t - uearly[1]) & _MASK) > _ARM_BYTES * dst[_S_BYTE_US]:
-                    uearly[1] = -1
-                    up_de(0)
-                if lw != 0 and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
-                    # ... and a frame's first byte starting takes the other bus now (DE up),
-                    # so the pre-delay runs while the byte arrives
+                if (dearly[1] & uearly[1]) >= 0:  # (either is >= 0: one test while neither is)
+                    if dearly[1] >= 0 and ((t - dearly[1]) & _MASK) > _ARM_BYTES * ust[_S_BYTE_US]:
+                        dearly[1] = -1  # Rs485.disarm
+                        down_de(0)
+                    if uearly[1] >= 0 and ((t - uearly[1]) & _MASK) > _ARM_BYTES * dst[_S_BYTE_US]:
+                        uearly[1] = -1
+                        up_de(0)
+                # ... and a frame's first byte starting takes the other bus now (DE up), so
+                # the pre-delay runs while the byte arrives
+                if ((uisr[0] | disr[0]) & _ISR_BUSY) != 0 and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
                     state = bs[_B_STATE]
                     if state == _IDLE:
                         if ((uisr[0] & _ISR_BUSY) != 0 and ust[_S_STATE] == _HUNT and dearly[0] < 0
@@ -491,8 +493,8 @@ def pump(ctx, passes: int) -> int:
                                     up_queue(hdr_buf, 1, 1)
                             else:
                                 cs[_CS_START + _CH_PC_OUT] = now
-                                if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
-                                    wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                                    wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                     uearly[1] = -1
                                 else:
                                     up_de(1)
@@ -537,8 +539,8 @@ def pump(ctx, passes: int) -> int:
                                 up_queue(hdr_buf, 1, k - 1)
                             else:
                                 cs[_CS_START + _CH_PC_OUT] = now
-                                if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
-                                    wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                                    wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                     uearly[1] = -1
                                 else:
                                     up_de(1)
@@ -589,8 +591,8 @@ def pump(ctx, passes: int) -> int:
                                 down_queue(hdr_buf, 1, 1)
                         else:
                             cs[_CS_START + _CH_DRV_OUT] = now
-                            if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
-                                wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                            if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                                wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                 dearly[1] = -1
                             else:
                                 down_de(1)
@@ -710,8 +712,8 @@ def pump(ctx, passes: int) -> int:
                             uearly[0] = -1  # (the reply's AA has gone)
                             up_write(txbuf, 1, m - 1)
                         else:
-                            if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
-                                wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                            if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                                wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                 uearly[1] = -1
                             else:
                                 up_de(1)
@@ -752,8 +754,8 @@ def pump(ctx, passes: int) -> int:
                     if uearly[0] < 0 and bs[_B_STATE] == _AWAIT_PC and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
                         # Rs485.raise_early
                         uearly[0] = uearly[1] if uearly[1] >= 0 else now
-                        if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
-                            wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                        if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                            wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                             uearly[1] = -1
                         else:
                             up_de(1)
@@ -785,8 +787,8 @@ def pump(ctx, passes: int) -> int:
                     if dearly[0] < 0 and bs[_B_STATE] == _IDLE and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
                         # Rs485.raise_early
                         dearly[0] = dearly[1] if dearly[1] >= 0 else now
-                        if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then
-                            wait = int(ram[_P_DE_PRE_US]) - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                        if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                            wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                             dearly[1] = -1
                         else:
                             down_de(1)

@@ -169,7 +169,8 @@ class Rs485:
             return
         early[1] = -1
         if self.pre_us:
-            left = self.pre_us - ticks_diff(self._ticks(), armed)
+            # + 1: both ticks are whole µs, so what has passed may be up to 1 µs less
+            left = self.pre_us + 1 - ticks_diff(self._ticks(), armed)
             if left > 0:
                 self._sleep(left)
 

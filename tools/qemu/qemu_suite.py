@@ -268,6 +268,7 @@ H_QBYTES = 8  # not a call: the bytes the queue calls carried
 HAL_CALL_NAMES = ("any", "readinto", "write", "de", "sleep_us", "load", "queue", "drain")
 ISR_TXFNF = 1 << 7  # jig.uartport.USART_ISR_TXFNF / _TC
 ISR_TC = 1 << 6
+ISR_BUSY = 1 << 16  # jig.bridge.ISR_BUSY: a byte being received (the line watch)
 TDR = 3
 HAL_CALLS = array("i", [0] * (len(HAL_CALL_NAMES) + 1))
 
@@ -370,6 +371,9 @@ class MemPort:
         # bytes of a frame it passes on into TDR itself, as on the board; only the last
         # byte written stays there (the rig checks it is a tail's EE).
         self.regs = array("i", [ISR_TXFNF | ISR_TC, 0, 0, 0])
+        # The pump's line watch reads ISR.BUSY from the same block (jig.uartport: isr = regs):
+        # clear (the line idle) unless a probe sets it.
+        self.isr = self.regs
 
     def hw_de(self, on, pre16, post16):
         return False
@@ -598,6 +602,49 @@ class BridgeRig:
         self.poll(count)  # the board's loop, nothing arriving
         self.runs += 1
 
+    def watch(self, count, busy):
+        """An idle pass with the PC's line busy (its USART's ISR.BUSY: a start bit) or not;
+        the bus it arms is let go again by the rig (early[1] = -1, as the loop would)."""
+        isr = self.hal.up.regs
+        early = self.app.down.early
+        run = self.poll
+        flags = ISR_TXFNF | ISR_TC
+        on = flags | ISR_BUSY if busy else flags
+        for _ in range(count):
+            isr[0] = on
+            run(1)
+            isr[0] = flags
+            early[1] = -1
+        self.runs += count
+
+    def first_byte(self, count, busy):
+        """A frame's AA arriving on its own after an idle pass that saw its start bit (busy)
+        or not, then a byte that is no CC: the bus is let go (drop_early)."""
+        isr = self.hal.up.regs
+        up = self.hal.up
+        run = self.poll
+        flags = ISR_TXFNF | ISR_TC
+        on = flags | ISR_BUSY if busy else flags
+        aa = b"\xaa"
+        noise = b"\x11"
+        early = self.app.down.early
+        for _ in range(count):
+            isr[0] = on
+            run(1)
+            isr[0] = flags
+            # On the board the byte takes a byte time (>= 10.85 us) to arrive after its start
+            # bit: the pre-delay has run by then. Here the rig is quicker: date the arming back.
+            t = (ticks_us() - 1000) & 0x3FFFFFFF
+            if busy:
+                early[1] = t
+            else:
+                early[1] = -1
+            up.load(aa, 1, 0, 0)
+            run(1)
+            up.load(noise, 1, 0, 0)
+            run(1)
+        self.runs += 3 * count
+
     def setup_cost(self):
         """Instructions of App.run's set-up (run(0)): on the board it runs once."""
         run = self.poll
@@ -697,10 +744,46 @@ def bench_bridge(transactions=200, prices=None):
             result("bridge %s with its HAL calls at the board's prices (board_check): forwarded transaction %d, "
                    "a byte on its own %d/byte, local GetSlaveInfo %d, idle pass %d instructions"
                    % (name, board_t, board_b // rx, board_l, board_i))
+        if mode == params.CUT_THROUGH and not capture and fast:
+            bench_line_watch(rig, transactions, costs, prices, board_i if prices is not None else idle)
         if capture:
             bench_stream(rig, transactions // 4, slow_off)
         elif mode == params.CUT_THROUGH:
             slow_off = slow_pass_cost(rig, transactions // 4)
+
+
+def bench_line_watch(rig, n, costs, prices, idle):
+    """The line watch (jig.bridge.watch_lines, in the pump's idle pass): what an idle pass
+    that sees a start bit and raises DE on the other bus costs beyond one that sees
+    none, and what it saves the frame's first byte (its pass then needs no DE call and
+    no sleep: the pre-delay ran meanwhile). Pairs of probes with the same rig code, so
+    their difference is the firmware's (HAL calls at the board's prices)."""
+    def cost(fn):
+        own, heap, _calls, board = measure(fn, n, costs, rig, prices)
+        if heap != 0:
+            fail("line watch: allocated %d heap bytes with the heap locked" % heap)
+        return board if prices is not None else own
+
+    def watch_on(k):
+        rig.watch(k, True)
+
+    def watch_off(k):
+        rig.watch(k, False)
+
+    def first_on(k):
+        rig.first_byte(k, True)
+
+    def first_off(k):
+        rig.first_byte(k, False)
+
+    arm = cost(watch_on) - cost(watch_off)
+    first = cost(first_on) - cost(first_off) - arm
+    if rig.app.down.early[0] >= 0 or rig.app.down.early[1] >= 0:
+        fail("line watch: the driver bus was not let go after the probes")
+    result("line watch%s: an idle pass that sees a start bit and raises DE %d instructions (an idle pass %d "
+           "+ %d); the frame's first byte then costs %+d instructions (no DE call, no sleep call: the "
+           "pre-delay ran meanwhile; heap 0)"
+           % (" at the board's prices" if prices is not None else "", idle + arm, idle, arm, first))
 
 
 def slow_pass_cost(rig, n):
