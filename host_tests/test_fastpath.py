@@ -31,7 +31,7 @@ def test_constants_mirror_the_modules_they_come_from():
         "STATUS_FRAME_TYPE_ERROR": frame, "STATUS_DATA_ERROR": frame, "STATUS_FRAME_ERROR": frame,
         "P_SLAVE_ID": params, "P_REPLY_TIMEOUT_MS": params, "P_INTERBYTE_US": params, "P_DE_PRE_US": params,
         "P_DE_POST_US": params, "TA_SUM": counters, "TA_BASE": counters, "EV_DROP": parser, "HUNT": parser,
-        "CRC_AT": native, "SLOW_AHEAD_US": bridge,
+        "CRC_AT": native, "SLOW_AHEAD_US": bridge, "ISR_BUSY": bridge, "ARM_BYTES": bridge,
     }
     for name in vars(parser):
         if name.startswith(("S_", "A_")):
@@ -48,7 +48,8 @@ def test_constants_mirror_the_modules_they_come_from():
         attr = name if hasattr(src, name) else "_" + name
         assert getattr(fastpath, "_" + name) == getattr(src, attr), name
         checked += 1
-    assert checked >= 75
+    assert checked >= 77
+    assert bridge.ISR_BUSY == 1 << 16  # RM0433, USART_ISR.BUSY
     assert fastpath._MASK == app.TICKS_MASK and fastpath._HALF == app.TICKS_HALF
     uart = _uartport_constants()  # (jig.uartport imports machine: read from its source)
     assert fastpath._ISR_TXFNF == uart["USART_ISR_TXFNF"] and fastpath._TDR == uart["USART_TDR_WORDS_AFTER_ISR"]
