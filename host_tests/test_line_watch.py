@@ -194,3 +194,52 @@ class _Client:
 
     def on_abort(self):
         pass
+
+
+def test_the_pc_bus_is_blind_only_while_armed_and_hears_a_frame_after_it(jig_loop):
+    """While the PC bus is armed for an answer its receiver is off (/RE tied to DE, as the
+    bench models it). A start bit on the driver bus that never becomes a byte lets it go
+    after two byte times; a PC frame after that is heard whole and goes on (it aborts the
+    wait for the slow drive's answer)."""
+    b = SimBench(driver_ids=(2, 3), baud=BAUD, turnaround_us=20000.0)  # slow drives
+    b.run_for(1000.0)
+    b.send(b.encode(2, F.GET_ALL_STATUS))
+    b.run_for(2000.0)  # forwarded; the answer is awaited
+    up = b.hal.up.node
+    n0 = len(up.de_log)
+    t0 = _glitch(b, b.hal.down)
+    b.run_for(20.0)
+    assert up.de  # armed: the PC bus is driven, its receiver off
+    b.clock.run_until(t0 + B.ARM_BYTES * b.up_bus.bt + 30.0)
+    assert not up.de and [v for _t, v in up.de_log[n0:]] == [1, 0]
+    segs = _jig_segments(b.down_bus)
+    req = b.encode(3, F.GET_COMMAND_POS)
+    b.send(req)
+    b.run_for(3000.0)
+    assert b"".join(d for name, d in segs if name == "jig-down") == req  # heard whole, passed on
+    assert b.counters["aborts"] == 1
+
+
+def test_no_arming_of_the_pc_bus_while_the_pc_talks(jig_loop):
+    """A start bit on the driver bus while the PC's own line is busy (the PC talking over
+    its wait) must not take the PC bus: the jig would talk over the PC and hear nothing."""
+    b = SimBench(driver_ids=(2, 3), baud=BAUD, turnaround_us=20000.0)
+    b.run_for(1000.0)
+    b.send(b.encode(2, F.GET_ALL_STATUS))
+    b.run_for(2000.0)
+    up = b.hal.up.node
+    n0 = len(up.de_log)
+    req = b.encode(3, F.GET_COMMAND_POS)
+    end = b.send(req)
+    t_first = end - len(req) * b.up_bus.bt
+    port = b.hal.down
+    port.isr = _Glitch(b.clock, t_first + 5.0, 20.0)  # within the PC's first byte
+    b.app.bridge.down_isr = port.isr if b.app.bridge.down_isr is not None else None
+    if b.app.pump is not None:
+        from jig import fastpath
+
+        b.app.pump_ctx = fastpath.context(b.app)
+    b.clock.at(t_first + 10.0, b.hal.on_rx)
+    b.run_for(end - b.clock.now + 3000.0)
+    assert up.de_log[n0:] == []  # the PC bus was never taken
+    assert b.counters["aborts"] == 1 and b.counters["forwards"] == 2

@@ -247,6 +247,12 @@ def drop_verdict(st):
     return _V_BAD_CRC
 
 
+def _quiet(st, now):
+    """Parser st hunts for a header and its bus has been silent for a byte time: a
+    byte starting now may be a frame's first."""
+    return st[S_STATE] == HUNT and (now - st[S_T_LAST]) & _TICKS_MASK > st[S_BYTE_US]
+
+
 def _isr_block(rs):
     """The USART ISR of rs's port as a word-indexed block, or None: only a plain port's,
     and only where it is an object (an address is for the machine-code pump)."""
@@ -401,6 +407,8 @@ class Bridge:
         bs = self.bs
         cs = self.cs
         cs[_CS_START + _CH_PC_IN] = now
+        if self.up.early[1] >= 0:
+            self.up.disarm()  # the PC talks: no answer's first byte goes to it now
         if bs[B_REL]:  # the PC talks over a reply in progress: stop relaying
             self._end_relay(True)
         if bs[B_STATE] == AWAIT_INT:
@@ -684,9 +692,10 @@ class Bridge:
     def watch_lines(self, up_st, down_st, now):
         """An idle pass, cut through: a byte starting on a bus (its USART's BUSY flag)
         where a frame's AA would go on at once (``_early``: from the PC while the
-        bridge is idle, from the drivers while a reply is awaited), after a silence of
-        a byte time or more (a frame's first byte, not one of a stream of noise), with
-        its parser hunting for a header: take the other bus now (``Rs485.arm``), so
+        bridge is idle, from the drivers while a reply is awaited -- then only while
+        the PC is quiet), after a silence of a byte
+        time or more (a frame's first byte, not one of a stream of noise), with its
+        parser hunting for a header: take the other bus now (``Rs485.arm``), so
         the DE pre-delay runs while the byte arrives instead of after it. ``_early``
         goes on when the byte is in, or lets the bus go if it is no AA; an idle pass
         lets it go if none came within ``ARM_BYTES`` byte times (the slow pass too:
@@ -701,15 +710,20 @@ class Bridge:
         if bs[B_FWD] or bs[B_REL]:
             return
         state = bs[B_STATE]
-        if state == IDLE:
-            isr, st, rs = self.up_isr, up_st, self.down
-        elif state == AWAIT_PC:
-            isr, st, rs = self.down_isr, down_st, self.up
-        else:
+        up_isr = self.up_isr
+        if up_isr is None:
             return
-        if (isr is not None and isr[0] & ISR_BUSY and st[S_STATE] == HUNT and rs.early[0] < 0
-                and rs.early[1] < 0 and (now - st[S_T_LAST]) & _TICKS_MASK > st[S_BYTE_US]):
-            rs.arm(now)
+        if state == IDLE:
+            if (up_isr[0] & ISR_BUSY and _quiet(up_st, now) and down.early[0] < 0 and down.early[1] < 0):
+                down.arm(now)
+        elif state == AWAIT_PC:
+            # The PC bus is blind while armed (/RE tied to DE): only while the PC is quiet
+            # (its line idle, not mid-frame, silent for a byte time); a frame it starts
+            # anyway lets the bus go (_pc_start)
+            down_isr = self.down_isr
+            if (down_isr[0] & ISR_BUSY and not up_isr[0] & ISR_BUSY and _quiet(down_st, now)
+                    and _quiet(up_st, now) and up.early[0] < 0 and up.early[1] < 0):
+                up.arm(now)
 
     def _drop_early(self, rs):
         """No header followed the AA sent on early: let rs go (no copy to record)."""

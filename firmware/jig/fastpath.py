@@ -314,8 +314,11 @@ def pump(ctx, passes: int) -> int:
                             down_de(1)  # Rs485.arm
                             dearly[1] = t
                     elif state == _AWAIT_PC:
-                        if ((disr[0] & _ISR_BUSY) != 0 and dst[_S_STATE] == _HUNT and uearly[0] < 0
-                                and uearly[1] < 0 and ((t - dst[_S_T_LAST]) & _MASK) > dst[_S_BYTE_US]):
+                        # (the PC bus is blind while armed: only while the PC is quiet)
+                        if ((disr[0] & _ISR_BUSY) != 0 and (uisr[0] & _ISR_BUSY) == 0
+                                and dst[_S_STATE] == _HUNT and ((t - dst[_S_T_LAST]) & _MASK) > dst[_S_BYTE_US]
+                                and ust[_S_STATE] == _HUNT and ((t - ust[_S_T_LAST]) & _MASK) > ust[_S_BYTE_US]
+                                and uearly[0] < 0 and uearly[1] < 0):
                             up_de(1)
                             uearly[1] = t
                 if ((t - due[0]) & _MASK) < _HALF:
@@ -494,7 +497,9 @@ def pump(ctx, passes: int) -> int:
                             else:
                                 cs[_CS_START + _CH_PC_OUT] = now
                                 if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
-                                    wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                    wait = int(ram[_P_DE_PRE_US])
+                                    if wait > 0:
+                                        wait = wait + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                     uearly[1] = -1
                                 else:
                                     up_de(1)
@@ -540,7 +545,9 @@ def pump(ctx, passes: int) -> int:
                             else:
                                 cs[_CS_START + _CH_PC_OUT] = now
                                 if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
-                                    wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                    wait = int(ram[_P_DE_PRE_US])
+                                    if wait > 0:
+                                        wait = wait + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                     uearly[1] = -1
                                 else:
                                     up_de(1)
@@ -583,6 +590,9 @@ def pump(ctx, passes: int) -> int:
                     if ev == _EV_START and bs[_B_REL] == 0 and state != _AWAIT_INT:
                         # Bridge._pc_start: on to the driver bus from the header
                         cs[_CS_START + _CH_PC_IN] = now
+                        if uearly[1] >= 0:
+                            uearly[1] = -1  # Rs485.disarm: the PC talks
+                            up_de(0)
                         if dearly[0] >= 0:
                             dearly[0] = -1
                             if dq != 0 and (dreg[0] & _ISR_TXFNF) != 0:
@@ -592,7 +602,9 @@ def pump(ctx, passes: int) -> int:
                         else:
                             cs[_CS_START + _CH_DRV_OUT] = now
                             if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
-                                wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                wait = int(ram[_P_DE_PRE_US])
+                                if wait > 0:
+                                    wait = wait + 1 - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                 dearly[1] = -1
                             else:
                                 down_de(1)
@@ -713,7 +725,9 @@ def pump(ctx, passes: int) -> int:
                             up_write(txbuf, 1, m - 1)
                         else:
                             if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
-                                wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                                wait = int(ram[_P_DE_PRE_US])
+                                if wait > 0:
+                                    wait = wait + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                                 uearly[1] = -1
                             else:
                                 up_de(1)
@@ -755,7 +769,9 @@ def pump(ctx, passes: int) -> int:
                         # Rs485.raise_early
                         uearly[0] = uearly[1] if uearly[1] >= 0 else now
                         if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
-                            wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                            wait = int(ram[_P_DE_PRE_US])
+                            if wait > 0:
+                                wait = wait + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                             uearly[1] = -1
                         else:
                             up_de(1)
@@ -788,7 +804,9 @@ def pump(ctx, passes: int) -> int:
                         # Rs485.raise_early
                         dearly[0] = dearly[1] if dearly[1] >= 0 else now
                         if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
-                            wait = int(ram[_P_DE_PRE_US]) + 1 - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
+                            wait = int(ram[_P_DE_PRE_US])
+                            if wait > 0:
+                                wait = wait + 1 - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                             dearly[1] = -1
                         else:
                             down_de(1)

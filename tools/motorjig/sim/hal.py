@@ -121,6 +121,9 @@ class SimPort:
         self.baud = bus.baud
         self.tx_blocks = True
         self.echo_free = not echo  # a receiver that hears our own transmission: echo
+        # The jig's transceivers have /RE tied to DE: while the port drives its bus it hears
+        # nobody (an echo port models a receiver that stays on)
+        self.node.deaf_with_de = not echo
         self.t_last = 0
         self.writes = []  # (t_start, t_end, bytes) of every write, if hal.record
         # The USART's ISR.BUSY (SimIsr): the main loop sees a start bit half a bit after

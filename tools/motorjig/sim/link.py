@@ -105,6 +105,7 @@ class Node:
         self.corrupt_hold = False  # a frame of ours was corrupted and its tail is not sent yet
         self.corrupt_esc = False  # while holding: the last byte was an unpaired 0xAA
         self.on_start = None  # fn(segment): another node's transmission starts (a UART's start bit)
+        self.deaf_with_de = False  # /RE tied to DE: the receiver is off while our DE is up
 
     def corrupt(self, n=1):
         """Flip a bit (see ``flip_for_crc``) in each of our next n transmissions."""
@@ -123,6 +124,16 @@ class Node:
             self.t_fall = t
         if self.record:
             self.de_log.append((t, 1 if on else 0))
+
+    def deaf(self, t0, t1):
+        """With /RE tied to DE (``deaf_with_de``): was our receiver off at some time in
+        [t0, t1) (DE up then)? Judged from the last DE edges, which is exact for the
+        chunk just ending."""
+        if not self.deaf_with_de:
+            return False
+        if self.de:
+            return self.t_rise is not None and self.t_rise < t1
+        return self.t_fall is not None and self.t_fall > t0
 
     def driven_range(self, seg):
         """Indices [i0, i1) of seg's bytes sent while our DE was high."""
@@ -179,6 +190,7 @@ class Bus:
         self.collisions = 0  # bytes corrupted by overlapping transmissions
         self.lost = 0  # bytes sent with DE low
         self.corrupted = 0  # transmissions changed by Node.corrupt
+        self.unheard = 0  # bytes a receiver missed because its own DE was up (/RE tied to DE)
         self.monitor = None  # optional fn(segment, delivered bytes) for tests
 
     def set_baud(self, baud):
@@ -344,6 +356,9 @@ class Bus:
             t = self.clock.now
             for nd in self.nodes:
                 if nd.stream and nd.on_rx is not None and (nd is not seg.node or nd.echo):
+                    if nd is not seg.node and nd.deaf(seg.t0 + a * seg.bt, t):
+                        self.unheard += len(data)
+                        continue
                     nd.on_rx(data, t)
         if b < n:
             c = b + self.chunk
@@ -364,6 +379,9 @@ class Bus:
             if nd.on_rx is None or (streamed and nd.stream):
                 continue
             if nd is seg.node and not nd.echo:
+                continue
+            if nd is not seg.node and nd.deaf(seg.t0, t):
+                self.unheard += len(data)
                 continue
             nd.on_rx(data, t)
 
