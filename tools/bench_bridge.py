@@ -100,9 +100,9 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 #   8 + 13 bytes in two bursts (two passes): 12 478             = 2 PASS + 21 BYTE
 # (firmware alone: 733 and 7 330; before issue 26: 3 007 and 18 187 at board prices).
 # The per-byte share carries the frame events (routing, the reply wait) spread over
-# the bytes. A frame's first byte is charged as any other although, its bus armed by
-# the line watch, its pass makes no DE call and no sleep call (the model errs on the
-# slow side). Update after `make test-qemu`.
+# the bytes. A frame's first byte is charged as any other: its bus armed by the line
+# watch, its pass reads a tick instead of calling DE (`make test-qemu`: -130 ... +20).
+# Update after `make test-qemu`.
 # The slow pass (timeouts, scan, safety, watchdog; `make test-qemu`, capture off:
 # 19 760 instructions) is charged where it feeds the watchdog.
 # Capture on (parameter 13, records streamed to a capture port that takes them), from
@@ -115,9 +115,9 @@ DRIVER_TURNAROUND_US = 100.0  # the simulated driver's answer delay
 # 256-byte write's copy). The firmware streams in the drive's turnaround
 # (jig.capture: the stream window), so those stalls mostly cost nothing.
 # An idle pass (both ports' any(), a tick, the line watch's look at the USARTs' BUSY
-# flags; `make test-qemu`, board prices: 742): how late the loop sees a start bit.
+# flags; `make test-qemu`, board prices: 742-745): how late the loop sees a start bit.
 M7_HZ = 400e6
-IDLE_PASS_INSTR = 742
+IDLE_PASS_INSTR = 745
 PASS_INSTR = 1412  # one main-loop pass that read input, without the bytes
 FORWARD_INSTR_PER_BYTE = 460  # each byte read (parse + forward/relay share)
 SLOW_PASS_INSTR = 19760

@@ -755,9 +755,10 @@ def bench_bridge(transactions=200, prices=None):
 def bench_line_watch(rig, n, costs, prices, idle):
     """The line watch (jig.bridge.watch_lines, in the pump's idle pass): what an idle pass
     that sees a start bit and raises DE on the other bus costs beyond one that sees
-    none, and what it saves the frame's first byte (its pass then needs no DE call and
-    no sleep: the pre-delay ran meanwhile). Pairs of probes with the same rig code, so
-    their difference is the firmware's (HAL calls at the board's prices)."""
+    none, and what that changes for the frame's first byte (its pass reads a tick to
+    see what is left of the pre-delay instead of calling DE; no sleep: the pre-delay
+    ran meanwhile). Pairs of probes with the same rig code, so their difference is
+    the firmware's (HAL calls at the board's prices)."""
     def cost(fn):
         own, heap, _calls, board = measure(fn, n, costs, rig, prices)
         if heap != 0:
@@ -781,8 +782,8 @@ def bench_line_watch(rig, n, costs, prices, idle):
     if rig.app.down.early[0] >= 0 or rig.app.down.early[1] >= 0:
         fail("line watch: the driver bus was not let go after the probes")
     result("line watch%s: an idle pass that sees a start bit and raises DE %d instructions (an idle pass %d "
-           "+ %d); the frame's first byte then costs %+d instructions (no DE call, no sleep call: the "
-           "pre-delay ran meanwhile; heap 0)"
+           "+ %d); the frame's first byte then costs %+d instructions (a tick read instead of the DE call, "
+           "and no sleep: the pre-delay ran meanwhile; heap 0)"
            % (" at the board's prices" if prices is not None else "", idle + arm, idle, arm, first))
 
 
