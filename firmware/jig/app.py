@@ -57,7 +57,7 @@ from array import array
 from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
-from jig.bridge import ARM_BYTES, Bridge
+from jig.bridge import ARM_BYTES, Bridge, arm_overdue
 from jig.canport import CAN_POLL_US, CanPort
 from jig.capture import QUIET_US, Capture
 from jig.compat import NATIVE, const, ticks_add, ticks_diff
@@ -393,8 +393,7 @@ class App:
         the other bus go if a byte seen starting here armed it and never came."""
         st = p.st
         rs = self.down if from_pc else self.up
-        armed = rs.early[1]
-        if armed >= 0 and ticks_diff(now, armed) > ARM_BYTES * st[_parser.S_BYTE_US]:
+        if arm_overdue(rs, st, now):
             rs.disarm()  # (idle passes do it first: Bridge.watch_lines)
         if st[_parser.S_STATE] == _parser.HUNT:
             return due

@@ -247,6 +247,13 @@ def drop_verdict(st):
     return _V_BAD_CRC
 
 
+def arm_overdue(rs, st, now):
+    """rs was armed by a start bit on st's bus (``Rs485.arm``) more than ``ARM_BYTES``
+    byte times ago and is still armed: the byte never came."""
+    armed = rs.early[1]
+    return armed >= 0 and (now - armed) & _TICKS_MASK > ARM_BYTES * st[S_BYTE_US]
+
+
 def _quiet(st, now):
     """Parser st hunts for a header and its bus has been silent for a byte time: a
     byte starting now may be a frame's first."""
@@ -701,10 +708,10 @@ class Bridge:
         lets it go if none came within ``ARM_BYTES`` byte times (the slow pass too:
         ``App._gap``)."""
         down = self.down
-        if down.early[1] >= 0 and (now - down.early[1]) & _TICKS_MASK > ARM_BYTES * up_st[S_BYTE_US]:
+        if arm_overdue(down, up_st, now):
             down.disarm()
         up = self.up
-        if up.early[1] >= 0 and (now - up.early[1]) & _TICKS_MASK > ARM_BYTES * down_st[S_BYTE_US]:
+        if arm_overdue(up, down_st, now):
             up.disarm()
         bs = self.bs
         if bs[B_FWD] or bs[B_REL]:

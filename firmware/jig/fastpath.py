@@ -767,13 +767,14 @@ def pump(ctx, passes: int) -> int:
                 if dst[_S_STATE] == _HEADER:
                     if uearly[0] < 0 and bs[_B_STATE] == _AWAIT_PC and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
                         # Rs485.raise_early
-                        uearly[0] = uearly[1] if uearly[1] >= 0 else now
                         if uearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                            uearly[0] = uearly[1]
                             wait = int(ram[_P_DE_PRE_US])
                             if wait > 0:
                                 wait = wait + 1 - ((((int(ticks()) - uearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                             uearly[1] = -1
                         else:
+                            uearly[0] = now
                             up_de(1)
                             wait = int(ram[_P_DE_PRE_US])
                         if wait > 0:
@@ -802,13 +803,14 @@ def pump(ctx, passes: int) -> int:
                 if ust[_S_STATE] == _HEADER:
                     if dearly[0] < 0 and bs[_B_STATE] == _IDLE and bs[_B_FWD] == 0 and bs[_B_REL] == 0:
                         # Rs485.raise_early
-                        dearly[0] = dearly[1] if dearly[1] >= 0 else now
                         if dearly[1] >= 0:  # Rs485._take: armed (watch_lines), DE up since then (+ 1: whole µs)
+                            dearly[0] = dearly[1]
                             wait = int(ram[_P_DE_PRE_US])
                             if wait > 0:
                                 wait = wait + 1 - ((((int(ticks()) - dearly[1]) & _MASK) + _HALF) & _MASK) + _HALF
                             dearly[1] = -1
                         else:
+                            dearly[0] = now
                             down_de(1)
                             wait = int(ram[_P_DE_PRE_US])
                         if wait > 0:

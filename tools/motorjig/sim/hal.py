@@ -41,6 +41,7 @@ HAL has no ``can_open`` attribute at all and ``slcan`` is None (a board without
 the port, as old HALs).
 """
 
+from jig.bridge import ISR_BUSY
 from jig.ringbuf import RingBuffer
 
 
@@ -98,7 +99,7 @@ class SimIsr:
     after the start bit (the USART confirms a start bit in half a bit; an idle pass
     of the loop may be under way)."""
 
-    BUSY = 1 << 16
+    BUSY = ISR_BUSY
 
     def __init__(self, port):
         self.port = port
