@@ -28,13 +28,7 @@ check-mpy: setup ## compile every firmware module with mpy-cross -march=armv7emd
 	@$(PY) tools/check_mpy.py
 
 bench: setup ## print parser, bridge, trace, CAN, station (Plus-R and CiA 402) and results-database figures (takes several minutes)
-	@$(PY) tools/bench_parser.py
-	@$(PY) tools/bench_bridge.py
-	@$(PY) tools/bench_trace.py
-	@$(PY) tools/bench_can.py
-	@$(PY) tools/bench_station.py
-	@$(PY) tools/bench_station402.py
-	@$(PY) tools/bench_store.py
+	@$(PY) tools/run_benchmarks.py
 
 sim: setup ## start the virtual bench (pty + TCP) and run the demo: make sim SIM_ARGS="--tcp-port 5000"
 	@$(PY) -m motorjig.sim $(SIM_ARGS)

@@ -33,7 +33,7 @@ for sub in ("firmware", "tools", "host_tests"):
 import bridge_probe  # noqa: E402
 from jig import frame as F  # noqa: E402
 from jig import params as P  # noqa: E402
-from motorjig.sim import SimBench  # noqa: E402
+from motorjig.sim import CpuModel, SimBench  # noqa: E402
 
 
 def _seconds_per_call(fn, n, warmup=0):
@@ -126,14 +126,10 @@ CAPTURE_SLOW_PASS_INSTR = 23260
 CAPTURE_WRITE_INSTR = 9540
 
 
-def _us(instr):
-    return instr / M7_HZ * 1e6
-
-
-# (us/pass, us/byte, us/slow pass, us/capture write, us/idle pass): SimHAL.cpu_model
-JIG_CPU_MODEL = (_us(PASS_INSTR), _us(FORWARD_INSTR_PER_BYTE), _us(SLOW_PASS_INSTR), 0.0, _us(IDLE_PASS_INSTR))
-JIG_CPU_MODEL_CAPTURE = (_us(PASS_INSTR), _us(FORWARD_INSTR_PER_BYTE + CAPTURE_INSTR_PER_BYTE),
-                         _us(CAPTURE_SLOW_PASS_INSTR), _us(CAPTURE_WRITE_INSTR), _us(IDLE_PASS_INSTR))
+JIG_CPU_MODEL = CpuModel.from_instructions(M7_HZ, PASS_INSTR, FORWARD_INSTR_PER_BYTE, SLOW_PASS_INSTR,
+                                           idle_pass=IDLE_PASS_INSTR)
+JIG_CPU_MODEL_CAPTURE = CpuModel.from_instructions(M7_HZ, PASS_INSTR, FORWARD_INSTR_PER_BYTE + CAPTURE_INSTR_PER_BYTE,
+                                                   CAPTURE_SLOW_PASS_INSTR, CAPTURE_WRITE_INSTR, IDLE_PASS_INSTR)
 
 # A local answer's own work on the M7 (the handler, the reply built and stuffed, its
 # write; `make test-qemu`'s local GetSlaveInfo at board prices, 16 490-17 490, less
@@ -191,7 +187,7 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
     b.down_bus.monitor = seen
     req_hops, rep_hops, req_lags, rep_lags, req_pre, rep_pre = [], [], [], [], [], []
     pre = 0.0 if direct else b.app.params.get(P.P_DE_PRE_US)
-    first_cpu = cpu_model[0] + cpu_model[1]  # the pass that reads a frame's first byte on its own
+    first_cpu = CpuModel.of(cpu_model).pass_us + CpuModel.of(cpu_model).byte_us  # the pass that reads a frame's first byte on its own
     bt = 10e6 / baud
 
     def pre_left(src, out):
@@ -249,7 +245,7 @@ def vendor_style_ratio(baud, n=40, cpu_model=JIG_CPU_MODEL, warmup=3):
                  cpu_model=cpu_model)
     app = b.app
     handle = app.handlers.handle
-    answer_us = _us(LOCAL_ANSWER_INSTR) if any(cpu_model) else 0.0
+    answer_us = 0.0 if CpuModel.of(cpu_model).off else LOCAL_ANSWER_INSTR / M7_HZ * 1e6
 
     def charged(p, buf):
         b.clock.run_until(b.clock.now + answer_us)
@@ -302,12 +298,10 @@ def direct_period_us(req_bytes, rep_bytes, baud, turnaround_us=DRIVER_TURNAROUND
 
 def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
     print("  GetAllStatus polling rate of a pyserial-style master, driver %d, virtual timeline" % POLL_SLAVE)
-    print("  (drive turnaround %.0f us; jig CPU model %.1f us per pass + %.2f us per byte read ="
-          % (DRIVER_TURNAROUND_US, cpu_model[0], cpu_model[1]))
-    print("   %d + %d instructions at %.0f MHz, 1 instruction per cycle: an assumption)"
-          % (round(cpu_model[0] * M7_HZ / 1e6), round(cpu_model[1] * M7_HZ / 1e6), M7_HZ / 1e6))
-    print("   + the slow pass %d instructions%s)" % (round(cpu_model[2] * M7_HZ / 1e6), "; an idle pass %d" % round(
-        cpu_model[4] * M7_HZ / 1e6) if len(cpu_model) > 4 else "") if len(cpu_model) > 2 else "")
+    cpu_model, capture_model = CpuModel.of(cpu_model), CpuModel.of(capture_model)
+    print("  (drive turnaround %.0f us; jig CPU model, %s:" % (DRIVER_TURNAROUND_US, "an assumption"
+                                                             if not cpu_model.off else "none"))
+    print("   %s)" % cpu_model.describe(M7_HZ))
     direct = {baud: polling_rate(baud, direct=True, n=n) for baud in P.BAUD_RATES}
     for title, mode, capture, model, watch in (
             ("cut-through (param 12 = 0)", P.CUT_THROUGH, False, cpu_model, True),
@@ -319,9 +313,7 @@ def print_polling_table(cpu_model, n, capture_model=JIG_CPU_MODEL_CAPTURE):
         cut = mode == P.CUT_THROUGH
         print("    %s:" % title)
         if capture:
-            print("    (CPU model: + %d instructions a byte, slow pass %d, %d a write of records to the port)"
-                  % (round((model[1] - cpu_model[1]) * M7_HZ / 1e6), round(model[2] * M7_HZ / 1e6),
-                     round(model[3] * M7_HZ / 1e6)))
+            print("    (CPU model with the records: %s)" % model.describe(M7_HZ))
         print("    %7s %10s %10s %7s %11s %11s %8s%s" % ("baud", "direct /s", "jig /s", "ratio", "req hop us",
                                                      "rep hop us", "byte us",
                                                      "  hop/byte = byte + pre + CPU + on the way" if cut else ""))
@@ -389,15 +381,18 @@ def main(argv=None):
     ap.add_argument("--no-cpu-model", action="store_true",
                     help="polling-rate table with an infinitely fast jig CPU (wire time only)")
     ap.add_argument("--polling-only", action="store_true", help="print only the polling-rate table")
+    ap.add_argument("--quick", action="store_true", help="a few seconds: the smallest sizes, one run each (make test runs it)")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.n, args.polls = 100, 1
     if args.n < 100:
         print("error: -n must be at least 100", file=sys.stderr)
         return 2
     if args.polls < 1:
         print("error: --polls must be at least 1", file=sys.stderr)
         return 2
-    cpu_model = (0.0, 0.0, 0.0) if args.no_cpu_model else JIG_CPU_MODEL
-    capture_model = (0.0, 0.0, 0.0, 0.0) if args.no_cpu_model else JIG_CPU_MODEL_CAPTURE
+    cpu_model = CpuModel() if args.no_cpu_model else JIG_CPU_MODEL
+    capture_model = CpuModel() if args.no_cpu_model else JIG_CPU_MODEL_CAPTURE
     if args.polling_only:
         print_polling_table(cpu_model, args.polls, capture_model)
         print_vendor_style(cpu_model, args.polls)

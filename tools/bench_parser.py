@@ -242,7 +242,10 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=5, help="timed runs; the best is reported (default 5)")
     ap.add_argument("--seed", type=int, default=1, help="random seed of the stream (default 1)")
     ap.add_argument("--no-vm", action="store_true", help="skip the MicroPython (WebAssembly) part")
+    ap.add_argument("--quick", action="store_true", help="a few seconds: the smallest sizes, one run each (make test runs it)")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.pairs, args.repeat = 200, 1
     if args.pairs < 10 or args.chunk < 1 or args.repeat < 1:
         print("bench_parser: --pairs must be >= 10, --chunk and --repeat >= 1")
         return 2

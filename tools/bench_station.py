@@ -184,9 +184,9 @@ def loaded_proof(runs, n_burners, out_dir):
         print("    ERROR %3d x %s" % (n, what))
 
 
-def faults_proof(out_dir, n_burners):
+def faults_proof(out_dir, n_burners, faults=FAULTS):
     print("each fault, quiet and with %d CPU burners: the step and measurement that catch it" % n_burners)
-    for spec, step, measurement in FAULTS:
+    for spec, step, measurement in faults:
         cells = []
         for loaded in (False, True):
             hogs = burners(n_burners) if loaded else []
@@ -211,7 +211,10 @@ def main(argv=None):
                     help="runs of ezi-step-eol beside CPU burners for the false-FAIL count (default 100; 0: skip "
                          "it and the faults)")
     ap.add_argument("--burners", type=int, default=2, help="CPU burners beside the loaded runs (default 2)")
+    ap.add_argument("--quick", action="store_true", help="a few seconds: the smallest sizes, one run each (make test runs it)")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.runs, args.loaded, args.burners = 1, 1, 1
     if args.runs < 1 or args.loaded < 0 or args.burners < 0:
         print("error: --runs must be at least 1, --loaded and --burners at least 0", file=sys.stderr)
         return 2
@@ -219,7 +222,7 @@ def main(argv=None):
     print("  %-5s %8s %8s %8s %8s %8s %9s %12s %10s" % ("", "run s", "motion", "bus", "steps", "engine",
                                                        "steps n", "engine/step", "sample Hz"))
     with tempfile.TemporaryDirectory() as out:
-        for ver8 in (False, True):
+        for ver8 in (False,) if args.quick else (False, True):
             for _ in range(args.runs):
                 plan, ctx, wall = one_run(ver8, out)
                 rec = ctx.record
@@ -242,7 +245,7 @@ def main(argv=None):
     if args.loaded:
         with tempfile.TemporaryDirectory() as out:
             loaded_proof(args.loaded, args.burners, out)
-            faults_proof(out, args.burners)
+            faults_proof(out, args.burners, FAULTS[:1] if args.quick else FAULTS)
     return 0
 
 

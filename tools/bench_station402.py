@@ -51,7 +51,10 @@ def one_run(bitrate, out_dir):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=2, help="runs per bitrate (default 2)")
+    ap.add_argument("--quick", action="store_true", help="a few seconds: the smallest sizes, one run each (make test runs it)")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.runs = 1
     if args.runs < 1:
         print("error: --runs must be at least 1", file=sys.stderr)
         return 2
@@ -60,7 +63,7 @@ def main(argv=None):
     print("  %-9s %7s %7s %7s %7s %7s %7s %12s %12s" % ("bitrate", "run s", "motion", "bus", "steps", "engine",
                                                        "steps n", "engine/step", "TPDO Hz"))
     with tempfile.TemporaryDirectory() as out:
-        for bitrate in (500000, 1000000):
+        for bitrate in (500000,) if args.quick else (500000, 1000000):
             for _ in range(args.runs):
                 plan, ctx, wall = one_run(bitrate, out)
                 rec = ctx.record

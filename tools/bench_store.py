@@ -129,13 +129,16 @@ def bench(label, db, runs, singles, batch, after_build=None):
     st.close()
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=100_000, help="runs in the history (default 100 000)")
     ap.add_argument("--singles", type=int, default=500, help="single-run inserts timed on top (default 500)")
     ap.add_argument("--batch", type=int, default=1000, help="runs per bulk transaction (default 1 000)")
     ap.add_argument("--only", choices=("sqlite", "postgresql"), help="one database only")
-    a = ap.parse_args()
+    ap.add_argument("--quick", action="store_true", help="a few seconds: the smallest sizes, one run each (make test runs it)")
+    a = ap.parse_args(argv)
+    if a.quick:
+        a.runs, a.singles, a.batch = 200, 5, 100
     print("results database (SQLAlchemy Core; %d runs of a 30-measurement plan):" % a.runs)
     folder = tempfile.mkdtemp(prefix="bench-store-")
     try:
@@ -167,4 +170,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -30,10 +30,10 @@ for sub in ("../firmware", ".", "../host_tests"):
     if p not in sys.path:
         sys.path.insert(0, p)
 
-from bench_bridge import DRIVER_TURNAROUND_US, JIG_CPU_MODEL  # noqa: E402
+from bench_bridge import DRIVER_TURNAROUND_US, JIG_CPU_MODEL, M7_HZ  # noqa: E402
 from jig import diag as D  # noqa: E402
 from jig import frame as F  # noqa: E402
-from motorjig.sim import SimBench  # noqa: E402
+from motorjig.sim import CpuModel, SimBench  # noqa: E402
 
 MASK = 0x3FFFFFFF
 GOALS = ((115200, 150.0), (921600, 1000.0))
@@ -72,7 +72,7 @@ def _bench(baud, cpu_model, ids=(2, 3)):
     b = SimBench(driver_ids=ids, baud=baud, turnaround_us=DRIVER_TURNAROUND_US, record=False, servo_on=True,
                  cpu_model=cpu_model)
     if any(cpu_model):
-        _charge_trace(b, TRACE_REQUEST_INSTR / 400.0)  # (400 MHz, 1 instruction a cycle: as JIG_CPU_MODEL)
+        _charge_trace(b, TRACE_REQUEST_INSTR / M7_HZ * 1e6)  # (as JIG_CPU_MODEL)
     for i in ids:
         _w, d = b.request(i, F.GET_SLAVE_INFO)  # the jig sees each drive answer
         if d is None or d[0]:
@@ -193,14 +193,16 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=2.0, help="virtual seconds per trace (default 2)")
     ap.add_argument("--polls", type=int, default=200, help="polls per cell of the bridge table (default 200)")
     ap.add_argument("--no-cpu-model", action="store_true", help="an infinitely fast jig CPU (wire time only)")
+    ap.add_argument("--quick", action="store_true", help="a few seconds: the smallest sizes, one run each (make test runs it)")
     args = ap.parse_args(argv)
-    model = (0.0, 0.0, 0.0) if args.no_cpu_model else JIG_CPU_MODEL
+    if args.quick:
+        args.seconds, args.polls = 0.05, 1
+    model = CpuModel() if args.no_cpu_model else JIG_CPU_MODEL
     dur = int(args.seconds * 1e6)
     print("trace benchmark: the jig samples driver 2 with GetAllStatus (virtual timeline, drive turnaround %.0f us,"
           % DRIVER_TURNAROUND_US)
-    print("  jig CPU model %s)" % ("off" if args.no_cpu_model else
-                                   "as bench_bridge: %d + %d/byte + %d per slow pass, + %d per sample's request"
-                                   % (tuple(round(x * 400) for x in model) + (TRACE_REQUEST_INSTR,))))
+    print("  jig CPU model as bench_bridge's, %s%s)" % (
+        model.describe(M7_HZ), "" if model.off else ", + %d per sample's request" % TRACE_REQUEST_INSTR))
     print("  %7s %-34s %9s %8s %7s %6s %6s %23s %s" % ("baud", "run", "period us", "rate /s", "skipped", "failed",
                                                      "lost", "offset mean/p95/max us", "interval min..max us"))
     for baud, goal in GOALS:

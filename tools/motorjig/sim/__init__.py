@@ -4,9 +4,10 @@ real jig firmware on a simulated HAL. ``python -m motorjig.sim`` runs it interac
 
 from .bench import Bench, SimBench
 from .clock import PacedClock, VirtualClock
+from .cpumodel import CpuModel
 from .driver import SimDriver
 from .hal import PowerLoss, SimCapturePort, SimFS, SimHAL
 from .link import Bus
 
-__all__ = ["Bench", "SimBench", "SimDriver", "SimFS", "SimHAL", "SimCapturePort", "PowerLoss", "Bus", "VirtualClock",
-           "PacedClock"]
+__all__ = ["Bench", "SimBench", "CpuModel", "SimDriver", "SimFS", "SimHAL", "SimCapturePort", "PowerLoss", "Bus",
+           "VirtualClock", "PacedClock"]

@@ -58,6 +58,7 @@ from ..wiring import Wiring, load_wiring
 from .canbus import CanBus
 from .canhal import SLCAN_RATES, DirectSlcanAdapter
 from .clock import TICKS_MASK, PacedClock, VirtualClock
+from .cpumodel import CpuModel
 from .driver import SimDriver
 from .hal import SimFS, SimHAL
 from .link import Bus
@@ -206,9 +207,9 @@ class SimBench:
 
     ``direct=True``: no jig; the PC's adapter is on the driver bus with the same
     drivers (to measure what the jig costs). ``stream_chunk``: bytes per delivery
-    to the jig's ports while a frame arrives (see ``link``). ``cpu_model`` =
-    (µs per main-loop pass that read input, µs per byte read): the jig's CPU time
-    on the virtual timeline (see ``hal``); default (0, 0). ``wiring``: the jig's I/O
+    to the jig's ports while a frame arrives (see ``link``). ``cpu_model``: the jig's
+    CPU time on the virtual timeline (a ``CpuModel`` or a tuple of its figures, see
+    ``cpumodel``); default none (an infinitely fast CPU). ``wiring``: the jig's I/O
     wired to a drive (a ``Wiring`` or a TOML file; its slave, else the first driver).
     ``faults``: (slave or None, name, value) each, as ``set_fault``.
     ``line_watch=False``: the jig's ports show no USART ISR (``hal.SimIsr``), so it
@@ -218,7 +219,7 @@ class SimBench:
     def __init__(self, driver_ids=(2, 3), baud=None, down_baud=None, ver8=False, realtime=False,
                  jig_params=None, fs=None, turnaround_us=300.0, rxsize=4096, echo_up=False,
                  echo_down=False, record=True, servo_on=False, start_us=None, jig_ver8=None,
-                 ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=(0.0, 0.0), fastpath=None,
+                 ver8_drivers=None, direct=False, stream_chunk=1, cpu_model=None, fastpath=None,
                  wiring=None, faults=(), can_nodes=(), can_bitrate=500000, can_node_factory=None, can=None,
                  direct_can=False, line_watch=True):
         """``ver8``: the default variant of the jig and every driver. ``jig_ver8``
@@ -271,7 +272,7 @@ class SimBench:
         self.wired_node = None
         self._make_can(can_nodes, can_bitrate, can_node_factory, bool(can) or direct_can, direct or direct_can)
         if direct:
-            if jig_params or any(cpu_model) or wiring is not None:
+            if jig_params or not CpuModel.of(cpu_model).off or wiring is not None:
                 raise ValueError("direct=True has no jig: jig_params, cpu_model and wiring do not apply")
             self.fs = fs
             self.hal = self.runner = self.app = None

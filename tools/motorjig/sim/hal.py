@@ -9,16 +9,15 @@ filesystem that can lose power in the middle of a write.
 
 The ports are streaming receivers on their buses (see ``link``): bytes reach the
 ring buffer one chunk at a time while a frame is still arriving, as the UART
-interrupt would put them there. ``SimHAL.cpu_model`` = (µs per pass, µs per byte
-[, µs per slow pass [, µs per capture write [, µs per idle pass]]]) charges the jig's CPU time on the
-virtual timeline: the first read that returns bytes in a main-loop pass advances
+interrupt would put them there. ``SimHAL.cpu_model`` (a ``cpumodel.CpuModel``, or a
+tuple of its figures) charges the jig's CPU time on the virtual timeline: the first read that returns bytes in a main-loop pass advances
 the clock by the per-pass cost, and every read by the per-byte cost times the
 bytes it returned, so whatever the pass does with them (forwarding, answering)
 happens that much later; each slow pass costs its share where it feeds the
 watchdog, and each write that hands records to the capture port its own; an idle
 pass is how late the loop sees a start bit (``SimIsr``: the USART's BUSY flag,
-which the pump watches while idle). Bytes keep arriving meanwhile. Default (0, 0):
-the CPU is infinitely fast.
+which the pump watches while idle). Bytes keep arriving meanwhile. Default
+(``CpuModel()``): the CPU is infinitely fast.
 
 The jig's I/O can be wired to a simulated drive (``SimBench(wiring=...)``):
 ``input_source`` adds bits to what ``get_inputs`` returns, computed when it is
@@ -43,6 +42,7 @@ the port, as old HALs).
 
 from jig.bridge import ISR_BUSY
 from jig.ringbuf import RingBuffer
+from .cpumodel import CpuModel
 
 
 class PowerLoss(Exception):
@@ -332,13 +332,11 @@ class SimHAL:
         self.up = None
         self.down = None
         self.rx_callback = None  # the bench's "wake the main loop"
-        model = tuple(float(x) for x in cpu_model) + (0.0, 0.0, 0.0)
-        if len(cpu_model) not in (2, 3, 4, 5):
-            raise ValueError("cpu_model: (us per pass, us per byte[, us per slow pass[, us per capture write"
-                             "[, us per idle pass]]])")
-        self.us_per_pass, self.us_per_byte, self.us_per_slow_pass, us_per_write, self.us_per_idle_pass = model[:5]
-        if min(model) < 0:
-            raise ValueError("cpu_model: times must not be negative")
+        model = CpuModel.of(cpu_model)
+        self.cpu_model = model
+        self.us_per_pass, self.us_per_byte, self.us_per_slow_pass = model.pass_us, model.byte_us, model.slow_pass_us
+        self.us_per_idle_pass = model.idle_pass_us
+        us_per_write = model.capture_write_us
         self.pass_charged = True  # set False by the bench at the start of each pass
         self.cpu_us = 0.0  # CPU time charged so far
         self.capture = SimCapturePort(clock, capture_tx)  # jig.capture's port (the second USB CDC)
