@@ -57,3 +57,12 @@ def test_make_bench_goes_on_past_a_failing_benchmark_and_names_it(tmp_path):
     assert "fine 1 2 3 ['--quick']" in r.stdout  # the one after the broken one ran, in quick mode
     assert "make bench: 1 failed: bench_broken.py (exit status 1)" in r.stdout
     assert "TypeError" in r.stderr  # its own traceback is shown, not swallowed
+
+
+def test_the_cpu_model_names_every_figure_it_charges():
+    from motorjig.sim import CpuModel
+
+    text = CpuModel(1.0, 2.0, 3.0, 4.0, 5.0).describe(400e6)
+    assert [int(x) for x in NUMBER.findall(text)[:5]] == [400, 800, 1200, 1600, 2000]
+    assert CpuModel().describe(400e6).startswith("off")
+    assert CpuModel.of((1.0, 2.0)) == CpuModel(1.0, 2.0)
