@@ -314,9 +314,13 @@ def test_safety_nmt_stop_all_on_host_silence_once():
     assert len(r.heard) == n0 + 1  # once, until the host speaks again
     assert r.counters()["can_safety_stops"] == 1
     assert r.app.counters.v[K.C_SAFETY_STOPS] == 1
-    r.say(b"F\r")
+    assert r.app.can.is_open == 0  # the dead host's session ended with the stop
+    r.say(b"F\r")  # (closed: the status flags answer, nothing is armed)
     r.run(150000)
-    assert len(r.heard) == n0 + 2  # re-armed by the host's line
+    assert len(r.heard) == n0 + 1
+    r.say(b"O\rt1230\r")  # a window saved to flash is a setting: the next session is watched too
+    r.run(150000)
+    assert [h[1:] for h in r.heard[n0 + 1:]] == [(0x123, False, False, b""), (0x000, False, False, b"\x02\x00")]
 
 
 def test_safety_quick_stop_to_every_node_seen():
@@ -331,6 +335,54 @@ def test_safety_quick_stop_to_every_node_seen():
     sdo = b"\x2B\x40\x60\x00\x02\x00\x00\x00"
     assert got == [(0x605, False, False, sdo), (0x607, False, False, sdo), (0x67F, False, False, sdo)]
     assert r.counters()["can_safety_stops"] == 1
+
+
+def lease(r, window_ms=100, can_safety=2):
+    """Arm the safety net as a run does: in RAM only (ask = SetParameter on the PC bus)."""
+    for num, value in ((P.P_SAFETY_ACTION, 2), (P.P_CAN_SAFETY, can_safety), (P.P_SAFETY_TIMEOUT_MS, window_ms)):
+        assert r.ask(F.SET_PARAMETER, bytes([num]) + struct.pack("<i", value)) == b"\x00"
+
+
+def test_a_leased_quick_stop_then_resets_the_nodes_communication_and_lets_go():
+    """A run's lease: quick stop to each node seen, then NMT reset communication to each (its
+    PDO timers and heartbeat back to power-on: a quiet bus), then parameters 9, 10, 18 back to
+    their saved values; a new session's silence stops nothing."""
+    r = Rig()
+    r.say(b"O\r")
+    r.peer.transmit(0x705, False, False, b"\x05")
+    r.peer.transmit(0x706, False, False, b"\x05")
+    lease(r)
+    r.say(b"t1230\r")
+    r.run(400000)
+    got = [h[1:] for h in r.heard if h[1] != 0x123]
+    sdo = b"\x2B\x40\x60\x00\x02\x00\x00\x00"
+    assert got == [(0x605, False, False, sdo), (0x606, False, False, sdo),
+                   (0x000, False, False, b"\x82\x05"), (0x000, False, False, b"\x82\x06")]
+    resets = [h[0] for h in r.heard if h[1] == 0]
+    quick = [h[0] for h in r.heard if h[1] == 0x606]
+    assert resets[0] - quick[0] >= 100000 - 1000  # the drive had time to act on the quick stop
+    assert [r.app.params.get(n) for n in (P.P_SAFETY_TIMEOUT_MS, P.P_SAFETY_ACTION, P.P_CAN_SAFETY)] == [0, 0, 0]
+    n = diag.decode_safety_notice(r.ask(diag.TAKE_SAFETY_NOTICE))
+    assert n["can"] and n["nodes"] == [5, 6] and n["ids"] == []
+    assert r.counters()["can_safety_stops"] == 1
+    assert r.app.can.is_open == 0 and r.port.host_read() == b""  # the dead session ended, nothing kept for the next
+    heard = len(r.heard)
+    r.say(b"O\rt1230\r")  # the next user's session, then silence
+    r.run(2000000)
+    assert len(r.heard) == heard + 1  # its own frame only
+
+
+def test_the_pc_ports_silence_fires_the_can_ports_stop_too():
+    """One lease: the run's master fell silent on the PC bus first (its CAN keep-alive still
+    going): the CAN nodes are stopped at once too, not a window later or never."""
+    r = Rig()
+    r.say(b"O\r")
+    r.peer.transmit(0x705, False, False, b"\x05")
+    lease(r, window_ms=300)
+    for _ in range(8):  # the CAN side stays alive; the PC bus fell silent at the lease's last frame
+        r.say(b"t1230\r", 60000)
+    got = [h[1] for h in r.heard if h[1] != 0x123]
+    assert got[:1] == [0x605] and r.app.counters.v[K.C_SAFETY_STOPS] == 2  # both watches fired once
 
 
 def test_no_safety_stop_when_off_or_listen_only():

@@ -47,10 +47,45 @@ def test_silence_stops_seen_drivers_once():
     assert stops(b.drivers[4]) == []  # never seen: not addressed
     assert c["int_requests"] == 2 and c["int_replies"] == 2
     assert b.pc.frames[-1][1][3] == F.MOVE_VELOCITY  # nothing reached the PC
-    # talks again, goes silent again: fires again
+    # a lease (set in RAM, as a run does): let go once it fired, the window back to its saved 0
+    assert get_param(b, P.P_SAFETY_TIMEOUT_MS) == 0 and get_param(b, P.P_SAFETY_ACTION) == 0
     b.request(2, F.GET_AXIS_STATUS)
     b.run_for(1e6)
+    assert b.counters["safety_stops"] == 1 and len(stops(b.drivers[2])) == 1
+
+
+def get_param(b, num):
+    return struct.unpack("<i", b.request(1, F.GET_PARAMETER, bytes([num]))[1][1:5])[0]
+
+
+def test_a_window_saved_to_flash_is_a_setting_it_stays_and_fires_again():
+    b = setup(action=1, timeout_ms=200)
+    assert b.request(1, F.SAVE_ALL_PARAMETERS)[1] == b"\x00"
+    assert b.request(2, F.MOVE_VELOCITY, struct.pack("<IB", 2000, 1))[1] == b"\x00"
+    b.run_for(1e6)
+    assert b.counters["safety_stops"] == 1 and get_param(b, P.P_SAFETY_TIMEOUT_MS) == 200
+    b.request(2, F.GET_AXIS_STATUS)  # talks again, goes silent again: fires again
+    b.run_for(1e6)
     assert b.counters["safety_stops"] == 2 and len(stops(b.drivers[2])) == 2
+
+
+def take_notice(b):
+    from jig import diag as D
+
+    return D.decode_safety_notice(b.request(1, D.TAKE_SAFETY_NOTICE)[1])
+
+
+def test_the_jig_keeps_a_notice_of_the_stop_until_a_pc_takes_it():
+    b = setup(action=2, timeout_ms=200)
+    assert take_notice(b) is None
+    for i in (2, 3):
+        assert b.request(i, F.MOVE_VELOCITY, struct.pack("<IB", 2000, 1))[1] == b"\x00"
+    t_last = b.pc.node.tx_until  # end of the PC's last frame: the stop 200 ms later
+    b.run_for(3.5e6)
+    n = take_notice(b)
+    assert n["ids"] == [2, 3] and n["pc_bus"] and not n["can"] and n["nodes"] == []
+    assert abs(n["ms_ago"] - ((b.clock.now - t_last) / 1000 - 200)) < 30
+    assert take_notice(b) is None  # taken: said once
 
 
 def test_emergency_stop_action():

@@ -198,10 +198,36 @@ def wait_operation_disabled(b, within_s=5.0):
     assert operation_disabled(b), node(b).state
 
 
-def test_sigkill_mid_move_the_jigs_can_safety_stop_disables_the_drive(tmp_path):
+SAFETY_PARAMS = (9, 10, 18)  # safety_timeout_ms, safety_action, can_safety
+
+
+def safety_params(url):
+    with Master(url, timeout=0.3) as m:
+        return [m.get_parameter(1, n) for n in SAFETY_PARAMS]
+
+
+def frames_a_quiet_session_sees(url, seconds=3.0):
+    """A fresh python-can session on the jig's SLCAN port that sends nothing: what it receives."""
+    import can
+
+    got = []
+    with can.Bus(interface="slcan", channel=url, bitrate=500000) as bus:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            msg = bus.recv(timeout=0.2)
+            if msg is not None:
+                got.append(msg)
+    return got
+
+
+def test_sigkill_mid_move_the_jig_stops_the_drive_then_leaves_a_quiet_bus_as_before(tmp_path):
     """What no handler catches: the jig's CAN safety stop (can_safety = 2, armed for the run) sends
-    the quick stop after the --safety-window of silence on its SLCAN port."""
-    with bench() as b:
+    the quick stop after the --safety-window of silence on its SLCAN port, then resets the nodes'
+    communication (the run's 2 ms TPDOs and its heartbeat stop) and lets its safety net go: the
+    parameters read back as before the run, the next python-can session quiet for 3 s sees no
+    frame it did not cause, and the next jigctl is told once."""
+    with Bench(driver_ids=(2,), can_nodes=(NODE, 6), can_bitrate=500000, pty=False) as b:
+        before = safety_params(b.tcp_url)
         p = long_run_moving(b, tmp_path, "--safety-window", "500")
         try:
             p.kill()
@@ -210,8 +236,16 @@ def test_sigkill_mid_move_the_jigs_can_safety_stop_disables_the_drive(tmp_path):
             if p.poll() is None:
                 p.kill()
         wait_operation_disabled(b)
+        time.sleep(0.5)  # the resets of communication follow the quick stops
         with Master(b.tcp_url, timeout=0.3) as m:
-            assert m.can_counters(1)["can_safety_stops"] >= 1
+            assert m.can_counters(1)["can_safety_stops"] == 1
+        assert safety_params(b.tcp_url) == before
+        assert frames_a_quiet_session_sees(b.slcan_url) == []
+        assert operation_disabled(b)
+        first = subprocess.run([JIGCTL, "--port", b.tcp_url, "stats"], capture_output=True, text=True, timeout=60)
+        again = subprocess.run([JIGCTL, "--port", b.tcp_url, "stats"], capture_output=True, text=True, timeout=60)
+    assert "note: the jig stopped CAN node 5 after the run's master went silent at" in first.stdout, first  # (6: never heard)
+    assert "note:" not in again.stdout
 
 
 LSS_PLAN = ('[plan]\nname = "lss402"\nversion = "1"\n[drive]\nprotocol = "cia402"\nnode_id = 5\n'

@@ -166,6 +166,7 @@ def test_sigkill_mid_move_the_jig_stops_the_axis_within_the_window(tmp_path, on_
     window_ms = 500
     plan_text = LONG_PLAN.replace('version = "1"\n', 'version = "1"\non_end = "%s"\n' % on_end)
     with bench() as b:
+        before = safety_params(b.tcp_url)
         p, db = start(b, tmp_path, extra=("--safety-window", str(window_ms)), plan=plan_text,
                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         wait_until_moving(b, p)
@@ -191,7 +192,37 @@ def test_sigkill_mid_move_the_jig_stops_the_axis_within_the_window(tmp_path, on_
         assert b.sim.counters["safety_stops"] == 1
         moving, servo_on, vel = drive_state(b.tcp_url)  # a second connection, now that talking is harmless
         assert not moving and vel == 0 and servo_on != servo_off
+        check_the_next_user_finds_the_bus_as_before(b, before, servo_on=not servo_off)
     assert not glob.glob(str(tmp_path / "long_*.json"))  # SIGKILL: no record, as the docs say
+
+
+SAFETY_PARAMS = (9, 10, 18)  # safety_timeout_ms, safety_action, can_safety
+
+
+def safety_params(url):
+    with Master(url, timeout=0.3) as m:
+        return [m.get_parameter(1, n) for n in SAFETY_PARAMS]
+
+
+def check_the_next_user_finds_the_bus_as_before(b, before, servo_on):
+    """After the jig's stop the lease is let go: the parameters read back as before the run, the
+    next jigctl is told once what happened, and a move of its own followed by silence is not
+    stopped by a window nobody asked for."""
+    assert safety_params(b.tcp_url) == before
+    first = subprocess.run([JIGCTL, "--port", b.tcp_url, "stats"], capture_output=True, text=True, timeout=60)
+    again = subprocess.run([JIGCTL, "--port", b.tcp_url, "stats"], capture_output=True, text=True, timeout=60)
+    assert first.returncode == 0 and again.returncode == 0, first.stderr + again.stderr
+    assert "note: the jig stopped drive 2 after the run's master went silent at" in first.stdout, first.stdout
+    assert "note:" not in again.stdout  # said once
+    if servo_on:
+        with Master(b.tcp_url, timeout=0.3) as m:
+            m.servo_enable(DRIVE, True)  # (out of the EmergencyStop)
+            m.move_velocity(DRIVE, 2000, 1)
+        time.sleep(1.5)  # silence, longer than the run's window
+        moving, _, _ = drive_state(b.tcp_url)
+        assert moving, "a window nobody asked for stopped the next user's move"
+        with Master(b.tcp_url, timeout=0.3) as m:
+            m.move_stop(DRIVE)
 
 
 def test_ctrl_c_at_an_operator_prompt_ends_the_run_at_once(tmp_path):

@@ -64,7 +64,7 @@ from jig.compat import NATIVE, const, ticks_add, ticks_diff
 from jig.frame import MAX_BODY
 from jig.handlers import Handlers
 from jig.rs485 import Rs485
-from jig.safety import SafetyStop
+from jig.safety import SafetyLease, SafetyStop
 from jig.scan import Scanner
 from jig.trace import Trace
 
@@ -145,7 +145,8 @@ class App:
         self.bridge = Bridge(hal, self.up, self.down, self.handlers, self.params, self.counters, ver8, cut, self.due,
                              self.capture, self.down_parser)
         self.scanner = Scanner(self.bridge, self.params)
-        self.safety = SafetyStop(self.bridge, self.params, self.counters)
+        self.lease = SafetyLease(self.params)  # the run's safety net: the PC port's and the CAN port's watches
+        self.safety = SafetyStop(self.bridge, self.params, self.counters, self.lease)
         self.trace = Trace(self)  # (after the parsers and the bridge: it reads both)
         # The CAN port (an SLCAN adapter on the HAL's third CDC port); None on a HAL
         # without CAN (no can_open): the app runs as before.
@@ -359,6 +360,7 @@ class App:
         bridge.poll(now)
         self.scanner.poll(now)
         self.safety.poll(now)
+        self.lease.poll(now)
         tracing = self._trace_on[0]
         if tracing:
             self.trace.poll(now)

@@ -213,7 +213,7 @@ class CanPort:
         self.rec_on = getattr(cap, "cs", None) or bytearray(1)  # ... [0]: CS_ON, so it is called only while it does)
         self.lost_seen = 0  # rx lost + overruns at the last look (F's overrun bits)
         self.t_full = -1  # tick the TX FIFO was found full with the host's bytes waiting (-1: not full)
-        self.safety = CanSafety(self, app.params, app.counters)
+        self.safety = CanSafety(self, app.params, app.counters, getattr(app, "lease", None))
 
     def _host_data(self, _port):
         self.due[1 if self.is_open else 0] = self._ticks()  # (closed: commands are read by the slow pass)
@@ -750,6 +750,16 @@ class CanPort:
         self._irqo = can.irq(self._irq_cb, trigger=can.IRQ_RX | can.IRQ_TX | can.IRQ_STATE, hard=True)
         self.safety.reset()
         return True
+
+    def tx_idle(self):
+        """True when every frame queued has ended its transmission."""
+        return self.ts[TS_DONE] == self.ts[TS_HEAD]
+
+    def end_session(self):
+        """The safety stop ends a dead host's session: closed, and the lines it had not been
+        given are dropped too (the next host gets nothing from before it)."""
+        self.close()
+        self.out_n = 0
 
     def close(self):
         """Close the controller; what the ring and the FIFO held is dropped."""

@@ -29,6 +29,11 @@ layouts (reply data always starts with the status byte)::
     0xFA ReadCanCounters   req: -        reply: St, u8 n, n x u32 in CAN_WIRE_NAMES order (the CAN
                                                 port's figures; n = 0 on a jig without one);
                                                 ResetCounters resets them too
+    0xFB TakeSafetyNotice req: -         reply: St, u8 pending (1: the safety stop fired since a PC
+                                                last took the notice), u8 buses stopped (bit 0 the
+                                                driver bus, bit 1 CAN), u32 ms since it fired, u16
+                                                Plus-R ids stopped, 16 x u8 CAN nodes stopped (bit n
+                                                of byte n >> 3); taking it clears it
 
 The PC library decodes with ``decode_counters`` / ``decode_can_counters`` / ``decode_scan`` / ``decode_crash_log`` below, so the
 layout exists once. ``SLAVE_TYPE`` is what the jig reports in GetSlaveInfo: 200
@@ -50,6 +55,8 @@ READ_TRACE = const(0xF7)
 GET_TRACE_STATUS = const(0xF8)
 READ_TRANSACTION_TIMES = const(0xF9)
 READ_CAN_COUNTERS = const(0xFA)
+TAKE_SAFETY_NOTICE = const(0xFB)
+SAFETY_NOTICE_LEN = const(24)  # jig.safety.NOTICE_LEN
 XT_ENTRY = const(10)  # u8 id, u8 b1, u32 request sent, u32 reply in
 
 TRACE_SAMPLE = const(20)  # bytes: u32 tick, i32 command, i32 actual, i32 velocity, u32 flags
@@ -109,6 +116,20 @@ def decode_can_counters(data):
         name = CAN_WIRE_NAMES[i] if i < N_CAN_WIRE else "can_counter_%d" % i
         out[name] = frame.get_u32(data, 2 + 4 * i)
     return out
+
+
+def decode_safety_notice(data):
+    """Reply data of TakeSafetyNotice (status first) -> None (no stop since the last one was
+    taken) or a dict: ms_ago, pc_bus / can (what stopped), ids (Plus-R ids), nodes (CAN
+    node ids)."""
+    if len(data) != 1 + SAFETY_NOTICE_LEN or data[0] != 0:
+        raise ValueError("bad TakeSafetyNotice reply")
+    if not data[1]:
+        return None
+    ids = frame.get_u16(data, 7)
+    return {"ms_ago": frame.get_u32(data, 3), "pc_bus": bool(data[2] & 1), "can": bool(data[2] & 2),
+            "ids": [i for i in range(16) if ids >> i & 1],
+            "nodes": [n for n in range(1, 128) if data[9 + (n >> 3)] >> (n & 7) & 1]}
 
 
 def decode_scan(data):

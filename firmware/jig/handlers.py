@@ -135,6 +135,7 @@ class Handlers:
             diag.GET_TRACE_STATUS: (self.trace_status, 0),
             diag.READ_TRANSACTION_TIMES: (self.transaction_times, 0),
             diag.READ_CAN_COUNTERS: (self.read_can_counters, 0),
+            diag.TAKE_SAFETY_NOTICE: (self.take_safety_notice, 0),
         }
         self.table = [None] * 256
         for ftype, entry in by_type.items():
@@ -284,6 +285,11 @@ class Handlers:
         for i in range(n):
             put_u32(out, 2 + 4 * i, vals[i] & 0x3FFFFFFF)
         return self._long(p, o, out, 2 + 4 * n)
+
+    def take_safety_notice(self, p, d, o, out):
+        out[0] = frame.STATUS_OK
+        n = self.app.lease.take_notice(self.app.hal.ticks_us(), out, 1)
+        return 1 + n
 
     def reset_counters(self, p, d, o, out):
         self.app.reset_counters()

@@ -217,7 +217,12 @@ def cmd_status(args):
     s = args.slave
     tty = sys.stdout.isatty() and not args.json
     count = args.count if args.count is not None else (None if args.watch else 1)
+    from motorjig import safetynotice
+
     with open_master(args) as m:
+        notice = safetynotice.take(m, args.jig_id)
+        if notice:
+            sys.stderr.write("jigctl: note: %s.\n" % notice)
         try:
             _status_loop(args, m, s, count, tty)
         except KeyboardInterrupt:  # the normal end of --watch
@@ -743,18 +748,22 @@ def can_block(can, term):
 
 
 def cmd_stats(args):
+    from motorjig import safetynotice
+
     with open_master(args) as m:
         counters = m.read_counters(args.jig_id)
         can, term = _can_figures(m, args.jig_id)
+        notice = safetynotice.take(m, args.jig_id)
         if args.reset:
             m.reset_counters(args.jig_id)
     width = max(len(k) for k in counters) if counters else 0
-    lines = ["jig (slave %d) counters%s" % (args.jig_id, ", now reset" if args.reset else "")]
+    lines = ["note: %s" % notice] if notice else []
+    lines += ["jig (slave %d) counters%s" % (args.jig_id, ", now reset" if args.reset else "")]
     lines += ["  %-*s %d" % (width, k, v) for k, v in counters.items()]
     if can:
         lines += can_block(can, term)
     emit(args, {"jig": args.jig_id, "counters": counters, "can": can, "can_termination": term,
-                "reset": args.reset}, "\n".join(lines))
+                "reset": args.reset, "safety_notice": notice}, "\n".join(lines))
     return EXIT_OK
 
 

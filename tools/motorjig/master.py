@@ -104,7 +104,7 @@ REPLY_LEN = {
     D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1, D.READ_CRASH_LOG: VAR,
     D.START_TRACE: 6, D.STOP_TRACE: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRACE: VAR,
     D.GET_TRACE_STATUS: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRANSACTION_TIMES: VAR,
-    D.READ_CAN_COUNTERS: VAR,
+    D.READ_CAN_COUNTERS: VAR, D.TAKE_SAFETY_NOTICE: D.SAFETY_NOTICE_LEN,
 }
 #: data bytes of a request (Ver6); the monitor tells requests from replies with it
 REQUEST_LEN = {
@@ -126,7 +126,7 @@ REQUEST_LEN = {
     F.MOVE_VELOCITY_EX: 37,
     D.READ_COUNTERS: 0, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0, D.GET_BUS_SCAN_RESULT: 0,
     D.READ_CRASH_LOG: 0, D.START_TRACE: 6, D.STOP_TRACE: 0, D.READ_TRACE: 3, D.GET_TRACE_STATUS: 0,
-    D.READ_TRANSACTION_TIMES: 0, D.READ_CAN_COUNTERS: 0,
+    D.READ_TRANSACTION_TIMES: 0, D.READ_CAN_COUNTERS: 0, D.TAKE_SAFETY_NOTICE: 0,
 }
 
 #: Ver8 libraries widen the inputs to 64 bits; drives that keep 32 are accepted too
@@ -891,6 +891,12 @@ class Master:
 
     def reset_counters(self, jig=1):
         self.call(jig, D.RESET_COUNTERS)
+
+    def take_safety_notice(self, jig=1):
+        """What the jig's safety stop did since a PC last asked (0xFB TakeSafetyNotice): None, or
+        a dict (jig.diag.decode_safety_notice). Asking clears it: show it to the user. Not
+        retried (a lost reply loses the notice, never shows it twice)."""
+        return self._jig_reply(jig, D.TAKE_SAFETY_NOTICE, D.decode_safety_notice, "TakeSafetyNotice")
 
     def start_bus_scan(self, jig=1):
         """Make the jig probe ids 0..15 on its driver bus in the background (0xF2)."""

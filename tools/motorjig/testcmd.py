@@ -133,10 +133,18 @@ def cmd_test(args):
         return _err("%s is a plan for a CiA 402 drive: give the jig's SLCAN port with --can-port" % args.plan, args)
     from motorjig.master import Master
 
+    from motorjig import safetynotice
+
     try:
-        Master(args.port, baud=args.baud).close()  # a wrong port name is said plainly, before OpenHTF starts
+        m = Master(args.port, baud=args.baud)  # a wrong port name is said plainly, before OpenHTF starts
     except PortError as exc:
         return _err(str(exc), args)
+    try:
+        notice = safetynotice.take(m)  # what a run before this one left behind, said once
+    finally:
+        m.close()
+    if notice:
+        sys.stderr.write("jigctl: note: %s.\n" % notice)
     from motorjig.station import runner
 
     store = None
