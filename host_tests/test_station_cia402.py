@@ -303,5 +303,10 @@ def test_a_signal_mid_move_leaves_the_drive_disabled(tmp_path, sig):
             if p.poll() is None:
                 p.kill()
         wait_operation_disabled(b)
+        # the run's heartbeat and trace PDOs are gone with it: communication reset, PRE-OPERATIONAL
+        deadline = time.monotonic() + 5
+        while not (node(b).values[(0x1017, 0)] == 0 and node(b).nmt == 0x7F) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert node(b).values[(0x1017, 0)] == 0 and node(b).nmt == 0x7F, (node(b).values[(0x1017, 0)], node(b).nmt)
     assert p.returncode == 2, (out, err)
     assert "ABORTED" in out and "Traceback" not in err

@@ -33,6 +33,7 @@ second through its per-variable decoding would cost this PC more than the bus co
 by ``motorjig.can.cia301``); a step that sees one with a non-zero code fails with it.
 """
 
+import logging
 import queue
 import struct
 import threading
@@ -47,8 +48,11 @@ from motorjig.can import port as canport
 from motorjig.errors import JigError, PortError
 from motorjig.station.drive import Drive
 
+_LOG = logging.getLogger(__name__)
+
 HEARTBEAT_MS = 100  # the drive's 0x1017 during a run (bus-health judges its regularity)
 SDO_TIMEOUT_S = 2.0  # a drive answers in ms; the real-time bench on a shared machine has stalled ~1 s
+RESET_COMM_WAIT_S = 1.0  # a node's boot-up after "reset communication" (the bench's: ~50 ms)
 STATE_TIMEOUT_S = 2.0  # a power state transition must be made within this
 _FRAME_BITS = 300  # SYNC + TPDO2 (6 bytes) + TPDO3 (8 bytes) with stuffing, about
 _LOAD = 0.3  # the share of the bus the trace may use
@@ -169,6 +173,7 @@ class Cia402Drive(Drive):
         self.heartbeats = []  # jig times of the node's heartbeats
         self.t_opened = None  # jig time the heartbeat was switched on
         self.ready = False  # the node answered and is prepared (connect_node)
+        self._booted = threading.Event()  # the node's boot-up came (after close's reset communication)
         self.bus_seconds = 0.0  # time spent waiting for SDO replies (the run's split: motion, bus, engine)
         self.sdo_stamp = None  # jig time of the node's last SDO reply
         self.statusword = None  # the last one a TPDO brought
@@ -251,7 +256,21 @@ class Cia402Drive(Drive):
             self.last_sent = time.monotonic()
 
     def close(self):
+        """Leave the node as the run found it, then close: NMT "reset communication" puts its
+        communication objects (the trace's PDO maps and event timers, the run's 0x1017) back to
+        their power-on values and leaves it PRE-OPERATIONAL, so the bus is quiet for the next
+        user (the jig's safety stop does the same when this PC dies)."""
         self._stop_sync()
+        if self.ready and self.node is not None and self.network is not None:
+            try:
+                self._booted.clear()
+                with self._lock:
+                    self.node.nmt.send_command(0x82)
+                # its boot-up says it was done (closing the channel at once could drop the frame)
+                if not self._booted.wait(RESET_COMM_WAIT_S):
+                    _LOG.error("node %d did not boot up after the reset of its communication", self.node_id)
+            except (can.CanError, OSError, ValueError) as exc:
+                _LOG.error("resetting node %d's communication failed: %s", self.node_id, exc)
         net, self.network = self.network, None
         if net is not None:
             try:
@@ -266,6 +285,8 @@ class Cia402Drive(Drive):
     def _on_heartbeat(self, can_id, data, t):
         if data and data[0] != 0:  # a boot-up is not a heartbeat
             self.heartbeats.append(t)
+        elif data:
+            self._booted.set()
 
     def _on_sdo_reply(self, can_id, data, t):
         self.sdo_stamp = t
