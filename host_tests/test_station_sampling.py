@@ -107,6 +107,15 @@ def test_a_rate_below_the_floor_is_untrusted_only_over_ten_periods():
     _trace_with(short).check(0.0, 0.045, 100.0)
 
 
+def test_samples_that_share_one_time_give_no_rate_and_no_division_by_zero():
+    """A stop of about 2 ms: its two samples carry the same jig time (issue 31: ERROR "float
+    division by zero" on a healthy drive). Too short a stretch for a rate: judged by its gaps."""
+    same = [0.010, 0.010]
+    n, rate, gap = _trace_with(same).stats(0.009, 0.011)
+    assert (n, rate) == (2, 0.0) and gap == pytest.approx(0.001)
+    _trace_with(same).check(0.009, 0.011, 100.0)
+
+
 @pytest.mark.parametrize("baud,period", [(115200, 4750), (921600, 1000), (9600, 51500)])
 def test_the_jig_samples_at_one_transaction_of_its_driver_bus(baud, period):
     assert trace_period_us(baud) == period

@@ -109,6 +109,7 @@ class StampedSlcanBus(slcanBus):
         self._line = None
         self._ms_last = None
         self._ms_base = 0
+        self.unstamped = 0  # frames that came without the jig's timestamp (dated by this PC)
         self._send_lock = threading.Lock()
         super().__init__(*a, **kw)
 
@@ -123,13 +124,15 @@ class StampedSlcanBus(slcanBus):
     def _recv_internal(self, timeout):
         self._line = None
         msg, filtered = super()._recv_internal(timeout)
-        if msg is not None and self._line:
-            stamp = _stamp_ms(self._line)
+        if msg is not None:
+            stamp = _stamp_ms(self._line) if self._line else None
             if stamp is not None:
                 if self._ms_last is not None and stamp < self._ms_last - 30000:
                     self._ms_base += 60000  # the jig's field wraps at 60 000 ms
                 self._ms_last = stamp
                 msg.timestamp = (self._ms_base + stamp) / 1000.0
+            else:
+                self.unstamped += 1
         return msg, filtered
 
     def send(self, msg, timeout=None):
@@ -545,6 +548,11 @@ class Cia402Drive(Drive):
             lss.store_configuration()
             lss.send_switch_state_global(lss.WAITING_STATE)
         return tuple(ids)
+
+    def unstamped(self):
+        """Frames received without the jig's timestamp (their time is this PC's, not the bus's)."""
+        bus = getattr(self.network, "bus", None)
+        return getattr(bus, "unstamped", 0)
 
     def bus_health(self):
         counters = {}

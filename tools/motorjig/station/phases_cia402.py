@@ -20,7 +20,7 @@ from openhtf.util import units
 from motorjig.can import power402
 from motorjig.errors import JigError
 from motorjig.station.drive_cia402 import SW_ACK, SW_ERROR, SW_INTERNAL_LIMIT, SW_TARGET_REACHED, SdoRefused
-from motorjig.station.sampling import Cia402Trace
+from motorjig.station.sampling import Cia402Trace, UntrustedMeasurement
 
 COUNTS = units.UnitDescriptor("count", "count", "count")
 S = units.SECOND
@@ -320,7 +320,22 @@ def run_bus_health(test, bus, step, ctx):
     gaps = [b - a for a, b in zip(beats, beats[1:])]
     if now is not None and (beats or d.t_opened is not None):
         gaps.append(max(HEARTBEAT_MS / 1000.0, now - (beats[-1] if beats else d.t_opened)))
-    m["heartbeat_jitter"] = round(max(abs(g * 1000 - HEARTBEAT_MS) for g in gaps), 1) if gaps else 0.0
+    jitter = round(max(abs(g * 1000 - HEARTBEAT_MS) for g in gaps), 1) if gaps else 0.0
+    limit = step.args.get("heartbeat_jitter_max_ms")
+    if limit is not None and jitter > limit:
+        # Judge the drive only on what the jig dated and saw: a PC's arrival time, or a heartbeat
+        # the jig lost on the way to this PC, is not the drive's irregularity.
+        unstamped = d.unstamped()
+        lost = counters.get("can_rx_lost", 0) + counters.get("can_rx_overruns", 0)
+        if unstamped:
+            raise UntrustedMeasurement(
+                "heartbeat_jitter %.0f ms cannot be judged: %d frames came without the jig's timestamp (their "
+                "times are this PC's, not the bus's)" % (jitter, unstamped))
+        if lost:
+            raise UntrustedMeasurement(
+                "heartbeat_jitter %.0f ms cannot be judged: the jig lost %d received frames on the way to this "
+                "PC (can_rx_lost + can_rx_overruns), a heartbeat may be among them" % (jitter, lost))
+    m["heartbeat_jitter"] = jitter
     m["emcy"] = len([e for e in d.emcys if e.code])
     test.attach("bus_counters", json.dumps(counters), "application/json")
     test.attach("heartbeats", json.dumps(beats), "application/json")

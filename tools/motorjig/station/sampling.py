@@ -127,7 +127,8 @@ class _Trace:
             return len(ts), 0.0, t_to - t_from
         gap = max(b - a for a, b in zip(ts, ts[1:]))
         gap = max(gap, ts[0] - t_from, t_to - ts[-1])
-        return len(ts), (len(ts) - 1) / (ts[-1] - ts[0]), gap
+        span = ts[-1] - ts[0]  # 0 when the samples share one time (a stop of a few ms): no rate
+        return len(ts), (len(ts) - 1) / span if span > 0 else 0.0, gap
 
     def check(self, t_from, t_to, floor_hz, what="the move"):
         """UntrustedMeasurement unless the samples between two instants are dense enough to judge
