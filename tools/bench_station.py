@@ -87,17 +87,34 @@ FAULTS = (("step-out=20000", "move_speed_50000", "following_error"),
           ("dead-input=26", "io", "relay_2_on"))
 
 
-def start_sim(*faults):
-    """`python -m motorjig.sim` wired as the plan says, in its own process: (process, TCP URL)."""
-    args = [sys.executable, "-m", "motorjig.sim", "--no-demo", "--no-pty", "--drivers", "2", "--wiring", EOL]
+class Line:
+    """What the loaded proof and the faults need of a drive kind: the plan, the bench's options
+    for it, and how a run reaches the drive (the ports the bench printed)."""
+
+    def __init__(self, plan, bench_args, run_kw=lambda urls: {}):
+        self.plan = plan
+        self.bench_args = list(bench_args)
+        self.run_kw = run_kw
+
+
+PLUSR = Line(EOL, ["--drivers", "2", "--wiring", EOL])
+
+
+def start_sim(*faults, line=PLUSR):
+    """`python -m motorjig.sim` wired as the plan says, in its own process: (process, the URLs it
+    printed by name: tcp, slcan, ...)."""
+    args = [sys.executable, "-m", "motorjig.sim", "--no-demo", "--no-pty"] + line.bench_args
     for f in faults:
         args += ["--fault", f]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(os.path.join(ROOT, d) for d in ("firmware", "tools")))
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True, env=env, preexec_fn=_board_priority)
-    for line in proc.stdout:
-        key, _, value = line.strip().partition(": ")
-        if key == "tcp":
-            return proc, value
+    urls = {}
+    for out in proc.stdout:
+        key, _, value = out.strip().partition(": ")
+        if key in ("tcp", "slcan"):
+            urls[key] = value.split()[0]
+        if "tcp" in urls and ("--can-nodes" not in line.bench_args or "slcan" in urls):
+            return proc, urls
     proc.kill()
     raise RuntimeError("the bench did not start")
 
@@ -143,17 +160,19 @@ def first_failure(record):
     return None
 
 
-def run_eol(url, out_dir):
-    ctx = run_plan(load_plan(EOL), url, out_dir=out_dir, out=None, confirm=lambda m: True, timeout_ms=300)
+def run_eol(urls, out_dir, line=PLUSR):
+    ctx = run_plan(load_plan(line.plan), urls["tcp"], out_dir=out_dir, out=None, confirm=lambda m: True,
+                   timeout_ms=300, **line.run_kw(urls))
     return ctx.record or {}
 
 
-def loaded_proof(runs, n_burners, out_dir):
-    print("false FAILs on a busy PC: ezi-step-eol %d times on a healthy drive, the bench in its own "
-          "process (%s, as a board has its own CPU), %d CPU burners beside it" % (runs, board_priority_note(),
+def loaded_proof(runs, n_burners, out_dir, line=PLUSR):
+    name = os.path.splitext(os.path.basename(line.plan))[0]
+    print("false FAILs on a busy PC: %s %d times on a healthy drive, the bench in its own "
+          "process (%s, as a board has its own CPU), %d CPU burners beside it" % (name, runs, board_priority_note(),
                                                                                  n_burners))
     hogs = burners(n_burners)
-    sim, url = start_sim()
+    sim, urls = start_sim(line=line)
     verdicts = collections.Counter()
     fails, errors = collections.Counter(), collections.Counter()
     loads = []
@@ -161,7 +180,7 @@ def loaded_proof(runs, n_burners, out_dir):
     try:
         time.sleep(2)  # the burners' load builds up
         for _ in range(runs):
-            rec = run_eol(url, out_dir)
+            rec = run_eol(urls, out_dir, line)
             verdict = rec.get("outcome", "ERROR")
             verdicts[verdict] += 1
             where = first_failure(rec)
@@ -184,15 +203,15 @@ def loaded_proof(runs, n_burners, out_dir):
         print("    ERROR %3d x %s" % (n, what))
 
 
-def faults_proof(out_dir, n_burners, faults=FAULTS):
+def faults_proof(out_dir, n_burners, faults=FAULTS, line=PLUSR):
     print("each fault, quiet and with %d CPU burners: the step and measurement that catch it" % n_burners)
     for spec, step, measurement in faults:
         cells = []
         for loaded in (False, True):
             hogs = burners(n_burners) if loaded else []
-            sim, url = start_sim(spec)
+            sim, urls = start_sim(spec, line=line)
             try:
-                rec = run_eol(url, out_dir)
+                rec = run_eol(urls, out_dir, line)
             finally:
                 for h in hogs:
                     h.kill()

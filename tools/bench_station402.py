@@ -14,6 +14,11 @@ tools/bench_station.py does for the Plus-R plan:
 
 And the moves' TPDO trace rate (statusword, position, velocity, following error, sampled by the
 drive and dated by the jig's clock). Goal (issue 25): >= 500 Hz at 1 Mbit/s.
+
+Then, as tools/bench_station.py does for the Plus-R plan, the proof that a busy PC does not fail
+a good drive (``--loaded N``, default 100): cia402-eol N times on a healthy drive beside CPU
+burners, the bench in its own process at a higher priority (false FAILs: goal 0; ERRORs counted
+with their reasons), then each injected fault, quiet and loaded, caught at its step.
 """
 
 import argparse
@@ -31,10 +36,21 @@ for sub in ("firmware", "tools"):
 from motorjig.sim import Bench  # noqa: E402
 from motorjig.station import load_plan, run_plan  # noqa: E402
 
-from bench_station import motion_seconds, sample_rates  # noqa: E402  (the same split, the same plan kinds)
+from bench_station import Line, faults_proof, loaded_proof, motion_seconds, sample_rates  # noqa: E402
+
 
 EOL = os.path.join(ROOT, "plans", "cia402-eol.toml")
 NODE = 5
+CIA402 = Line(EOL, ["--drivers", "2", "--can-nodes", str(NODE), "--wiring", EOL],
+              run_kw=lambda urls: {"can_port": urls["slcan"]})
+# (fault, the step that must catch it, a measurement that must fail there)
+FAULTS = (("can:following-error=20000", "move_speed_50000", "following_error"),
+          ("can:overcurrent=30", "move_speed_5000", "emcy"),
+          ("can:sluggish=1.5", "move_speed_5000", "duration_ratio"),
+          ("can:param=0x6065=500", "parameters", "x6065_00"),
+          ("can:no-origin", "home", "homing_attained"),
+          ("can:dead-input=16", "io", "relay_2_on"),
+          ("can:missed-heartbeat", "bus-health", "heartbeat_jitter"))
 
 
 def one_run(bitrate, out_dir):
@@ -51,12 +67,16 @@ def one_run(bitrate, out_dir):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=2, help="runs per bitrate (default 2)")
+    ap.add_argument("--loaded", type=int, default=100, metavar="N",
+                    help="runs of cia402-eol beside CPU burners for the false-FAIL count (default 100; 0: skip "
+                         "it and the faults)")
+    ap.add_argument("--burners", type=int, default=2, help="CPU burners beside the loaded runs (default 2)")
     ap.add_argument("--quick", action="store_true", help="a few seconds: the smallest sizes, one run each (make test runs it)")
     args = ap.parse_args(argv)
     if args.quick:
-        args.runs = 1
-    if args.runs < 1:
-        print("error: --runs must be at least 1", file=sys.stderr)
+        args.runs, args.loaded, args.burners = 1, 1, 1
+    if args.runs < 1 or args.loaded < 0 or args.burners < 0:
+        print("error: --runs must be at least 1, --loaded and --burners at least 0", file=sys.stderr)
         return 2
     print("CiA 402 station benchmark: plans/cia402-eol.toml on the real-time bench, node %d through the "
           "jig's SLCAN port" % NODE)
@@ -83,6 +103,10 @@ def main(argv=None):
     print("  (motion: moves, homing, limit and stop steps; bus: waiting for SDO replies and the jig's round trips, overlapping")
     print("   the motion while a move is traced; engine = run - steps: OpenHTF, pre-flight, outputs;")
     print("   TPDO Hz: the moves' trace, sampled by the drive, dated by the jig; goal >= 500 Hz at 1 Mbit/s)")
+    if args.loaded:
+        with tempfile.TemporaryDirectory() as out:
+            loaded_proof(args.loaded, args.burners, out, CIA402)
+            faults_proof(out, args.burners, FAULTS[:1] if args.quick else FAULTS, CIA402)
     return 0
 
 
