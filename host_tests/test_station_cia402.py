@@ -131,6 +131,8 @@ def test_cia402_eol_passes_on_a_healthy_drive(tmp_path):
     health = phase(rec, "bus-health")["measurements"]
     assert health["heartbeats"]["measured_value"] if "heartbeats" in health else True
     assert health["emcy"]["measured_value"] == 0 and health["lost_frames"]["measured_value"] == 0
+    servo = [p for p in rec["phases"] if "transition_time_max" in p["measurements"]]
+    assert servo and all(p["measurements"]["transition_time_max"]["measured_value"] >= 0 for p in servo)  # a time
 
 
 # fault -> (the step that must catch it, the measurements that must fail there)
@@ -310,3 +312,4 @@ def test_a_signal_mid_move_leaves_the_drive_disabled(tmp_path, sig):
         assert node(b).values[(0x1017, 0)] == 0 and node(b).nmt == 0x7F, (node(b).values[(0x1017, 0)], node(b).nmt)
     assert p.returncode == 2, (out, err)
     assert "ABORTED" in out and "Traceback" not in err
+    assert "stopping the axis (quick stop, disable voltage)" in out and "EmergencyStop" not in out  # its words

@@ -108,7 +108,7 @@ def cmd_test(args):
     if args.safety_window < 0 or args.safety_window > 60000:
         return _err("--safety-window must be 0 (not armed) or 1..60000 ms, not %d" % args.safety_window, args)
     problem = _unanswerable_prompt(args, plan)
-    if problem:
+    if problem and not args.check:
         return _err("%s: %s" % (args.plan, problem), args)
     cia402 = getattr(plan.drive, "protocol", None) == "cia402"
     if args.check:
@@ -125,7 +125,9 @@ def cmd_test(args):
         else:
             print("%s: plan %r version %s is valid: %d steps (%s)%s" % (
                 args.plan, plan.name, plan.version, len(plan.steps), ", ".join(s.name for s in plan.steps),
-                "; the drive is the plan's" if args.port and not cia402 else ""))
+                "; the drive is the plan's" if args.port and not cia402 else ""), flush=True)
+        if problem and not args.json:  # a check moves nothing and asks nothing: a note for the run
+            sys.stderr.write("jigctl: note: %s (when it runs).\n" % problem)
         return EXIT_PASS
     if not args.port:
         return _err("no port: give --port (or set JIGCTL_PORT)", args)

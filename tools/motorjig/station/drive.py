@@ -41,6 +41,8 @@ class Drive:
 
     protocol = ""
     label = ""
+    # what make_safe(emergency=True) does, in the words of the drive's protocol (for messages)
+    emergency_words = "stop and switch off"
 
     def identify(self):
         raise NotImplementedError

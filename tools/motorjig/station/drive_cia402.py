@@ -166,6 +166,7 @@ class Emcy:
 
 class Cia402Drive(Drive):
     protocol = "cia402"
+    emergency_words = "quick stop, disable voltage"
 
     def __init__(self, url, node_id, bitrate, od, master=None, jig_id=1, period=None, on_sync=False):
         self.url, self.node_id, self.bitrate, self.od = url, node_id, bitrate, od
@@ -417,7 +418,9 @@ class Cia402Drive(Drive):
             if state != expected:
                 raise JigError("node %d: controlword 0x%04X did not take it to %s (it is in %s)"
                                % (self.node_id, cw, expected, state))
-            done.append((cw, expected, round(t - t_cmd, 4) if t is not None and t_cmd is not None else None))
+            # A drive that shows the state in its TPDO before it answers the SDO (the same ms, or the
+            # reply queued behind the PDO) took no measurable time: 0, never a negative time.
+            done.append((cw, expected, max(0.0, round(t - t_cmd, 4)) if t is not None and t_cmd is not None else None))
         return done
 
     def _wait_state(self, expected, deadline, n0=None):

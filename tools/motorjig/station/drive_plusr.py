@@ -12,6 +12,7 @@ from motorjig.station.drive import Drive
 
 class PlusRDrive(Drive):
     protocol = "plusr"
+    emergency_words = "EmergencyStop, servo off"
 
     def __init__(self, master, slave, jig_id=1):
         self.master, self.slave, self.jig_id = master, slave, jig_id

@@ -29,7 +29,7 @@ from openhtf.util import configuration, console_output, threads
 from jig.params import P_DOWN_BAUD
 from motorjig import names as N
 from motorjig.errors import JigError
-from motorjig.station import junit, report
+from motorjig.station import junit, kinds, report
 from motorjig.station.phases import build_phase
 from motorjig.station.plug import MotorJigPlug, make_safe
 
@@ -438,7 +438,8 @@ def _catch_signals(ctx):
         if signum == signal.SIGHUP:
             _detach_terminal(terminals)
         if first:
-            ctx.say("\n%s: stopping the axis (EmergencyStop, servo off) and writing the records" % cause)
+            ctx.say("\n%s: stopping the axis (%s) and writing the records"
+                    % (cause, kinds.drive_class(kinds.kind_of(ctx.plan)).emergency_words))
         else:
             ctx.say("%s: already stopping the axis, please wait" % name)
         # From a thread of its own: OpenHTF's abort takes a lock this (main) thread may hold.
