@@ -327,6 +327,19 @@ def test_sdo_refusals_from_the_node_and_silence(run):
     assert run.err.startswith("jigctl: node 7 did not answer the read of 0x6041:00 Statusword")
 
 
+def test_a_silent_node_is_one_sentence_in_a_process_of_its_own(bench):
+    """python-canopen logs the transfer it gives up ("Transfer aborted by client with code
+    0x05040000") before our sentence: jigctl says it once."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "motorjig.cli", "can", "--port", bench.slcan_url, "sdo", "read", "7",
+                        "0x6041"], capture_output=True, text=True, timeout=60, env=ENV)
+    assert p.returncode == 4
+    assert p.stderr.startswith("jigctl: node 7 did not answer the read of 0x6041:00") and p.stderr.count("\n") == 1
+    assert "Transfer aborted" not in p.stderr
+
+
 def _heartbeats(run, ms):
     for n in NODES:
         run("can", "sdo", "write", n, "0x1017", ms)

@@ -173,6 +173,16 @@ def test_a_node_that_does_not_answer_ends_the_run_as_an_error_saying_so(tmp_path
     assert any("node 7 does not answer" in d["description"] for d in rec["outcome_details"]), rec["outcome_details"]
 
 
+def test_a_node_that_aborts_every_sdo_is_said_to_answer_with_its_abort_not_to_be_silent(tmp_path):
+    with bench() as b:
+        b.sim.set_fault("can:sdo-abort", "0x08000000", NODE)
+        rec = run(b, tmp_path)
+    assert rec["outcome"] == "ERROR"
+    text = " ".join(d["description"] for d in rec["outcome_details"])
+    assert "node 5 answers" in text and "abort 0x08000000 general error" in text.lower(), text
+    assert "does not answer" not in text and "cable" not in text
+
+
 def long_run_moving(b, tmp_path, *extra):
     """`jigctl test` of LONG_PLAN on bench b in a process of its own, returned once node 5 moves."""
     plan = tmp_path / "long402.toml"

@@ -12,6 +12,7 @@ LSS error).
 
 import argparse
 import json
+import logging
 import os
 import sys
 import time
@@ -209,6 +210,9 @@ def _eds(args, default=True):
 # --- the command -------------------------------------------------------------------
 def cmd_can(args):
     """Run the chosen CAN subcommand; its refusals and silences become one sentence."""
+    # python-canopen logs each transfer it gives up ("Transfer aborted by client with code
+    # 0x05040000") as an error of its own: the sentence below says it, once.
+    logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
     try:
         return args.can_fn(args)
     except NoAnswer as exc:

@@ -226,6 +226,10 @@ class Cia402Drive(Drive):
             try:
                 self.read(0x1000)
                 break
+            except SdoRefused as exc:  # it answered: not the cable, the node's own refusal
+                raise JigError("node %d answers on %s but refused the SDO read of 0x1000 (device type) with abort "
+                               "%s: the station cannot prepare it"
+                               % (self.node_id, self.url, cia301.abort_text(exc.code))) from None
             except JigError:
                 if time.monotonic() >= deadline:
                     raise JigError("node %d does not answer on %s at %d bit/s (no SDO reply to 0x1000): check the "
