@@ -1,6 +1,6 @@
 """Markdown tables generated from the firmware's data (bridge states, parameters, counters).
 
-docs/bridge.md, docs/parameters.md, docs/diagnostics.md and README.md embed these
+docs/bridge.md, docs/parameters.md, docs/diagnostics.md and docs/station.md embed these
 between ``<!-- BEGIN name -->`` / ``<!-- END name -->`` markers; a host test checks
 they match, and ``python -m motorjig.sim.doctables --write`` refreshes them.
 Every table listed for a document must have its markers there.
@@ -61,7 +61,6 @@ TABLES = {
     "docs/bridge.md": {"bridge-states": bridge_table, "timeouts": timeout_table},
     "docs/parameters.md": {"params": param_table},
     "docs/diagnostics.md": {"counters": counter_table},
-    "README.md": {"params": param_table, "counters": counter_table, "bridge-states": bridge_table},
 }
 
 
