@@ -226,9 +226,35 @@ def test_an_lss_factory_node_id_that_is_none(capsys, tmp_path, node):
     refused(capsys, tmp_path, text, 20, "steps[2].factory_node_id", [str(node)])
 
 
+LSS_FIRST = GOOD.replace("[[steps]]", '[[steps]]\nkind = "lss"\n\n[[steps]]', 1)
+
+
 def test_an_lss_step_loads(tmp_path):
-    step = P.load_plan(write(tmp_path, GOOD + '\n[[steps]]\nkind = "lss"\n')).steps[-1]
+    step = P.load_plan(write(tmp_path, LSS_FIRST)).steps[0]
     assert (step.kind, step.args["factory_node_id"]) == ("lss", 255)
+
+
+def test_an_lss_step_that_is_not_first(capsys, tmp_path):
+    """At run time the drive has no node id until the lss step: a step before it finds nothing."""
+    refused(capsys, tmp_path, GOOD + '\n[[steps]]\nkind = "lss"\n', 19, "steps[2].kind",
+            ["an lss step must be the plan's first"])
+
+
+def test_a_homing_method_cia402_does_not_define(capsys, tmp_path):
+    refused(capsys, tmp_path, GOOD + '\n[[steps]]\nkind = "home"\nmethod = 99\n', 20, "steps[2].method",
+            ["99 is no homing method", "1-14, 17-30, 33-35 and 37"])
+    P.load_plan(write(tmp_path, GOOD + '\n[[steps]]\nkind = "home"\nmethod = -3\n'))  # the maker's own
+
+
+def test_a_duration_limit_the_moves_profile_cannot_meet(capsys, tmp_path):
+    """A 2 s move (10 000 counts at 5 000 counts/s, ramps of 0.1 s) with duration_s = [0, 0.1]."""
+    text = GOOD.replace("distance = 1000", "distance = 10000\naccel = 50000\ndecel = 50000\nduration_s = [0, 0.1]")
+    refused(capsys, tmp_path, text, 18, "steps[1].duration_s", ["takes at least 2.1 s", "upper limit 0.1 s"])
+
+
+def test_a_stop_time_of_nothing(capsys, tmp_path):
+    text = GOOD + '\n[[steps]]\nkind = "stop-response"\nstop_time_s = [0, 0]\n'
+    refused(capsys, tmp_path, text, 20, "steps[2].stop_time_s", ["upper limit is 0 s", "could never pass"])
 
 
 # --- the schema and its reference ------------------------------------------------------

@@ -209,7 +209,31 @@ def _wired(ck, wiring, keypath, ref, which):
     raise ck.error(keypath, "%s %r is not in the plan's [wiring] (wired: %s)" % (which, ref, known))
 
 
+# CiA 402's homing methods (0x6098): the standard's 1-14, 17-30, 33-35 and 37; -128..-1 are the
+# manufacturer's own
+HOMING_METHODS = tuple(range(1, 15)) + tuple(range(17, 31)) + (33, 34, 35, 37)
+
+
+def _least_move_time(args, distance, speed):
+    """The shortest time a move of ``distance`` at ``speed`` can take: distance / speed, plus its
+    ramps where the step gives them (accel_ms/decel_ms, or accel/decel in counts/s²)."""
+    from motorjig.station.phases import trapezoid_time
+
+    acc_ms, dec_ms = args.get("accel_ms"), args.get("decel_ms")
+    if args.get("accel") and args.get("decel"):
+        accel = args["accel"] if not isinstance(args["accel"], list) else min(args["accel"])
+        decel = args["decel"] if not isinstance(args["decel"], list) else min(args["decel"])
+        acc_ms, dec_ms = 1000.0 * speed / accel, 1000.0 * speed / decel
+    if acc_ms is not None and dec_ms is not None:
+        return trapezoid_time(distance, speed, acc_ms, dec_ms)
+    return abs(distance) / speed
+
+
 def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
+    for k in ("duration_s", "stop_time_s"):
+        if args.get(k) is not None and args[k][1] <= 0:
+            raise ck.error(step_path + (k,), "its upper limit is %g s: a motion takes time, so the step could never "
+                                             "pass" % args[k][1])
     if kind == "move":
         need, other = ("position", "distance") if args["mode"] == "abs" else ("distance", "position")
         if args[need] is None:
@@ -225,13 +249,26 @@ def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
             if slowest > args["timeout_s"]:
                 raise ck.error(step_path + ("timeout_s",), "the move takes at least %.3g s (distance / speed), longer "
                                                            "than timeout_s = %g" % (slowest, args["timeout_s"]))
+            if args.get("duration_s") is not None:
+                least = max(_least_move_time(args, d, v) for d in distances for v in speeds)
+                if least > args["duration_s"][1]:
+                    raise ck.error(step_path + ("duration_s",), "the move takes at least %.3g s (its trapezoid "
+                                   "profile), above duration_s's upper limit %g s: it could never pass"
+                                   % (least, args["duration_s"][1]))
         _duration_within_timeout(ck, step_path, args)
     elif kind == "home":
         _duration_within_timeout(ck, step_path, args)
+        method = args.get("method")
+        if method is not None and method not in HOMING_METHODS and not -128 <= method <= -1:
+            raise ck.error(step_path + ("method",), "%d is no homing method: CiA 402 defines 1-14, 17-30, 33-35 and "
+                                                    "37, and -128..-1 are the manufacturer's" % method)
     elif kind == "lss":
         if 127 < args["factory_node_id"] < 255:
             raise ck.error(step_path + ("factory_node_id",), "a node id is 1..127, or 255 for none, not %d"
                            % args["factory_node_id"])
+        if step_path[1] != 0:
+            raise ck.error(step_path + ("kind",), "an lss step must be the plan's first: it gives the drive the node "
+                                                  "id every other step talks to")
     elif kind == "parameters":
         path = os.path.join(plan_dir, args["file"])
         if not os.path.exists(path):
