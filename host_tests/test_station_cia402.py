@@ -173,6 +173,21 @@ def test_a_node_that_does_not_answer_ends_the_run_as_an_error_saying_so(tmp_path
     assert any("node 7 does not answer" in d["description"] for d in rec["outcome_details"]), rec["outcome_details"]
 
 
+def test_a_refused_parameter_read_shows_the_abort_on_the_console_and_in_the_html(tmp_path):
+    lines = []
+    with eol_bench() as b:
+        b.sim.set_fault("can:sdo-abort", "0x06040047@0x6065", NODE)
+        plan = load_plan(EOL)
+        plan.sample_rate_min = 20.0
+        ctx = run_plan(plan, b.tcp_url, can_port=b.slcan_url, out_dir=str(tmp_path), out=lines.append,
+                       timeout_ms=300, confirm=lambda message: True)
+    console = "\n".join(str(x) for x in lines)
+    assert "x6065_00 = unset: refused by the drive: SDO abort 0x06040047 general internal incompatibility" in console
+    with open(ctx.files["html"]) as f:
+        html = f.read()
+    assert "not measured: refused by the drive: SDO abort 0x06040047 general internal incompatibility" in html
+
+
 def test_a_node_that_aborts_every_sdo_is_said_to_answer_with_its_abort_not_to_be_silent(tmp_path):
     with bench() as b:
         b.sim.set_fault("can:sdo-abort", "0x08000000", NODE)

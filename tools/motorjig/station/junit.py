@@ -23,7 +23,7 @@ import re
 import xml.etree.ElementTree as ET
 
 from .report import (failed_measurements, format_value, measurement_text, operator_name, outcome_details_text,
-                     phase_error_text, record_dict, seconds, utc_time)
+                     phase_error_text, record_dict, seconds, utc_time, why_unset)
 
 RUN_CASE = "test run"
 SCHEMA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "junit.xsd")
@@ -82,7 +82,7 @@ def junit_xml(record):
         outcome = phase.get("outcome")
         if outcome == "FAIL":
             counts["failures"] += 1
-            failed = [measurement_text(m) for m in failed_measurements(phase)]
+            failed = [measurement_text(m, why_unset(phase)) for m in failed_measurements(phase)]
             if failed:
                 el = ET.SubElement(case, "failure", message="; ".join(failed), type="measurement")
                 el.text = "\n".join(failed)

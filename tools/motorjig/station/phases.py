@@ -501,10 +501,17 @@ def _results(test, measures):
     return out
 
 
-def _failed_lines(results):
-    """The failed ones as 'name = value unit (limits)' texts."""
-    return ["%s = %s%s (%s)" % (name, "unset" if value is None else value, " " + unit if unit else "",
-                                limits or "a value")
+def not_measured(test, name, why):
+    """A step could not measure ``name`` (the drive refused it): the measurement stays unset, and
+    ``why`` goes with it to the console, the HTML report and the record (attachment "why_unset")."""
+    test.state.setdefault("why_unset", {})[name] = why
+
+
+def _failed_lines(results, why=None):
+    """The failed ones as 'name = value unit (limits)' texts; an unset one with its reason if known."""
+    why = why or {}
+    return ["%s = %s%s (%s)" % (name, ("unset: " + why[name] if name in why else "unset") if value is None else value,
+                                " " + unit if unit else "", limits or "a value")
             for name, value, unit, limits, outcome in results if outcome not in ("PASS", "SKIPPED")]
 
 
@@ -562,6 +569,7 @@ def build_phase(step, plan, ctx):
             bus.note_abort()
             raise RunAborted("aborted before step %s" % step.name)
         ctx.started(step)
+        test.state["why_unset"] = {}
         n0 = len(bus.master.roundtrips)
         drive_s0 = getattr(bus.drive, "bus_seconds", 0.0)
 
@@ -580,7 +588,10 @@ def build_phase(step, plan, ctx):
                          _results(test, measures))
             raise
         results = _results(test, measures)
-        failed = _failed_lines(results)
+        why = test.state.pop("why_unset", None) or {}
+        if why:
+            test.attach("why_unset", json.dumps(why), "application/json")
+        failed = _failed_lines(results, why)
         if failed and bus.safety is not None and bus.safety.fired():
             bus.note_failure()
             why = ("the jig's safety stop fired during the step: this PC was silent for more than %d ms and the "

@@ -17,7 +17,7 @@ import time
 
 from openhtf.util import units
 
-from motorjig.can import power402
+from motorjig.can import cia301, power402
 from motorjig.errors import JigError
 from motorjig.station.drive_cia402 import SW_ACK, SW_ERROR, SW_INTERNAL_LIMIT, SW_TARGET_REACHED, SdoRefused
 from motorjig.station.sampling import Cia402Trace, UntrustedMeasurement
@@ -89,7 +89,9 @@ def run_parameters(test, bus, step, ctx):
         try:
             test.measurements[e.name] = d.read(e.index, e.sub)
         except SdoRefused as exc:  # the drive refuses an object the golden set has: that object
-            # stays unset (a failed measurement, not a broken run), the abort named in the record's log
+            # fails (not a broken run), unmeasured, with the abort as the reason the console and the
+            # HTML show
+            _h().not_measured(test, e.name, "refused by the drive: SDO abort %s" % cia301.abort_text(exc.code))
             test.logger.warning("%s: %s", e.name, exc)
 
 

@@ -90,11 +90,17 @@ def limits_text(meas):
     return " and ".join(str(v) for v in meas.get("validators") or ())
 
 
-def measurement_text(meas):
+def why_unset(phase):
+    """{measurement: why it was not measured} the step attached ("why_unset"), or {}."""
+    why = attachment_json(phase, "why_unset")
+    return why if isinstance(why, dict) else {}
+
+
+def measurement_text(meas, why=None):
     """One line for a measurement: 'name = 812 pulse, outside -10 <= x <= 10' when it failed."""
     name = meas.get("name", "?")
     if "measured_value" not in meas:
-        return "%s was not measured" % name
+        return "%s was not measured%s" % (name, ": " + why[name] if why and name in why else "")
     value = format_value(meas["measured_value"])
     unit = unit_text(meas)
     text = "%s = %s%s" % (name, value, " " + unit if unit else "")
@@ -355,9 +361,11 @@ def _phase_table(phases):
                     % (_e(p.get("name")), _e(p.get("name")), _e(note),
                        duration_text(seconds(p.get("start_time_millis"), p.get("end_time_millis"))),
                        _badge(p.get("outcome"))))
+        why = why_unset(p)
         for m in meas:
             outcome = m.get("outcome", "UNSET")
-            value = format_value(m["measured_value"]) if "measured_value" in m else "not measured"
+            value = (format_value(m["measured_value"]) if "measured_value" in m
+                     else "not measured: " + why[m.get("name")] if m.get("name") in why else "not measured")
             short = value if len(value) <= 60 else value[:57] + "..."  # a dimensioned measurement's whole table
             align = "num" if _is_number(m.get("measured_value")) else "text"
             rows.append('<tr class="meas%s" data-measurement="%s" data-outcome="%s"><td>%s</td>'
@@ -415,7 +423,7 @@ def html_report(record):
     verdict = outcome + (" (MARGINAL)" if record.get("marginal") else "")
     reason = meta.get("verdict_reason") or outcome_details_text(record)
     if not reason and outcome == "FAIL":
-        reason = "; ".join(measurement_text(m) for p in phases for m in failed_measurements(p))
+        reason = "; ".join(measurement_text(m, why_unset(p)) for p in phases for m in failed_measurements(p))
     title = "%s %s %s" % (verdict, meta.get("test_name") or "", record.get("dut_id") or "")
     tally = [(sum(p.get("outcome") == o for p in phases), word) for o, word in
              (("PASS", "passed"), ("FAIL", "failed"), ("ERROR", "error"), ("SKIP", "skipped"))]
