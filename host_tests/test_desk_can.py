@@ -171,6 +171,21 @@ def test_a_nodes_refusal_is_named_and_bad_input_is_one_sentence(desk):
     assert "Traceback" not in b.driver.page_source
 
 
+def test_a_refused_sdo_read_replaces_the_result_and_a_reload_keeps_the_node(desk):
+    """Issue 31: a failed read left the previous result under a field naming another object; after a
+    reload the node field was empty while node 5 was still listed."""
+    b = desk.b
+    before = sdo(b, "5", "0x1008")
+    b.wait_for(lambda: b.text("can-sdo-result") != before, 10, "the SDO read's result")
+    sdo(b, "5", "0x2345:00")
+    b.wait_for(lambda: "0x2345:00" in b.text("can-sdo-result"), 10, "the refusal in the result's place")
+    assert "aborted" in b.text("can-sdo-result") and "0x1008" not in b.text("can-sdo-result")
+    b.open(desk.url)
+    b.tab("tab-can")
+    b.wait_for(lambda: b.js("""const e = document.querySelector('[data-testid="can-sdo-node"]');
+                               return e && e.value;""") == "5", 10, "the node field after a reload")
+
+
 def test_close_then_a_port_that_is_not_an_slcan_port_is_refused_in_one_sentence(desk):
     b = desk.b
     b.click("btn-can-close")

@@ -231,6 +231,16 @@ def test_move_dec_keeps_the_distance_as_typed_and_its_button(s):
     assert s.last_move == ("inc", -1) and s.move_seq == seq + 1
 
 
+def test_move_dec_never_moves_up_whatever_the_fields_sign(s):
+    """Issue 31: MOVE DEC with -5000 in the field moved the axis up by 5000."""
+    s.select_axis(2)
+    s.servo(True)
+    s.clear_position()
+    assert s.move("inc", "-5000", "40000", sign=-1) == "slave 2: move inc -5000 at 40000 pps"
+    poll_until(s, lambda st: st.command_pos == -5000)
+    assert s.move_fields["target"] == "-5000"  # kept as typed
+
+
 def test_emergency_stop_ends_a_running_motion_test(s):
     s.select_axis(2)
     s.servo(True)

@@ -312,6 +312,11 @@ class CanAxis:
             self._write(0x60FF, 0, nid=nid)
         return True
 
+    @property
+    def stop_seq(self):
+        """How many stops (STOP, EMERGENCY STOP, quick stop) this axis has had: the tab sees one."""
+        return self._stop_seq
+
     def halt(self, node_id=None):
         """Controlword bit 8: the drive stops with its deceleration and stays enabled."""
         nid = self._take(node_id)

@@ -191,6 +191,7 @@ class CanTab:
                      "DISABLED. Closing the port or the Desk disables a node enabled here first.") \
                 .classes("text-caption text-grey-7")
         self.axis_jogging = False
+        self.stops_seen = None
 
     async def _axis(self, fn, *args, quiet=False):
         return await self.act(fn, *args, self.axis_node.value, quiet=quiet)
@@ -218,6 +219,11 @@ class CanTab:
         ax = self.link.axis
         if self.axis_jogging:
             ax.jog_alive()
+        if self.stops_seen != ax.stop_seq:  # a STOP from the header (or another tab): the last move is over
+            if self.stops_seen is not None:
+                self.message.text = "the axis was stopped (%s)" % time.strftime("%H:%M:%S")
+                self.message.classes(replace="text-grey-9")
+            self.stops_seen = ax.stop_seq
         fields = ax.describe()
         if self.changed("axis", repr(fields)):
             for key, label in self.axis_fields.items():
@@ -228,7 +234,9 @@ class CanTab:
         with ui.card().classes("w-full"):
             with ui.row().classes("items-end"):
                 ui.label("SDO").classes("text-subtitle1")
-                self.sdo_node = tid(ui.input("node", value=""), "can-sdo-node").classes("w-20")
+                rows = self.link.node_rows()  # (a reload: the node scanned before is still the one to ask)
+                self.sdo_node = tid(ui.input("node", value=str(rows[0]["id"]) if rows else ""),
+                                    "can-sdo-node").classes("w-20")
                 self.sdo_object = tid(ui.input("object: index:sub or EDS name", value="0x1008",
                                                placeholder="0x6041, 0x1018:2, Producer heartbeat time"),
                                       "can-sdo-object").classes("w-60")
@@ -289,11 +297,15 @@ class CanTab:
         res = await self.act(self.link.sdo_read, self.sdo_node.value, self.sdo_object.value)
         if res is not None:
             self._sdo_show("node %s %s = %s" % (str(self.sdo_node.value).strip(), res[0], res[1]))
+        else:  # the refusal in the result's place: never an earlier answer under a field that names another
+            self.sdo_result.text = self.message.text
 
     async def _sdo_write(self):
         res = await self.act(self.link.sdo_write, self.sdo_node.value, self.sdo_object.value, self.sdo_value.value)
         if res is not None:
             self._sdo_show("node %s %s := %s written" % (str(self.sdo_node.value).strip(), res[0], res[1]))
+        else:
+            self.sdo_result.text = self.message.text
 
     def _sdo_show(self, text):
         self.sdo_result.text = text

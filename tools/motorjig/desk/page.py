@@ -432,7 +432,7 @@ class DeskPage:
         if (kind, sign) != self.last_move:
             self.last_move = (kind, sign)
             self._mark_enter()
-        # Move DEC sends the field's distance the other way; the field keeps it as typed
+        # Move DEC moves down by the field's magnitude; the field keeps it as typed
         return self.act(self.s.move, kind, self.target.value, self.speed.value, self.acc.value, self.dec.value,
                         sign)
 

@@ -664,7 +664,8 @@ class BusSession:
     @command("Move")
     def move(self, kind, target, speed, accel="", decel="", sign=1):
         """Move absolute ('abs') or incremental ('inc'); acc/dec times use the EX frames.
-        sign -1 is Move DEC: the incremental distance as typed, sent the other way. The
+        sign -1 is Move DEC: a button named for a direction moves that way only, so it moves
+        down by the distance's magnitude whatever its sign (-5000 and 5000 alike). The
         fields are kept as typed with the button used, so every tab (and a reload) shows
         the very field, sign and Enter button of the move that was sent."""
         a = self._need_driver()
@@ -674,7 +675,7 @@ class BusSession:
         fields = {"target": str(target), "speed": str(speed), "acc": str(accel or ""), "dec": str(decel or "")}
         target = forms.position(target, "position" if kind == "abs" else "distance")
         if sign < 0:
-            target = forms.position(-target, "distance")
+            target = forms.position(-abs(target), "distance")
         speed = forms.speed(speed)
         acc, dec = forms.accel(accel, "acceleration time"), forms.accel(decel, "deceleration time")
         with self._log_lock:
