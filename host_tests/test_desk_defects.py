@@ -489,6 +489,18 @@ def test_9_read_only_lets_the_operator_choose_the_axis_to_watch(desk, read_only)
     b.wait_for(lambda: b.text("axis-select").startswith("3 Ezi-STEP"), 5, "axis 3 after a reload")
 
 
+def test_a_refused_move_leaves_the_enter_mark_where_it_was(desk, read_only):
+    """Issue 31: in read-only, a refused MOVE DEC still moved ⏎ onto that button."""
+    b = desk.b
+    b.open(read_only.url)
+    b.tab("tab-axis")
+    b.wait_for(lambda: b.text("cmd-pos").lstrip("-").isdigit(), 10, "the live status")
+    before = enter_hint(b)
+    b.click("btn-move-dec")
+    b.wait_for(lambda: "read-only" in b.driver.page_source.replace(">READ-ONLY<", ""), 5, "the refusal")
+    assert enter_hint(b) == before
+
+
 def test_9_read_only_reconnects_on_request_and_by_itself(desk, read_only):
     """Issue: a read-only Desk refused Reconnect after a lost connection ("this Desk is read-only"),
     and nothing reconnected by itself."""

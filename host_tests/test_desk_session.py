@@ -498,6 +498,19 @@ def test_a_read_only_session_reconnects_by_itself():
         b.stop()
 
 
+def test_a_read_only_desks_reconnect_does_not_send_the_user_to_scan():
+    """Issue 31: its reconnect toast said "press Scan to find the slaves", which it refuses."""
+    with Bench(driver_ids=(2,), baud=115200, pty=False) as b:
+        s = BusSession(timeout=TIMEOUT, poll_interval=0.02)
+        try:
+            assert "press Scan" in s.connect(b.tcp_url)
+            s.read_only = True
+            said = s.reconnect()
+            assert said.startswith("connected to %s" % b.tcp_url) and "Scan" not in said, said
+        finally:
+            s.stop()
+
+
 def test_a_read_only_desk_whose_port_did_not_open_connects_once_it_does():
     from desk_browser import free_port
 

@@ -154,6 +154,15 @@ def test_abort_during_a_move_stops_the_axis_and_switches_the_servo_off(desk):
     assert step_state(b, "long") == "aborted"
     url, text = take_report_tab(b, first)
     assert "ABORTED" in text
+    # the record's log names the Desk's Abort, not OpenHTF's "Aborting ... due to SIGINT" at error level
+    import glob
+    import json
+
+    with open(b.wait_for(lambda: glob.glob(str(desk.tmp / "results" / "long-move_SN-DESK-0002_*.json")), 10,
+                         "the record")[0]) as f:
+        logs = [(r["level"], r["message"]) for r in json.load(f)["log_records"]]
+    assert not [m for _, m in logs if "SIGINT" in m], logs
+    assert any("aborting the run: aborted from the Desk (Abort)" in m for _, m in logs), logs
     b.wait_for(lambda: b.text("conn-state").startswith("connected: "), 10, "the Desk has its port back")
     try:
         b.tab("tab-connect")

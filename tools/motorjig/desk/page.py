@@ -428,13 +428,14 @@ class DeskPage:
         for key, button in self.move_buttons.items():
             button.classes(add="enter-hint") if key == self.last_move else button.classes(remove="enter-hint")
 
-    def _move(self, kind, sign):
-        if (kind, sign) != self.last_move:
+    async def _move(self, kind, sign):
+        # Move DEC moves down by the field's magnitude; the field keeps it as typed
+        said = await self.act(self.s.move, kind, self.target.value, self.speed.value, self.acc.value, self.dec.value,
+                              sign)
+        if said is not None and (kind, sign) != self.last_move:  # a refused move leaves ⏎ where it was
             self.last_move = (kind, sign)
             self._mark_enter()
-        # Move DEC moves down by the field's magnitude; the field keeps it as typed
-        return self.act(self.s.move, kind, self.target.value, self.speed.value, self.acc.value, self.dec.value,
-                        sign)
+        return said
 
     def _take_move_fields(self):
         """Another tab (or this one) sent a move: show its values and its Enter button here, so

@@ -236,11 +236,13 @@ class BusSession:
         if not alive:
             msg = ("connected to %s, but nothing answers on the bus (silent port: check the baud rate, the "
                    "Ver6/Ver8 setting (now %s: the protocol choice beside the baud rate), the wiring and that "
-                   "the jig is powered); press Scan to look again" % (
-                       url, "auto, each slave's variant detected" if ver8 is None else protocol_name(ver8)))
+                   "the jig is powered)%s" % (
+                       url, "auto, each slave's variant detected" if ver8 is None else protocol_name(ver8),
+                       "" if self.read_only else "; press Scan to look again"))
             self.log("error", msg)
             return msg
-        return "connected to %s; press Scan to find the slaves" % url
+        # a read-only Desk refuses Scan (it sends nothing): it watches the axis the page shows
+        return "connected to %s%s" % (url, "" if self.read_only else "; press Scan to find the slaves")
 
     @command("Disconnect")
     def disconnect(self, quiet=False):

@@ -479,7 +479,9 @@ class Station:
             raise UserError("no test is running")
         run.abort()
         self.session.log("info", "test %s: Abort pressed" % run.plan.name)
-        return "test aborted: emergency stop and servo off"
+        from motorjig.station import kinds
+
+        return "test aborted: %s" % kinds.drive_class(kinds.kind_of(run.plan)).emergency_words
 
     def answer(self, prompt_id, ok):
         run = self.run

@@ -109,7 +109,7 @@ class RunContext:
         # Once only: a second abort makes OpenHTF skip the teardown, which stops the axis.
         if test is not None and test.uid is not None and not self._abort_sent:
             self._abort_sent = True
-            test.abort_from_sig_int()  # despite its name: aborts the executor, from any thread
+            _abort_engine(test, self.end_cause or "aborted")
 
     def confirm(self, message):
         if self._confirm is None:
@@ -499,6 +499,21 @@ def _emergency_stop(port, baud, slave, timeout_ms):
             make_safe(m, slave, emergency=True)
     except (JigError, OSError):
         pass  # the port cannot be opened any more: the record says how the run ended
+
+
+def _abort_engine(test, cause):
+    """Abort OpenHTF's executor from any thread, with the real cause in the record's log (OpenHTF's
+    own abort_from_sig_int logs "Aborting ... due to SIGINT" at error level whatever the cause: the
+    Desk's Abort too)."""
+    from openhtf.util import logs
+
+    executor = getattr(test, "_executor", None)
+    if executor is None:  # an OpenHTF without the attribute: its own call, its own words
+        test.abort_from_sig_int()
+        return
+    logs.get_record_logger_for(test.uid).warning("aborting the run: %s", cause)
+    with test._lock:
+        executor.abort()
 
 
 def is_cia402(plan):
