@@ -498,6 +498,27 @@ def test_a_read_only_session_reconnects_by_itself():
         b.stop()
 
 
+def test_the_desk_says_once_what_the_jigs_safety_stop_did_before_it_connected():
+    """Issue 31: after a killed run the Desk's header tells the next user what the jig stopped."""
+    with Bench(driver_ids=(2,), baud=115200, pty=False) as b:
+        with Master(b.tcp_url, timeout=0.3) as m:  # a run's lease, then its master falls silent
+            m.set_parameter(1, 10, 1)
+            m.set_parameter(1, 9, 200)
+            m.servo_enable(2, True)
+            m.move_velocity(2, 2000, 1)
+        time.sleep(1.0)
+        s = BusSession(timeout=TIMEOUT, poll_interval=0.02)
+        try:
+            s.connect(b.tcp_url)
+            assert s.safety_notice.startswith("the jig stopped drive 2 after the run's master went silent at")
+            assert any("note: the jig stopped drive 2" in line for line in s.log_text().splitlines())
+            s.safety_notice = ""
+            s.connect(b.tcp_url)
+            assert s.safety_notice == ""  # said once
+        finally:
+            s.stop()
+
+
 def test_a_read_only_desks_reconnect_does_not_send_the_user_to_scan():
     """Issue 31: its reconnect toast said "press Scan to find the slaves", which it refuses."""
     with Bench(driver_ids=(2,), baud=115200, pty=False) as b:

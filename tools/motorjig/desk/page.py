@@ -196,6 +196,12 @@ class DeskPage:
                 self.lost_text = tid(ui.label(""), "lost-text").classes("text-red-9")
                 tid(ui.button("Reconnect", on_click=self._reconnect), "btn-reconnect")
         self.lost_banner.set_visibility(False)
+        with tid(ui.card(), "safety-notice").classes("w-full bg-amber-1") as self.notice_banner:
+            with ui.row().classes("items-center"):
+                ui.icon("warning", color="orange", size="md")
+                self.notice_text = tid(ui.label(""), "safety-notice-text")
+                tid(ui.button("OK", on_click=self._notice_seen), "btn-safety-notice-ok").props("flat dense")
+        self.notice_banner.set_visibility(False)
         with ui.tabs().classes("w-full") as tabs:
             t_conn = tid(ui.tab("Connect & bus"), "tab-connect")
             t_plan = tid(ui.tab("Test"), "tab-plan") if self.station is not None else None
@@ -255,6 +261,9 @@ class DeskPage:
         if can_said and self.s.state in ("disconnected", "lost"):  # no Plus-R axis to stop, no run to abort
             return
         await self.act(self.s.emergency_stop if emergency else self.s.stop_axis)
+
+    def _notice_seen(self):
+        self.s.safety_notice = ""  # said: every tab lets it go
 
     async def _reconnect(self):
         await self.act(self.s.reconnect)
@@ -759,6 +768,9 @@ class DeskPage:
                 "disconnected": "not connected", "lent": "test run: the plan has the port"}[state]
         if ch("conn", conn):
             self.conn_label.text = conn
+        if ch("notice", s.safety_notice):
+            self.notice_banner.set_visibility(bool(s.safety_notice))
+            self.notice_text.text = s.safety_notice
         if ch("lost", (state, s.lost_reason)):
             self.lost_banner.set_visibility(state == "lost")
             self.lost_text.text = s.lost_message() if state == "lost" else ""

@@ -38,6 +38,7 @@ from jig import frame as F
 from jig.parser import FrameParser
 
 from motorjig import names as N
+from motorjig import safetynotice
 from motorjig.commands import _motion_cycles  # the very moves and checks of `jigctl motion-test`
 from motorjig.decode import Decoder
 from motorjig.errors import JigError, MotionRefusedError, PortError
@@ -130,6 +131,7 @@ class BusSession:
         self.baud = 115200
         self.ver8 = None  # None: each slave's Ver6/Ver8 detected; True/False: one framing forced
         self.lost_reason = ""
+        self.safety_notice = ""  # what the jig's safety stop did before this Desk connected (the header says it)
         self._next_reconnect = 0.0
         self.slaves = {}  # id -> {"id", "type", "type_name", "version", "jig", "variant"}
         self.scan_progress = None  # (id being probed, last id) while a scan runs
@@ -233,7 +235,12 @@ class BusSession:
             except PortError as exc:
                 self._lose(exc)
                 raise UserError(self.lost_message()) from None
-        if not alive:
+            # What a killed run left behind, said once (the jig forgets it when asked: a read-only
+            # Desk leaves it to whoever connects to act)
+            notice = safetynotice.take(m, self.jig_id()) if alive and not self.read_only else None
+        if notice:
+            self.safety_notice = notice
+            self.log("warning", "note: " + notice)
             msg = ("connected to %s, but nothing answers on the bus (silent port: check the baud rate, the "
                    "Ver6/Ver8 setting (now %s: the protocol choice beside the baud rate), the wiring and that "
                    "the jig is powered)%s" % (
