@@ -72,19 +72,6 @@ def default_operator():
     return name.strip() or "unknown"
 
 
-def _check_drive(args, plan):
-    """Read only: the drive's variant and slave type against the plan's (the run's preflight check)."""
-    from motorjig.master import Master
-    from motorjig.station.runner import PreflightError, check_drive
-
-    with Master(args.port, baud=args.baud, timeout=args.timeout / 1000.0) as m:
-        try:
-            check_drive(m, plan.drive, plan.steps)
-        except PreflightError as exc:
-            return str(exc).replace(": nothing was moved", "")
-    return None
-
-
 def _unanswerable_prompt(args, plan):
     """The first prompt step nobody could answer (no --yes, no terminal), as a sentence, or None."""
     if args.yes or sys.stdin.isatty():
@@ -98,6 +85,7 @@ def _unanswerable_prompt(args, plan):
 
 def cmd_test(args):
     try:
+        from motorjig.station import kinds
         from motorjig.station import plan as P
     except ImportError as exc:
         return _err("the station needs the 'station' extra (%s): pip install 'motorjig[station]'" % exc, args)
@@ -110,11 +98,12 @@ def cmd_test(args):
     problem = _unanswerable_prompt(args, plan)
     if problem and not args.check:
         return _err("%s: %s" % (args.plan, problem), args)
-    cia402 = getattr(plan.drive, "protocol", None) == "cia402"
+    kind = kinds.kind_of(plan)
+    ports = {"port": args.port, "baud": args.baud, "timeout_ms": args.timeout, "can_port": args.can_port}
     if args.check:
-        if args.port and not cia402:
+        if args.port and kind.checks_on_port:
             try:
-                problem = _check_drive(args, plan)
+                problem = kind.check_on_port(ports, plan)
             except JigError as exc:
                 return _err(str(exc), args)
             if problem:
@@ -125,14 +114,16 @@ def cmd_test(args):
         else:
             print("%s: plan %r version %s is valid: %d steps (%s)%s" % (
                 args.plan, plan.name, plan.version, len(plan.steps), ", ".join(s.name for s in plan.steps),
-                "; the drive is the plan's" if args.port and not cia402 else ""), flush=True)
+                "; the drive is the plan's" if args.port and kind.checks_on_port else ""), flush=True)
         if problem and not args.json:  # a check moves nothing and asks nothing: a note for the run
             sys.stderr.write("jigctl: note: %s (when it runs).\n" % problem)
         return EXIT_PASS
     if not args.port:
         return _err("no port: give --port (or set JIGCTL_PORT)", args)
-    if cia402 and not args.can_port:
-        return _err("%s is a plan for a CiA 402 drive: give the jig's SLCAN port with --can-port" % args.plan, args)
+    for port, option, what in kind.ports:
+        if not ports.get(port):
+            return _err("%s is a plan for a %s drive: give the jig's %s with %s" % (
+                args.plan, kind.title, what, option), args)
     from motorjig.master import Master
 
     from motorjig import safetynotice
@@ -166,21 +157,10 @@ def cmd_test(args):
             store.close()
         return _err(problem, args)
     confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
-    if cia402:
-        import logging
-
-        # python-canopen logs each SDO transfer it gives up as an error; the step's error says it
-        logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)
-        try:
-            from motorjig.can.port import probe
-
-            probe(args.can_port)  # a wrong SLCAN port is said plainly, before OpenHTF starts
-        except PortError as exc:
-            return _err(str(exc), args)
-        what = "drive node %d at %d bit/s on %s, jig on %s" % (plan.drive.node_id, plan.drive.bitrate,
-                                                                args.can_port, args.port)
-    else:
-        what = "drive slave %d, %s" % (plan.drive.slave, args.port)
+    problem = kind.before_run(ports)  # a wrong second port is said plainly, before OpenHTF starts
+    if problem:
+        return _err(problem, args)
+    what = kind.describe_run(plan, ports)
     _say(args, "plan %s %s (%s), %s" % (plan.name, plan.version, plan.hash[:12], what))
     try:
         ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial,

@@ -56,8 +56,8 @@ WIRING_SCHEMA = {
         Field("slave", "integer", 0, 15, False,
               "the Plus-R drive wired to the jig (default: the plan's [drive] slave, else the bench's first driver)"),
         Field("node", "integer", 1, 127, False,
-              "instead of slave: the CiA 402 drive of this CANopen node id wired to the jig (default for a "
-              "protocol = \"cia402\" plan: its [drive] node_id)"),
+              "instead of slave: the CANopen drive of this node id wired to the jig (default for a plan whose "
+              "[drive] has a node_id: that node)"),
         Field("relay", "tables", None, None, False, "a jig relay wired to a drive input"),
         Field("sense", "tables", None, None, False, "a drive output wired to a jig input"),
     ),
@@ -235,8 +235,8 @@ def parse_wiring(table, source="<wiring>", default_slave=None, default_node=None
 
 def load_wiring(path):
     """The wiring of a TOML file: its ``[wiring]`` table, with a test plan's ``[drive]
-    slave`` as the default slave, or for a ``protocol = "cia402"`` plan its ``[drive]
-    node_id`` as the default node. WiringError (naming the file) on any problem."""
+    slave`` as the default slave, or for a plan whose ``[drive]`` names a ``node_id`` (a
+    CANopen drive) that node as the default node. WiringError (naming the file) on any problem."""
     source = str(path)
     if tomllib is None:
         raise WiringError(source, "", "reading TOML needs Python 3.11+ (tomllib) or the tomli package "
@@ -252,11 +252,10 @@ def load_wiring(path):
         raise WiringError(source, "", "no [wiring] table")
     slave = node = None
     drive = data.get("drive")
-    if isinstance(drive, dict) and drive.get("protocol") == "cia402":
-        if "node_id" in drive:
-            node = drive["node_id"]
-            if not isinstance(node, int) or isinstance(node, bool) or not 1 <= node <= 127:
-                raise WiringError(source, "drive.node_id", "expected an integer 1..127, got %r" % (node,))
+    if isinstance(drive, dict) and "node_id" in drive:
+        node = drive["node_id"]
+        if not isinstance(node, int) or isinstance(node, bool) or not 1 <= node <= 127:
+            raise WiringError(source, "drive.node_id", "expected an integer 1..127, got %r" % (node,))
     elif isinstance(drive, dict) and "slave" in drive:
         slave = drive["slave"]
         if not isinstance(slave, int) or isinstance(slave, bool) or not 0 <= slave <= 15:

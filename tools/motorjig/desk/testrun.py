@@ -400,7 +400,9 @@ class Station:
         """A CiA 402 plan's drive is on the jig's SLCAN port, which one program holds at a time: the CAN
         tab's link lends it to the run (its axis made safe and its port closed first; reopened after the
         run). (url, reopen) for the run, None for a Plus-R plan."""
-        if getattr(plan.drive, "protocol", "plusr") != "cia402":
+        from motorjig.station import kinds
+
+        if "can_port" not in {port for port, _option, _what in kinds.kind_of(plan).ports}:
             return None
         link = self.can_link
         url = link.url if link is not None else ""
@@ -481,7 +483,7 @@ class Station:
         self.session.log("info", "test %s: Abort pressed" % run.plan.name)
         from motorjig.station import kinds
 
-        return "test aborted: %s" % kinds.drive_class(kinds.kind_of(run.plan)).emergency_words
+        return "test aborted: %s" % kinds.kind_of(run.plan).emergency_words
 
     def answer(self, prompt_id, ok):
         run = self.run

@@ -1,15 +1,12 @@
 """The drive interface the station's steps speak to, whatever the drive's protocol.
 
-A step kind (``station.phases``) does its work through one ``Drive`` object, the plug's
-``bus.drive``, never through a protocol's own client: ``PlusRDrive``
-(``station.drive_plusr``: the Plus-R drive behind the jig's PC port, today's ``Master``
-calls) and ``Cia402Drive`` (``station.drive_cia402``: a CiA 402 drive on the jig's CAN
-port through python-canopen). A third protocol (Modbus RTU drives, EtherCAT CoE) is one
-more module with these methods, not a rewrite of the steps.
+A step kind does its work through one ``Drive`` object, the plug's ``bus.drive``, which
+its drive kind (``station.kinds``, the table of kinds) opens for the run; each kind has its
+own implementation in its own module.
 
 Every implementation has:
 
-* ``protocol``: "plusr" or "cia402"; ``label``: the drive as the records name it
+* ``protocol``: its kind's name in the table of kinds; ``label``: the drive as the records name it
   ("slave 2", "node 5");
 * ``identify()`` -> {name: value} of what the drive says it is;
 * ``enable(on)`` -> {"state", "transitions": [(name, seconds)]}: switched on (operation

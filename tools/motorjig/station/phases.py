@@ -533,31 +533,10 @@ def phase_timeout(step):
 
 
 def _step_functions(step, plan):
-    """(measurements, run) of a step: this module's for a Plus-R drive, ``phases_cia402``'s for a
-    CiA 402 drive, there with the EMCY rule around it (an EMCY during the step fails it)."""
-    kind = step.kind.replace("-", "_")
-    if getattr(plan.drive, "protocol", None) != "cia402" or kind == "prompt":
-        return globals()["measures_" + kind](step, plan), globals()["run_" + kind]
-    from motorjig.station import phases_cia402 as P
+    """(measurements, run) of a step: its drive kind's (the table of kinds, ``station.kinds``)."""
+    from motorjig.station import kinds
 
-    inner = getattr(P, "run_" + kind)
-
-    if step.kind in P.OWN_EMCY_KINDS:
-        return getattr(P, "measures_" + kind)(step, plan), inner
-
-    def run(test, bus, step, ctx):
-        n0 = len(bus.drive.emcys)
-        try:
-            inner(test, bus, step, ctx)
-        except Exception:
-            emcy = P.emcy_since(bus.drive, n0)
-            if emcy == "none":
-                raise
-            test.measurements["emcy"] = emcy  # the drive's fault is the verdict, not what it broke
-            return
-        test.measurements["emcy"] = P.emcy_since(bus.drive, n0)
-
-    return getattr(P, "measures_" + kind)(step, plan) + [P.measures_emcy()], run
+    return kinds.kind_of(plan).step_functions(step, plan)
 
 
 def build_phase(step, plan, ctx):

@@ -7,12 +7,10 @@ does not have, a wiring reference that is not wired. Nothing here touches the bu
 what only the drive can tell (its variant, its slave type) is checked by the run's
 pre-flight before anything moves (``motorjig.station.runner``).
 
-A plan is for one protocol (``[drive] protocol``, ``schema.PROTOCOL_KINDS``): a Plus-R drive
-(``plan.drive.protocol == "plusr"``: ``slave``, ``variants``, ``slave_type``) or a CiA 402 drive
-(``"cia402"``: ``node_id``, ``bitrate``, ``eds`` and its object dictionary ``od``, read once
-here with python-canopen). A step kind or key the protocol lacks is refused; for a CiA 402
-drive every object a step writes and every entry of a parameter set is checked against the
-EDS (exists, data type, limits, writable where it is written).
+A plan is for one drive kind (``[drive] protocol``, an entry of the table of kinds,
+``station.kinds``): the kind reads its ``[drive]`` keys into its own drive object, gives the
+step kinds its drives take, and checks what only it can (a CiA 402 drive's objects against its
+EDS, a Plus-R parameter set's slave type). A step kind or key the kind lacks is refused.
 
 Repeats and sweeps are expanded here: ``repeat = 3`` gives three steps, a sweep key
 given as a list gives one step per value, each with a unique name
@@ -29,46 +27,11 @@ import re
 
 from motorjig import paramset
 from motorjig.commands import UsageError
+from motorjig.station import kinds as K
 from motorjig.station import schema as S
 from motorjig.tomlsource import SourceError, dotted, read_toml
 
 PlanError = SourceError
-
-
-class Drive:
-    """A Plus-R drive (``protocol`` "plusr"); ``variants``: the protocol variants it may speak, e.g.
-    (6,) or (6, 8)."""
-
-    protocol = "plusr"
-
-    def __init__(self, slave, variants, slave_type, jig_id):
-        self.slave, self.variants, self.slave_type, self.jig_id = slave, variants, slave_type, jig_id
-
-    def as_dict(self):
-        return {"protocol": self.protocol, "slave": self.slave, "variant": list(self.variants),
-                "slave_type": self.slave_type, "jig_id": self.jig_id}
-
-    def describe(self):
-        """The drive in a few words: 'slave 2, Ver6/Ver8, type 20'."""
-        return "slave %d, %s, type %d" % (self.slave, "/".join("Ver%d" % v for v in self.variants), self.slave_type)
-
-
-class Cia402Drive:
-    """A CiA 402 drive (``protocol`` "cia402") at ``node_id`` on the CAN bus at ``bitrate``;
-    ``eds``: its EDS (absolute path), ``od``: the canopen ObjectDictionary read from it."""
-
-    protocol = "cia402"
-
-    def __init__(self, node_id, bitrate, eds, od, jig_id):
-        self.node_id, self.bitrate, self.eds, self.od, self.jig_id = node_id, bitrate, eds, od, jig_id
-
-    def as_dict(self):
-        return {"protocol": self.protocol, "node_id": self.node_id, "bitrate": self.bitrate,
-                "eds": os.path.basename(self.eds), "jig_id": self.jig_id}
-
-    def describe(self):
-        """The drive in a few words: 'CAN node 5, 500000 bit/s, motorjig-cia402.eds'."""
-        return "CAN node %d, %d bit/s, %s" % (self.node_id, self.bitrate, os.path.basename(self.eds))
 
 
 class Step:
@@ -190,9 +153,7 @@ def _wiring(ck, data, drive):
     from motorjig.wiring import WiringError, parse_wiring
 
     try:
-        if drive.protocol == "cia402":
-            return parse_wiring(data["wiring"], source=ck.path, default_node=drive.node_id)
-        return parse_wiring(data["wiring"], source=ck.path, default_slave=drive.slave)
+        return parse_wiring(data["wiring"], source=ck.path, **K.get(drive.protocol).wiring_default(drive))
     except WiringError as exc:
         # exc.key is a dotted path such as "wiring.relay[1].drive_input": find its line
         parts = tuple(name or int(idx) for name, idx in re.findall(r"([A-Za-z_]+)|\[(\d+)\]", exc.key or ""))
@@ -229,7 +190,10 @@ def _least_move_time(args, distance, speed):
     return abs(distance) / speed
 
 
-def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
+def _check_step(ck, step_path, kind, keys, args, plan_dir, drive, wiring, paramsets):
+    if kind == "parameters" and not os.path.exists(os.path.join(plan_dir, args["file"])):
+        raise ck.error(step_path + ("file",), "parameter-set file %s not found" % os.path.join(plan_dir, args["file"]))
+    K.get(drive.protocol).check_step(ck, step_path, kind, keys, args, plan_dir, drive, wiring, paramsets)
     for k in ("duration_s", "stop_time_s"):
         if args.get(k) is not None and args[k][1] <= 0:
             raise ck.error(step_path + (k,), "its upper limit is %g s: a motion takes time, so the step could never "
@@ -269,26 +233,11 @@ def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
         if step_path[1] != 0:
             raise ck.error(step_path + ("kind",), "an lss step must be the plan's first: it gives the drive the node "
                                                   "id every other step talks to")
-    elif kind == "parameters":
-        path = os.path.join(plan_dir, args["file"])
-        if not os.path.exists(path):
-            raise ck.error(step_path + ("file",), "parameter-set file %s not found" % path)
-        if drive.protocol == "cia402":
-            from motorjig.can import paramset402
-
-            paramsets[path] = paramset402.load(path, drive.od, os.path.basename(drive.eds),
-                                               writable=args["mode"] == "apply")
-            return
-        ps = paramsets[path] = paramset.load(path)
-        if ps.slave_type is not None and ps.slave_type != drive.slave_type:
-            raise ck.error(step_path + ("file",), "%s is a parameter set of slave type %d, the plan's drive is "
-                                                  "type %d" % (args["file"], ps.slave_type, drive.slave_type))
     elif kind == "limit-sensor":
         relay = _wired(ck, wiring, step_path + ("relay",), args["relay"], "relay")
         if relay[1] not in (0, 1):
-            limits = "0 limit +, 1 limit -" if drive.protocol == "plusr" else "0x60FD bit 0 negative, 1 positive limit"
             raise ck.error(step_path + ("relay",), "relay %d drives drive input %d, not a limit input "
-                                                   "(%s)" % (relay[0], relay[1], limits))
+                                                   "(%s)" % (relay[0], relay[1], K.get(drive.protocol).limit_inputs))
     elif kind == "io":
         if wiring is None or not (wiring.relays or wiring.senses):
             raise ck.error(step_path, "an io step needs a [wiring] with relays or senses")
@@ -297,7 +246,7 @@ def _check_step(ck, step_path, kind, args, plan_dir, drive, wiring, paramsets):
                 _wired(ck, wiring, step_path + (key, i), ref, which)
 
 
-def _check_objects(ck, step_path, keys, args, drive):
+def check_objects(ck, step_path, keys, args, drive):
     """A CiA 402 step's values that are written to objects (``Key.obj``): the EDS has each object,
     writable, and every value (each of a sweep) fits its data type and limits."""
     from motorjig.can import objects as O
@@ -330,7 +279,7 @@ def _duration_within_timeout(ck, step_path, args):
                                                     "before that" % (args["duration_s"][1], args["timeout_s"]))
 
 
-def _expand(ck, kind, name, explicit, args, index, out, owners, protocol="plusr"):
+def _expand(ck, kind, name, explicit, args, index, out, owners, protocol=K.DEFAULT):
     """The step runs of one plan step, appended to ``out``. ``owners``: every step-run name so far
     -> (plan step index, explicit). A name given in the plan (``explicit``) must be free; a default
     name (the kind) that is taken is numbered (servo, servo_2)."""
@@ -362,67 +311,39 @@ def _same_name(ck, name, first, second):
                                                                       second))
 
 
-_PROTOCOL_NAMES = {"plusr": "Plus-R", "cia402": "CiA 402"}
-
-
 def _drive(ck, d, plan_dir):
-    """The plan's Drive or Cia402Drive from its [drive] table, and the EDS's bytes (b"" for Plus-R)."""
+    """The plan's drive from its [drive] table (its kind's PlanDrive), and bytes the plan's hash covers
+    too (a CiA 402 drive's EDS)."""
     if not isinstance(d, dict):
         raise ck.error(("drive",), "expected a table")
-    protocol = d.get("protocol", "plusr")
+    protocol = d.get("protocol", K.DEFAULT)
     table = dict(d)
-    if protocol not in S.PROTOCOLS:
-        old = S.PROTOCOL_DRIVE_KEYS["plusr"][1]  # variant: the old spelling protocol = 6 | 8 | [6, 8]
-        try:
-            variants = ck.value(protocol, old, ("drive", "protocol"))
-        except PlanError:
+    if not isinstance(protocol, str) or protocol not in K.names():
+        for name in K.names():  # a spelling from before kinds had names (Plus-R's 6 | 8 | [6, 8])
+            old = K.get(name).old_spelling(ck, protocol, dict(table))
+            if old is not None:
+                protocol, table = name, old
+                break
+        else:
             raise ck.error(("drive", "protocol"), "expected %s, 6, 8 or [6, 8], got %r" % (
-                " or ".join('"%s"' % p for p in S.PROTOCOLS), protocol)) from None
-        if "variant" in d:
-            raise ck.error(("drive", "variant"), "the variants are given twice: as protocol = %r and here" % (
-                protocol,))
-        protocol = "plusr"
-        table["protocol"], table["variant"] = protocol, list(variants)
-    own = S.PROTOCOL_DRIVE_KEYS[protocol]
+                " or ".join('"%s"' % p for p in K.names()), protocol))
+    kind = K.get(protocol)
+    own = kind.drive_keys
     for name in table:
-        for other in S.PROTOCOLS:
-            if other != protocol and name in {k.name for k in S.PROTOCOL_DRIVE_KEYS[other]}:
+        for other in K.names():
+            if other != protocol and name in {k.name for k in K.get(other).drive_keys}:
                 raise ck.error(("drive", name), "'%s' is a key of protocol = \"%s\" drives; this plan's drive is "
                                                 "protocol = \"%s\" (its keys: %s)" % (
                     name, other, protocol, ", ".join(k.name for k in S.DRIVE_KEYS + own)))
-    v = ck.table(table, ("drive",), S.DRIVE_KEYS + own, "[drive]")
-    if protocol == "plusr":
-        drive = Drive(v["slave"], v["variant"], v["slave_type"], v["jig_id"])
-        if drive.slave in (drive.jig_id, 99):
-            raise ck.error(("drive", "slave"), "slave %d is the jig or the broadcast id, not a drive" % drive.slave)
-        return drive, b""
-    from motorjig.can import EDS_PATH
-    from motorjig.can import objects as O
-
-    eds = os.path.normpath(os.path.join(plan_dir, v["eds"])) if v["eds"] is not None else EDS_PATH
-    try:
-        od = O.load_eds(eds)
-        with open(eds, "rb") as f:
-            eds_raw = f.read()
-    except (UsageError, OSError) as exc:
-        raise ck.error(("drive", "eds"), str(exc).rstrip(".")) from None
-    return Cia402Drive(v["node_id"], v["bitrate"], eds, od, v["jig_id"]), eds_raw
+    table.pop("protocol", None)
+    v = ck.table(table, ("drive",), tuple(k for k in S.DRIVE_KEYS if k.name != "protocol") + own, "[drive]")
+    v["protocol"] = protocol
+    return kind.plan_drive(ck, v, plan_dir)
 
 
 def _check_wired_drive(ck, wiring, drive):
-    """The fixture must be wired to the plan's drive: its slave (Plus-R) or CAN node (CiA 402)."""
-    node = getattr(wiring, "node", None)
-    if drive.protocol == "plusr":
-        if node is not None:
-            raise ck.error(("wiring", "node"), "the fixture is wired to CAN node %d, the plan tests the Plus-R "
-                                               "drive at slave %d" % (node, drive.slave))
-        if wiring.slave != drive.slave:
-            raise ck.error(("wiring", "slave"), "the fixture is wired to slave %s, the plan tests slave %d"
-                           % (wiring.slave, drive.slave))
-    elif node != drive.node_id:
-        where, what = (("wiring", "slave"), "Plus-R slave %s" % wiring.slave) if node is None else (
-            ("wiring", "node"), "CAN node %s" % node)
-        raise ck.error(where, "the fixture is wired to %s, the plan tests CAN node %d" % (what, drive.node_id))
+    """The fixture must be wired to the plan's drive (its kind says how it names it)."""
+    K.get(drive.protocol).check_wired_drive(ck, wiring, drive)
 
 
 def load_plan(path):
@@ -448,6 +369,7 @@ def load_plan(path):
         raise ck.error(("steps",), "no steps (add [[steps]] tables)")
     steps, owners, named, paramsets = [], {}, {}, {}
     kinds = S.kinds(drive.protocol)
+    title = K.get(drive.protocol).title
     for i, sd in enumerate(steps_data):
         sp = ("steps", i)
         if not isinstance(sd, dict):
@@ -456,19 +378,17 @@ def load_plan(path):
         if kind is None:
             raise ck.error(sp, "a step needs 'kind' (one of %s)" % ", ".join(S.KINDS))
         if kind not in kinds:
-            others = [p for p in S.PROTOCOLS if p != drive.protocol and kind in S.kinds(p)]
+            others = [p for p in K.names() if p != drive.protocol and kind in S.kinds(p)]
             if others:
                 raise ck.error(sp + ("kind",), "a %s drive has no step kind %r (only protocol = \"%s\" drives "
                                                "do; this plan's kinds: %s)" % (
-                    _PROTOCOL_NAMES[drive.protocol], kind, others[0], ", ".join(kinds)))
+                    title, kind, others[0], ", ".join(kinds)))
             hint = difflib.get_close_matches(str(kind), list(kinds), 1)
             raise ck.error(sp + ("kind",), "unknown step kind %r%s (known: %s)" % (
                 kind, "; did you mean '%s'?" % hint[0] if hint else "", ", ".join(kinds)))
         keys = S.COMMON_STEP_KEYS + kinds[kind].keys
         args = ck.table(sd, sp, keys, "a %s step" % kind)
-        if drive.protocol == "cia402":
-            _check_objects(ck, sp, keys, args, drive)
-        _check_step(ck, sp, kind, args, plan_dir, drive, wiring, paramsets)
+        _check_step(ck, sp, kind, keys, args, plan_dir, drive, wiring, paramsets)
         first = len(steps)
         name = (args["name"] or kind).replace(" ", "_")
         if args["name"] is not None:

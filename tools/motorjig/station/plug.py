@@ -46,7 +46,7 @@ from jig.params import P_CAN_SAFETY, P_SAFETY_ACTION, P_SAFETY_TIMEOUT_MS
 from jig.safety import ACTION_EMERGENCY_STOP, ACTION_EMERGENCY_STOP_SERVO_OFF, CAN_SAFETY_QUICK_STOP
 from motorjig.errors import JigError
 from motorjig.master import Master
-from motorjig.station.drive_plusr import PlusRDrive
+from motorjig.station import kinds
 
 CONF = configuration.CONF
 _LOG = logging.getLogger(__name__)
@@ -61,8 +61,7 @@ for _name, _doc, _default in (
          "stop-servo-off"),
         ("motorjig_safety_window_ms", "the jig's master-silence safety stop during a run, ms (0: not armed)",
          1000),
-        ("motorjig_protocol", "the drive's protocol: plusr (on motorjig_port) or cia402 (on motorjig_can_port)",
-         "plusr"),
+        ("motorjig_protocol", "the drive's kind, an entry of the table of kinds (station.kinds)", kinds.DEFAULT),
         ("motorjig_can_port", "the jig's SLCAN port (device or pyserial URL) of a CiA 402 drive", None),
         ("motorjig_node_id", "the CiA 402 drive's node id", 5),
         ("motorjig_bitrate", "the CAN bitrate, bit/s", 500000),
@@ -202,8 +201,8 @@ def object_dictionary(path):
 
 class MotorJigPlug(plugs.BasePlug):
     """The bus, the drive under test (``slave``; ``drive``: the station.drive interface to it) and
-    the jig (``jig_id``). A CiA 402 drive (``motorjig_protocol`` "cia402") is on the jig's SLCAN
-    port (``motorjig_can_port``), the jig itself still on ``motorjig_port``."""
+    the jig (``jig_id``). ``kind``: the drive's kind (``motorjig_protocol``), which opens the drive
+    (on the jig's PC port, or another of the jig's ports), the jig itself always on ``motorjig_port``."""
 
     def __init__(self):
         if not CONF.motorjig_port:
@@ -211,10 +210,12 @@ class MotorJigPlug(plugs.BasePlug):
         self.master = TimedMaster(CONF.motorjig_port, baud=CONF.motorjig_baud,
                                   timeout=CONF.motorjig_timeout_ms / 1000.0)
         self.protocol = CONF.motorjig_protocol
-        if self.protocol == "cia402":
-            self.drive = self._open_cia402()
-        else:
-            self.drive = PlusRDrive(self.master, CONF.motorjig_slave, CONF.motorjig_jig_id)
+        self.kind = kinds.get(self.protocol)
+        try:
+            self.drive = self.kind.open_drive(self)
+        except BaseException:
+            self.master.close()
+            raise
         self.slave = CONF.motorjig_slave
         self.jig_id = CONF.motorjig_jig_id
         self.on_end = CONF.motorjig_on_end
@@ -222,22 +223,6 @@ class MotorJigPlug(plugs.BasePlug):
         self.aborted = False
         self.safety = None  # the SafetyNet while armed (arm_safety_net)
         self.trace_period_us = None  # the jig samples the moving steps at this period (None: this PC does)
-
-    def _open_cia402(self):
-        from motorjig.station.drive_cia402 import Cia402Drive
-
-        if not CONF.motorjig_can_port:
-            self.master.close()
-            raise JigError("no CAN port: set motorjig_can_port (jigctl test --can-port ...)")
-        d = Cia402Drive(CONF.motorjig_can_port, CONF.motorjig_node_id, CONF.motorjig_bitrate,
-                        object_dictionary(CONF.motorjig_eds), self.master, CONF.motorjig_jig_id)
-        try:
-            d.open(require_node=not CONF.motorjig_lss)  # an lss step first: the node has no id yet
-        except BaseException:
-            d.close()
-            self.master.close()
-            raise
-        return d
 
     def note_failure(self):
         self.failed = True
@@ -253,7 +238,7 @@ class MotorJigPlug(plugs.BasePlug):
         if not window_ms:
             return None
         net = SafetyNet(self.master, self.jig_id, window_ms, servo_off=self.on_end != "none",
-                        can_drive=self.drive if self.protocol == "cia402" else None)
+                        **self.kind.safety_net_kw(self))
         self.safety = net
         net.arm()
         return net
@@ -262,8 +247,8 @@ class MotorJigPlug(plugs.BasePlug):
         try:
             if self.on_end != "none" and (self.failed or self.aborted):
                 self.make_safe(emergency=self.aborted)
-            elif self.on_end != "none" and self.protocol == "cia402":
-                self._disable()  # a CiA 402 run always ends with the operation disabled
+            elif self.on_end != "none" and self.kind.disable_at_end:
+                self._disable()  # (a CiA 402 run always ends with the operation disabled)
         finally:
             try:
                 self.drive.close()

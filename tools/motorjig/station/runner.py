@@ -200,55 +200,12 @@ def _preflight(plan, serial, ctx):
             test.dut_id = serial  # first: a refused drive's record still names it
         if ctx.aborted:
             raise PreflightError("aborted before the first step")
-        if bus.protocol == "cia402":
-            return _preflight_cia402(test, bus, plan, serial, ctx)
-        variant, info = check_drive(bus.master, plan.drive, plan.steps)
-        s = bus.slave
-        test.test_record.metadata["drive"] = {"slave": s, "protocol": variant, "slave_type": info.type,
-                                              "name": info.version}
-        if not serial:
-            test.dut_id = "slave%d-%s" % (s, re.sub(r"[^A-Za-z0-9.]+", "-", info.version).strip("-"))
-        if plan.reset_jig_counters:
-            bus.master.reset_counters(bus.jig_id)
-        _arm_safety_net(test, bus, ctx)
-        _choose_sampling(test, bus, plan)
-        bus.master.roundtrips.clear()
+        bus.kind.preflight(test, bus, plan, serial, ctx)
 
     return preflight
 
 
-def _preflight_cia402(test, bus, plan, serial, ctx):
-    """The CiA 402 drive's preflight: the plug has opened it (node answers, trace TPDOs mapped);
-    its device profile must be 402. The records name it, its EDS and its identity."""
-    d = bus.drive
-    if not d.ready:  # the plan's lss step gives the drive its id first: identified there
-        test.test_record.metadata["drive"] = dict(protocol="cia402", node_id=d.node_id, bitrate=d.bitrate,
-                                                  eds=getattr(plan.drive, "eds", None))
-        if plan.reset_jig_counters:
-            bus.master.reset_counters(bus.jig_id)
-        _arm_safety_net(test, bus, ctx)
-        bus.master.roundtrips.clear()
-        return
-    device_type = d.read(0x1000)
-    if device_type & 0xFFFF != 402:
-        raise PreflightError("node %d has device profile %d (0x1000 = 0x%08X), not CiA 402: nothing was moved"
-                             % (d.node_id, device_type & 0xFFFF, device_type))
-    ident = {"vendor_id": d.read(0x1018, 1), "product_code": d.read(0x1018, 2), "revision": d.read(0x1018, 3),
-             "serial": d.read(0x1018, 4)}
-    test.test_record.metadata["drive"] = dict(
-        protocol="cia402", node_id=d.node_id, bitrate=d.bitrate, eds=getattr(plan.drive, "eds", None),
-        device_type=device_type, **ident)
-    if not serial:
-        test.dut_id = "node%d-%08X-%08X" % (d.node_id, ident["product_code"], ident["serial"])
-    if plan.reset_jig_counters:
-        bus.master.reset_counters(bus.jig_id)
-    _arm_safety_net(test, bus, ctx)
-    test.test_record.metadata["sampling"] = {"by": "drive", "period_us": int(round(d.period * 1e6)),
-                                             "dated_by": "jig"}
-    bus.master.roundtrips.clear()
-
-
-def _choose_sampling(test, bus, plan):
+def choose_sampling(test, bus, plan):
     """Who samples the axis in the moving steps (plan.sampling): the jig, when its firmware has the
     sampler, at the period its driver bus allows (``sampling.trace_period_us``); else this PC."""
     from motorjig.station import sampling
@@ -265,7 +222,7 @@ def _choose_sampling(test, bus, plan):
         {"by": "pc", "why": "the plan says so" if plan.sampling == "pc" else "the jig's firmware has no sampler"})
 
 
-def _arm_safety_net(test, bus, ctx):
+def arm_safety_net(test, bus, ctx):
     """The jig's master-silence safety stop for the length of the run (plug.SafetyNet): what no
     signal handler can catch (SIGKILL, a crashed PC, a pulled cable) the jig catches."""
     try:
@@ -374,17 +331,13 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
     the jig's SLCAN port ``can_port``); returns the RunContext (``record``, ``files``).
     ``db``: the results database to store the run in (None: none), see ``station.store``."""
     ctx = RunContext(plan, out, confirm, on_event)
-    cia402 = is_cia402(plan)
+    kind = kinds.kind_of(plan)
+    ports = {"port": port, "baud": baud, "timeout_ms": timeout_ms, "can_port": can_port}
     load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": getattr(plan.drive, "slave", 2),
             "motorjig_jig_id": plan.drive.jig_id, "motorjig_timeout_ms": timeout_ms,
             "motorjig_on_end": plan.on_end, "motorjig_safety_window_ms": safety_window_ms,
-            "motorjig_protocol": "cia402" if cia402 else "plusr", "motorjig_can_port": can_port}
-    if cia402:
-        load.update(motorjig_node_id=plan.drive.node_id, motorjig_bitrate=plan.drive.bitrate,
-                    motorjig_eds=getattr(plan.drive, "eds", None),
-                    motorjig_lss=bool(plan.steps) and plan.steps[0].kind == "lss")
-    else:
-        load["motorjig_lss"] = False
+            "motorjig_protocol": kind.name, "motorjig_can_port": can_port, "motorjig_lss": False}
+    load.update(kind.conf(plan, ports))
     if station:
         load["station_id"] = station
     CONF.load(**load)
@@ -407,10 +360,7 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
         ctx.test = None
         threading.excepthook = hook
         if (ctx.aborted or (ctx.record or {}).get("outcome") == "ABORTED") and plan.on_end != "none":
-            if cia402:
-                _emergency_stop_cia402(can_port, plan)
-            else:
-                _emergency_stop(port, baud, plan.drive.slave, timeout_ms)
+            kind.after_abort(plan, ports)
         _restore_signals(handlers)
     return ctx
 
@@ -439,7 +389,7 @@ def _catch_signals(ctx):
             _detach_terminal(terminals)
         if first:
             ctx.say("\n%s: stopping the axis (%s) and writing the records"
-                    % (cause, kinds.drive_class(kinds.kind_of(ctx.plan)).emergency_words))
+                    % (cause, kinds.kind_of(ctx.plan).emergency_words))
         else:
             ctx.say("%s: already stopping the axis, please wait" % name)
         # From a thread of its own: OpenHTF's abort takes a lock this (main) thread may hold.
@@ -488,7 +438,7 @@ def _quiet_abort(hook):
     return excepthook
 
 
-def _emergency_stop(port, baud, slave, timeout_ms):
+def emergency_stop(port, baud, slave, timeout_ms):
     """After an abort: EmergencyStop and servo off once more, on a connection of its own (the
     plug's tearDown did it already unless the abort came between two steps)."""
     from motorjig.errors import JigError
@@ -514,20 +464,6 @@ def _abort_engine(test, cause):
     logs.get_record_logger_for(test.uid).warning("aborting the run: %s", cause)
     with test._lock:
         executor.abort()
-
-
-def is_cia402(plan):
-    return getattr(plan.drive, "protocol", None) == "cia402"
-
-
-def _emergency_stop_cia402(can_port, plan):
-    """After an abort: quick stop and disable voltage once more, on a CAN connection of its own."""
-    from motorjig.station.drive_cia402 import make_safe_on
-    from motorjig.station.plug import object_dictionary
-
-    if can_port:
-        make_safe_on(can_port, plan.drive.node_id, plan.drive.bitrate,
-                     getattr(plan.drive, "od", None) or object_dictionary(getattr(plan.drive, "eds", None)))
 
 
 def summary(ctx):

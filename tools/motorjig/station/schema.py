@@ -315,8 +315,10 @@ PROTOCOL_KINDS = {"plusr": STEP_KINDS, "cia402": CIA402_KINDS}
 
 
 def kinds(protocol="plusr"):
-    """The step kinds of a protocol, name -> Kind."""
-    return {k.name: k for k in PROTOCOL_KINDS[protocol]}
+    """The step kinds of a drive kind (the table of kinds, ``station.kinds``), name -> Kind."""
+    from motorjig.station import kinds as K
+
+    return {k.name: k for k in K.get(protocol).step_kinds}
 
 
 def kind_keys(kind, protocol="plusr"):
