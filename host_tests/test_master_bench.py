@@ -225,6 +225,7 @@ def test_jig_extensions(m):
     res = m.jig_bus_scan(JIG)
     assert res.state == "done" and res.types == {DRIVE: 20, OTHER: 20}
     assert m.can_counters(JIG) == {}  # this bench has no CAN bus: the jig answers n = 0 (test_canport: with one)
+    assert m.take_safety_notice(JIG) is None  # no safety stop fired (test_safety: one that did)
 
 
 def test_crash_log(bench, monkeypatch, m):

@@ -220,22 +220,23 @@ def cmd_status(args):
     from motorjig import safetynotice
 
     with open_master(args) as m:
-        notice = safetynotice.take(m, args.jig_id)
-        if notice:
-            sys.stderr.write("jigctl: note: %s.\n" % notice)
         try:
-            _status_loop(args, m, s, count, tty)
+            _status_loop(args, m, s, count, tty, lambda: safetynotice.take(m, args.jig_id))
         except KeyboardInterrupt:  # the normal end of --watch
             if not args.json:
                 print()
     return EXIT_OK
 
 
-def _status_loop(args, m, s, count, tty):
+def _status_loop(args, m, s, count, tty, take_notice):
     shown = 0
     drawn = 0
     while count is None or shown < count:
         st = m.get_all_status(s)
+        if not shown:  # after the drive answered: a jig's notice never hides the drive's own reply
+            notice = take_notice()
+            if notice:
+                sys.stderr.write("jigctl: note: %s.\n" % notice)
         if args.json:
             emit(args, dict(jsonable(st), slave=s, t=time.time()), "")
         else:

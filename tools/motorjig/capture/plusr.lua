@@ -416,6 +416,7 @@ G.REQUEST_LEN = {
   [0xF8] = {0},
   [0xF9] = {0},
   [0xFA] = {0},
+  [0xFB] = {0},
 }
 G.REQUEST_LEN_VER8 = {
   [0x01] = {0},
@@ -488,6 +489,7 @@ G.REQUEST_LEN_VER8 = {
   [0xF8] = {0},
   [0xF9] = {0},
   [0xFA] = {0},
+  [0xFB] = {0},
 }
 G.REPLY_LEN = {
   [0x01] = {-1},
@@ -552,6 +554,7 @@ G.REPLY_LEN = {
   [0xF8] = {26},
   [0xF9] = {-1},
   [0xFA] = {-1},
+  [0xFB] = {24},
 }
 G.REPLY_LEN_VER8 = {
   [0x01] = {-1},
@@ -616,6 +619,7 @@ G.REPLY_LEN_VER8 = {
   [0xF8] = {26},
   [0xF9] = {-1},
   [0xFA] = {-1},
+  [0xFB] = {24},
 }
 G.JIG = {
   READ_COUNTERS = 240,

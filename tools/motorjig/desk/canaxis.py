@@ -146,9 +146,7 @@ class CanAxis:
     # --- choosing the node ------------------------------------------------------------------------------
     def watch(self, node_id):
         """Drive and watch this node from now on (the watcher thread starts with the first)."""
-        from motorjig.desk.canlink import _node_id
-
-        nid = _node_id(node_id)
+        nid = parse_node_id(node_id)
         if nid != self.node_id:
             self.node_id = nid
             self.status = {}
@@ -472,3 +470,14 @@ class CanAxis:
 
 
 __all__ = ["CanAxis", "JOG_LEASE_S", "MODE_NAMES", "POLL_S"]
+
+
+def parse_node_id(text):
+    """A CANopen node id typed on the page: 1..127, else a UserError in one sentence."""
+    try:
+        nid = int(str(text).strip(), 0)
+    except ValueError:
+        raise UserError("the node id must be a number 1..127, not %r" % str(text)) from None
+    if not 1 <= nid <= 127:
+        raise UserError("the node id must be 1..127, not %d" % nid)
+    return nid

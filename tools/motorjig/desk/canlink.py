@@ -38,6 +38,7 @@ from motorjig.can.command import describe_node
 from motorjig.can.dump import FrameText
 from motorjig.can.port import NOTIFIER_CYCLE_S, SLCAN_BITRATES, open_bus
 from motorjig.commands import UsageError
+from motorjig.desk.canaxis import parse_node_id
 from motorjig.desk.session import UserError
 from motorjig.errors import PortError
 
@@ -247,7 +248,7 @@ class CanLink:
         return self._od
 
     def _node(self, net, node_id):
-        nid = _node_id(node_id)
+        nid = parse_node_id(node_id)
         node = net.get(nid)
         if node is None or node.object_dictionary is not self._od:
             if node is not None:
@@ -322,7 +323,7 @@ class CanLink:
         all; returns a sentence."""
         if command not in cia301.NMT_COMMANDS:
             raise UserError("NMT command must be one of %s, not %r" % (", ".join(cia301.NMT_COMMANDS), command))
-        nid = 0 if str(node_id).strip().lower() in ("", "0", "all") else _node_id(node_id)
+        nid = 0 if str(node_id).strip().lower() in ("", "0", "all") else parse_node_id(node_id)
         with self._lock:
             net = self._network()
             nmt = net.nmt if nid == 0 else canopen.nmt.NmtMaster(nid)
@@ -403,16 +404,6 @@ class CanLink:
             return "%s did not answer %s (%s)" % (who, what, str(exc).rstrip(".").lower() or "no answer")
         self._lost(exc)
         return "%s failed: %s" % (what, _reason(exc))
-
-
-def _node_id(text):
-    try:
-        nid = int(str(text).strip(), 0)
-    except ValueError:
-        raise UserError("the node id must be a number 1..127, not %r" % str(text)) from None
-    if not 1 <= nid <= 127:
-        raise UserError("the node id must be 1..127, not %d" % nid)
-    return nid
 
 
 def _reason(exc):

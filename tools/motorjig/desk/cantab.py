@@ -24,7 +24,7 @@ import time
 
 from nicegui import run, ui
 
-from motorjig.desk.page import Changed, tid
+from motorjig.desk.widgets import Changed, tid
 from motorjig.desk.session import UserError
 
 LOG_LINES = 500  # lines the browser keeps in the frame log

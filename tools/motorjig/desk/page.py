@@ -29,6 +29,7 @@ from motorjig import names as N
 from motorjig.master import BAUD_RATES
 
 from motorjig.desk import forms
+from motorjig.desk.widgets import Changed, tid
 from motorjig.desk.session import ESTOP_RECOVERY, MOVES, UserError, protocol_name, stamp
 
 CSS = """
@@ -68,24 +69,6 @@ PROTOCOL_VER8 = {"auto": None, "6": False, "8": True}
 
 def protocol_key(ver8):
     return "auto" if ver8 is None else "8" if ver8 else "6"
-
-
-def tid(element, name):
-    """Give an element a stable data-testid (for tests and for people reading the DOM)."""
-    return element.props('data-testid="%s"' % name)
-
-
-class Changed:
-    """Remembers what was last pushed to each widget, so unchanged values are not resent."""
-
-    def __init__(self):
-        self.last = {}
-
-    def __call__(self, key, value):
-        if self.last.get(key, object()) == value:
-            return False
-        self.last[key] = value
-        return True
 
 
 def build(session, station=None, capture=None, can_link=None):

@@ -241,6 +241,7 @@ class BusSession:
         if notice:
             self.safety_notice = notice
             self.log("warning", "note: " + notice)
+        if not alive:
             msg = ("connected to %s, but nothing answers on the bus (silent port: check the baud rate, the "
                    "Ver6/Ver8 setting (now %s: the protocol choice beside the baud rate), the wiring and that "
                    "the jig is powered)%s" % (

@@ -52,7 +52,7 @@ arriving from the host call ``on_host_data`` (the bench wakes the jig).
 import errno
 
 from .canbus import STATE_ACTIVE, STATE_BUS_OFF, STATE_PASSIVE, STATE_WARNING
-from .hal import CDC_TX_SIZE, SimCapturePort
+from .usbcdc import CDC_TX_SIZE, SimCapturePort
 
 RX_FIFO_LEN = 64  # FDCAN's RX FIFO 0 as MicroPython configures it on the H7
 CDC_RX_SIZE = 1024  # MicroPython stm32's USB CDC receive buffer (MICROPY_HW_USB_CDC_RX_DATA_SIZE)
