@@ -10,7 +10,7 @@ BUILD       ?= $(CURDIR)/build/STM32H7_JIG
 BOARD_DIR   := $(CURDIR)/boards/STM32H7_JIG
 
 .DEFAULT_GOAL := run
-.PHONY: help setup run test check-mpy bench sim firmware flash deploy test-qemu clean
+.PHONY: help setup run test check-mpy bench docs sim firmware flash deploy test-qemu clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -29,6 +29,13 @@ check-mpy: setup ## compile every firmware module with mpy-cross -march=armv7emd
 
 bench: setup ## print parser, bridge, trace, CAN, station (Plus-R and CiA 402) and results-database figures (takes several minutes)
 	@$(PY) tools/run_benchmarks.py
+
+docs: setup ## regenerate every document made from the code's tables (make test fails when one is stale)
+	@$(PY) tools/gen_parser_doc.py
+	@$(PY) tools/gen_slcan_doc.py
+	@$(PY) tools/gen_cia402_doc.py
+	@PYTHONPATH=firmware:tools $(PY) -m motorjig.sim.doctables --write
+	@PYTHONPATH=firmware:tools $(PY) -m motorjig.capture.luagen --write
 
 sim: setup ## start the virtual bench (pty + TCP) and run the demo: make sim SIM_ARGS="--tcp-port 5000"
 	@$(PY) -m motorjig.sim $(SIM_ARGS)

@@ -143,6 +143,8 @@ def test_esc_quick_stops_a_long_move(desk):
     time.sleep(0.6)
     assert position(b) == stopped
     assert "CAN node 5: quick stop" in b.driver.page_source
+    # the tab's line no longer says the move it sent (issue 31: "node 5: move to ..." stayed)
+    b.wait_for(lambda: message(b).startswith("the axis was stopped"), 5, "the tab's line after the stop")
 
 
 def test_disable_switches_an_enabled_node_off(desk):
