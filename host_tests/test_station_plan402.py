@@ -10,7 +10,7 @@ import pytest
 from motorjig.can import EDS_PATH, paramset402
 from motorjig.can import objects as O
 from motorjig.station import plan as P
-from motorjig.station import schema
+from motorjig.station import kinds, schema
 from test_station_plans import GOOD as GOOD_PLUSR
 from test_station_plans import PLANS, ROOT, check, refused, write
 
@@ -259,9 +259,9 @@ def test_a_stop_time_of_nothing(capsys, tmp_path):
 
 # --- the schema and its reference ------------------------------------------------------
 def test_every_protocol_has_its_kinds_and_the_docs_show_them():
-    assert set(schema.PROTOCOL_KINDS) == set(schema.PROTOCOLS) == {"plusr", "cia402"}
-    cia402 = {k.name for k in schema.PROTOCOL_KINDS["cia402"]}
-    assert cia402 == set(schema.KINDS) | {"lss"}
+    assert kinds.BUILTIN == ("plusr", "cia402")
+    cia402 = set(schema.kinds("cia402"))
+    assert cia402 == set(schema.kinds("plusr")) | {"lss"}
     with open(os.path.join(ROOT, "docs", "station.md")) as f:
         text = f.read()
     for kind in cia402 - {"prompt"}:
@@ -271,7 +271,7 @@ def test_every_protocol_has_its_kinds_and_the_docs_show_them():
 
 def test_the_step_objects_are_in_the_shipped_eds():
     od = O.load_eds(EDS_PATH)
-    for k in schema.PROTOCOL_KINDS["cia402"]:
+    for k in schema.kinds("cia402").values():
         for key in k.keys:
             if key.obj is not None:
                 index, sub = key.obj if isinstance(key.obj, tuple) else (key.obj, 0)

@@ -9,6 +9,8 @@ import pytest
 from motorjig import cli, paramset
 from motorjig.station import plan as P
 from motorjig.station import schema
+from motorjig.station.schema_plusr import KINDS as PLUSR_KINDS
+from motorjig.station.schema_plusr import STEP_KINDS as PLUSR_STEP_KINDS
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLANS = os.path.join(ROOT, "plans")
@@ -136,7 +138,7 @@ def test_every_range_message_reads_as_a_sentence(capsys, tmp_path, key, value, w
 def test_every_bounded_key_of_the_schema_has_a_readable_range_message(tmp_path):
     """Each key with a lower or upper bound, given a value just outside it, says 'must be ..., not V'."""
     tables = [("plan", schema.PLAN_KEYS), ("drive", schema.DRIVE_KEYS)]
-    tables += [("steps", schema.COMMON_STEP_KEYS + kind.keys) for kind in schema.STEP_KINDS]
+    tables += [("steps", schema.COMMON_STEP_KEYS + kind.keys) for kind in PLUSR_STEP_KINDS]
     checked = 0
     for table, keys in tables:
         for k in keys:
@@ -248,7 +250,7 @@ def test_the_docs_reference_is_the_schema():
     with open(os.path.join(ROOT, "docs", "station.md")) as f:
         text = f.read()
     assert doctables.expected("docs/station.md", text) == text, "python -m motorjig.sim.doctables --write"
-    for kind in schema.KINDS:
+    for kind in PLUSR_KINDS:
         assert '`kind = "%s"`' % kind in text
 
 
@@ -294,13 +296,13 @@ def test_the_documented_measurements_are_the_ones_each_step_declares(tmp_path):
         "identify": 'motor_pattern = "."', "parameters": 'file = "golden.toml"', "servo": "", "alarm-reset": "",
         "move": "distance = 100\nspeed = 100\nduration_tolerance = 0.1", "home": "", "io": "",
         "limit-sensor": 'relay = "limit+"', "stop-response": "", "bus-health": "", "prompt": 'message = "m"'}
-    assert set(steps) == set(schema.KINDS)
+    assert set(steps) == set(PLUSR_KINDS)
     text = GOOD[: GOOD.index("[[steps]]")] + wiring + "".join(
         '\n[[steps]]\nkind = "%s"\n%s\n' % (k, v) for k, v in steps.items())
     plan = P.load_plan(write(tmp_path, text))
     for step in plan.steps:
         declared = [m.name for m in getattr(phases, "measures_" + step.kind.replace("-", "_"))(step, plan)]
-        documented = schema.KINDS[step.kind].measurements
+        documented = PLUSR_KINDS[step.kind].measurements
         if step.kind == "parameters":
             assert declared == ["ram_axis_acc_time", "rom_axis_acc_time"]
         elif step.kind == "io":

@@ -1,7 +1,7 @@
 """The CiA 402 drive kind: a CANopen CiA 402 drive on the jig's CAN port (its SLCAN port).
 
 Its entry in the table of kinds (``station.kinds``): the ``[drive]`` keys (node id, bitrate,
-EDS), the step kinds of ``schema.CIA402_KINDS`` run by ``station.phases_cia402`` (each with
+EDS), the step kinds of ``schema_cia402.STEP_KINDS`` run by ``station.phases_cia402`` (each with
 the EMCY rule around it: an EMCY during a step fails it), the drive
 ``drive_cia402.Cia402Drive`` through python-canopen, every object a step writes and every
 parameter-set entry checked against the EDS when the plan loads, and its pre-flight (device
@@ -10,7 +10,7 @@ profile 402, the identity 0x1018 in the record).
 
 import os
 
-from motorjig.station import schema as S
+from motorjig.station import schema_cia402 as S
 from motorjig.station.kinds import DriveKind
 
 
@@ -35,11 +35,21 @@ class PlanDrive:
 class Cia402Kind(DriveKind):
     name = "cia402"
     title = "CiA 402"
-    drive_keys = S.PROTOCOL_DRIVE_KEYS["cia402"]
-    step_kinds = S.CIA402_KINDS
+    drive_keys = S.DRIVE_KEYS
+    step_kinds = S.STEP_KINDS
     emergency_words = "quick stop, disable voltage"
     limit_inputs = "0x60FD bit 0 negative, 1 positive limit"
     disable_at_end = True  # a CiA 402 run always ends with the operation disabled
+
+    def reference(self, kinds_text):
+        from motorjig.station.schema import PROMPT
+
+        return ["", "### Step kinds of CiA 402 drives (`protocol = \"cia402\"`)", "",
+                "Positions in counts, speeds in counts/s, accelerations in counts/s², as the drive's objects are. "
+                "An EMCY with an error code during any step fails that step: every step but `bus-health` (which "
+                "counts the run's) also has the measurement `emcy`, `\"none\"` or the codes received, named."] + \
+            kinds_text([k for k in self.step_kinds if k is not PROMPT], " (cia402)") + \
+            ["", "`prompt` as for Plus-R drives."] + S.paramset_reference()
 
     # --- the plan ---------------------------------------------------------------------------------
     def plan_drive(self, ck, v, plan_dir):

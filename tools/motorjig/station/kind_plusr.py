@@ -1,14 +1,14 @@
 """The Plus-R drive kind: FASTECH Ezi-STEP / Ezi-SERVO Plus-R drives on the jig's driver bus.
 
 Its entry in the table of kinds (``station.kinds``): the ``[drive]`` keys (slave, variant,
-slave type), the step kinds of ``schema.STEP_KINDS`` run by ``station.phases``, the drive
+slave type), the step kinds of ``schema_plusr.STEP_KINDS`` run by ``station.phases``, the drive
 ``drive_plusr.PlusRDrive`` behind the jig's PC port, and its pre-flight (the drive answers in
 the plan's variant, of the plan's type, no step above its axis_max_speed).
 """
 
 import re
 
-from motorjig.station import schema as S
+from motorjig.station import schema_plusr as S
 from motorjig.station.kinds import DriveKind
 
 
@@ -33,7 +33,7 @@ class PlanDrive:
 class PlusRKind(DriveKind):
     name = "plusr"
     title = "Plus-R"
-    drive_keys = S.PROTOCOL_DRIVE_KEYS["plusr"]
+    drive_keys = S.DRIVE_KEYS
     step_kinds = S.STEP_KINDS
     emergency_words = "EmergencyStop, servo off"
     limit_inputs = "0 limit +, 1 limit -"

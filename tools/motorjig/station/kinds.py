@@ -17,6 +17,7 @@ _BUILTIN = {
     "plusr": "motorjig.station.kind_plusr",
     "cia402": "motorjig.station.kind_cia402",
 }
+BUILTIN = tuple(_BUILTIN)  # the kinds the project ships (the docs' reference shows these)
 _REGISTERED = {}
 DEFAULT = "plusr"
 
@@ -36,6 +37,12 @@ class DriveKind:
     step_kinds = ()
     emergency_words = "stop and switch off"
     disable_at_end = False  # a passing run ends with the drive switched off (tearDown)
+
+    def reference(self, kinds_text):
+        """Its part of the plan format's reference (docs/station.md) as markdown lines;
+        ``kinds_text(step_kinds, suffix)`` renders step kinds as the reference does."""
+        return ["", "### Step kinds of %s drives (`protocol = \"%s\"`)" % (self.title, self.name)] + \
+            kinds_text(self.step_kinds)
 
     # --- the plan: read and checked, nothing on the bus -----------------------------------------
     def plan_drive(self, ck, values, plan_dir):

@@ -376,7 +376,7 @@ def load_plan(path):
             raise ck.error(sp, "expected a table")
         kind = sd.get("kind")
         if kind is None:
-            raise ck.error(sp, "a step needs 'kind' (one of %s)" % ", ".join(S.KINDS))
+            raise ck.error(sp, "a step needs 'kind' (one of %s)" % ", ".join(kinds))
         if kind not in kinds:
             others = [p for p in K.names() if p != drive.protocol and kind in S.kinds(p)]
             if others:
