@@ -207,7 +207,7 @@ def test_a_cia402_run_is_stored_with_its_node_and_identity(db, capsys):
     with S.open_store(db) as st:
         run_id = st.add_run(rec)
         d = st.run(run_id)["drive"]
-    assert d == {"slave": 5, "protocol": S.CIA402, "slave_type": 0x20192,
+    assert d == {"slave": 5, "protocol": 402, "slave_type": 0x20192,
                  "name": "vendor 0x4D4A4947 product 0x00000402 rev 0x00010000 serial 0x53490005"}
     code, out, err = jigctl(capsys, "results", "--db", db, "show", str(run_id))
     assert code == 0, err

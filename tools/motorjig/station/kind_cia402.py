@@ -87,6 +87,24 @@ class Cia402Kind(DriveKind):
                 ("wiring", "node"), "CAN node %s" % node)
             raise ck.error(where, "the fixture is wired to %s, the plan tests CAN node %d" % (what, drive.node_id))
 
+    # --- the records --------------------------------------------------------------------------------
+    CODE = 402  # drive_protocol in the results database (its drive_slave: the node id)
+
+    def record_code(self, drive):
+        return self.CODE
+
+    def identity_text(self, drive):
+        """'vendor 0x4D4A4947 product 0x00000402 rev 0x00010000 serial 0x53490005'."""
+        if drive.get("vendor_id") is None:
+            return None
+        values = []
+        for k in ("vendor_id", "product_code", "revision", "serial"):
+            try:
+                values.append(int(drive.get(k)))
+            except (TypeError, ValueError):
+                values.append(0)
+        return "vendor 0x%08X product 0x%08X rev 0x%08X serial 0x%08X" % tuple(values)
+
     # --- the run ----------------------------------------------------------------------------------
     ports = (("can_port", "--can-port", "SLCAN port"),)
 

@@ -67,6 +67,18 @@ class DriveKind:
 
     limit_inputs = "0 or 1"  # the drive inputs a limit-sensor relay may drive, in words
 
+    # --- the records ---------------------------------------------------------------------------
+    def record_code(self, drive):
+        """The number the results database keeps in drive_protocol for a record's ``drive`` metadata."""
+        try:
+            return int(drive.get("protocol"))
+        except (TypeError, ValueError):
+            return None
+
+    def identity_text(self, drive):
+        """The drive's identity in words for the database's drive_name, or None (its name says it)."""
+        return None
+
     # --- the run -------------------------------------------------------------------------------
     ports = ()  # (key, option, what) of each port a run needs beside the jig's PC port
     checks_on_port = False  # check_on_port reads the drive (jigctl test --check --port)

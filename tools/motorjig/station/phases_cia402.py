@@ -7,7 +7,7 @@ error code received during the step fails it, with the code and its CiA 301 mean
 CiA 402 mapping of every kind is in docs/station.md (*Step kinds on CiA 402*).
 
 Moving steps are sampled by the drive's TPDOs on the station's SYNC, dated by the jig
-(``sampling.Cia402Trace``); their trace goes into the record as a Plus-R move's does
+(``sampling_cia402.Cia402Trace``); their trace goes into the record as a Plus-R move's does
 (command = the demand, actual + following error actual).
 """
 
@@ -20,7 +20,8 @@ from openhtf.util import units
 from motorjig.can import cia301, power402
 from motorjig.errors import JigError
 from motorjig.station.drive_cia402 import SW_ACK, SW_ERROR, SW_INTERNAL_LIMIT, SW_TARGET_REACHED, SdoRefused
-from motorjig.station.sampling import Cia402Trace, UntrustedMeasurement
+from motorjig.station.sampling import UntrustedMeasurement
+from motorjig.station.sampling_cia402 import Cia402Trace
 
 COUNTS = units.UnitDescriptor("count", "count", "count")
 S = units.SECOND

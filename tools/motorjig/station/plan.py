@@ -25,7 +25,6 @@ import itertools
 import os
 import re
 
-from motorjig import paramset
 from motorjig.commands import UsageError
 from motorjig.station import kinds as K
 from motorjig.station import schema as S

@@ -69,7 +69,7 @@ PLAN_KEYS = (
 U32 = (0, 0xFFFFFFFF)
 
 DRIVE_KEYS = (
-    key("protocol", "protocol", "plusr", "the drive's kind, an entry of the table of kinds (docs/architecture.md): "
+    key("protocol", "protocol", None, "the drive's kind, an entry of the table of kinds (docs/architecture.md): "
         "Ezi-STEP Plus-R on RS-485 or a CANopen CiA 402 drive on the jig's CAN port; the other keys of `[drive]` are "
         "that kind's (below). `6`, `8` or `[6, 8]` is a Plus-R drive with those variants (plans written before "
         "CiA 402 drives)"),
@@ -90,14 +90,15 @@ PROMPT = Kind("prompt", "An operator instruction, confirmed on the console or in
     ), ("confirmed",))
 
 
-def kinds(protocol="plusr"):
-    """The step kinds of a drive kind (the table of kinds, ``station.kinds``), name -> Kind."""
+def kinds(protocol=None):
+    """The step kinds of a drive kind (the table of kinds, ``station.kinds``; None: the default
+    kind's), name -> Kind."""
     from motorjig.station import kinds as K
 
-    return {k.name: k for k in K.get(protocol).step_kinds}
+    return {k.name: k for k in K.get(protocol or K.DEFAULT).step_kinds}
 
 
-def kind_keys(kind, protocol="plusr"):
+def kind_keys(kind, protocol=None):
     """Every key a step of this kind accepts on this protocol's drives, name -> Key."""
     return {k.name: k for k in COMMON_STEP_KEYS + kinds(protocol)[kind].keys}
 
@@ -163,7 +164,7 @@ def render_reference():
     from motorjig.station import kinds as K
 
     shipped = [K.get(name) for name in K.BUILTIN]
-    protocol = DRIVE_KEYS[0]._replace(choices=tuple(k.name for k in shipped))
+    protocol = DRIVE_KEYS[0]._replace(choices=tuple(k.name for k in shipped), default=K.DEFAULT)
     out = ["### `[plan]`", ""] + _table(PLAN_KEYS)
     out += ["", "### `[drive]`", ""] + _table((protocol,) + DRIVE_KEYS[1:])
     for kind in shipped:

@@ -2,7 +2,7 @@
 reference text of their parameter-set files (``schema``'s vocabulary; ``kind_cia402`` puts them
 in the table of kinds)."""
 
-from motorjig.station.schema import I32, PROMPT, REQUIRED, SPEED, U32, Kind, key  # noqa: F401 (the vocabulary)
+from motorjig.station.schema import I32, PROMPT, REQUIRED, U32, Kind, key
 
 SLCAN_BITRATES = (10000, 20000, 50000, 100000, 125000, 250000, 500000, 750000, 1000000)  # the jig's S0..S8
 

@@ -1,7 +1,7 @@
 """The plan format of Plus-R drives, as data: their ``[drive]`` keys and their step kinds (``schema``'s
 vocabulary; ``kind_plusr`` puts them in the table of kinds)."""
 
-from motorjig.station.schema import I32, PROMPT, REQUIRED, SPEED, U32, Kind, key  # noqa: F401 (the vocabulary)
+from motorjig.station.schema import I32, PROMPT, REQUIRED, SPEED, Kind, key
 
 DRIVE_KEYS = (
     key("slave", "int", 2, "the drive's slave id", lo=0, hi=15),

@@ -292,23 +292,24 @@ def _value(v):
     return None, None if v is None else str(v)
 
 
-# drive_protocol in the runs table: a Plus-R drive's variant (6 Ver6, 8 Ver8) or CIA402 for a CiA 402
-# drive (whose drive_slave is then its node id and drive_slave_type its device type 0x1000).
-CIA402 = 402
+def _record_kind(drive):
+    """The drive kind a record's ``drive`` metadata is of: its ``protocol`` names the kind; a number
+    there is the variant of a drive of the default kind (records from before named kinds)."""
+    from motorjig.station import kinds
+
+    protocol = drive.get("protocol")
+    return kinds.get(protocol if isinstance(protocol, str) and protocol in kinds.names() else kinds.DEFAULT)
 
 
 def _protocol_code(drive):
-    if drive.get("protocol") == "cia402":
-        return CIA402
-    return _int(drive.get("protocol"))
+    """drive_protocol in the runs table: the number its kind gives the record (a Plus-R drive's variant,
+    6 or 8; 402 for a CiA 402 drive, whose drive_slave is then its node id)."""
+    return _record_kind(drive).record_code(drive)
 
 
 def _identity_name(drive):
-    """'vendor 0x4D4A4947 product 0x00000402 rev 0x00010000 serial 0x53490005' for a CiA 402 drive."""
-    if drive.get("protocol") != "cia402" or drive.get("vendor_id") is None:
-        return None
-    return "vendor 0x%08X product 0x%08X rev 0x%08X serial 0x%08X" % tuple(
-        _int(drive.get(k)) or 0 for k in ("vendor_id", "product_code", "revision", "serial"))
+    """The drive's identity in words, when its kind has one beyond its name."""
+    return _record_kind(drive).identity_text(drive)
 
 
 def _int(v):
