@@ -189,12 +189,10 @@ def _show(args, st):
              "dut %s, station %s, operator %s, %s, %s" % (r["dut"], r["station"] or "-", r["operator"],
                                                           _local(r["start_ms"]),
                                                           "-" if r["seconds"] is None else "%.2f s" % r["seconds"])]
-    if d["slave"] is not None and d["protocol"] == 402:
-        lines.append("drive: CiA 402, CAN node %s, device type 0x%08X (%s)" % (d["slave"], d["slave_type"] or 0,
-                                                                            d["name"] or "-"))
-    elif d["slave"] is not None:
-        lines.append("drive: slave %s, Ver%s, type %s (%s)" % (d["slave"], d["protocol"], d["slave_type"],
-                                                               d["name"] or "-"))
+    if d["slave"] is not None:
+        from motorjig.station import kinds
+
+        lines.append("drive: " + kinds.of_record_code(d["protocol"]).stored_text(d))
     if r["details"]:
         lines.append("details: " + r["details"])
     for kind, path in r["files"].items():

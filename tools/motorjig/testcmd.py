@@ -3,9 +3,10 @@
     jigctl test PLAN --port URL [--can-port URL] [--serial SN] [--operator NAME] [--out DIR] [--yes] [--json]
     jigctl test --check PLAN [--port URL]
 
-A plan for a CiA 402 drive (``[drive] protocol = "cia402"``) needs both ports: ``--port``, the
-jig's PC port (its relays, inputs, counters and safety net), and ``--can-port``, the jig's
-SLCAN port the drive is reached through (on the bench: its ``slcan_url``).
+A plan whose drive kind reaches its drive on another of the jig's ports (a CiA 402 drive: the
+jig's SLCAN port, ``--can-port``; on the bench its ``slcan_url``) needs that port too, beside
+``--port``, the jig's PC port (its relays, inputs, counters and safety net): the kind says which
+(``station.kinds``).
 
 One progress line per step as it runs, then the verdict and the files written.
 Exit status: 0 pass, 1 fail, 2 error (a bad plan, no connection, a drive of the wrong
@@ -26,7 +27,8 @@ EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
 def add_test_arguments(sp):
     sp.add_argument("plan", help="the plan file (TOML), e.g. plans/smoke.toml")
     sp.add_argument("--can-port", metavar="URL",
-                    help="the jig's SLCAN port (device or pyserial URL) for a plan with [drive] protocol = \"cia402\"")
+                    help="the jig's SLCAN port (device or pyserial URL), for a plan whose drive is on the CAN bus "
+                         "(a CiA 402 drive)")
     sp.add_argument("--check", action="store_true",
                     help="only check the plan (with --port: also that the drive is the plan's variant and type)")
     sp.add_argument("--serial", help="the DUT's serial number (default: from the drive's own info)")

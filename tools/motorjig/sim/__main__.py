@@ -19,6 +19,7 @@ import textwrap
 import time
 
 from ..wiring import WiringError, load_wiring
+from . import kinds as sim_kinds
 from .bench import CAN_FAULT_PREFIX, Bench
 from .canhal import SLCAN_RATES
 from .driver import FAULTS, parse_fault_spec
@@ -119,10 +120,7 @@ def _fault_help():
         text = what + (" (default %s)" % default if default is not None else "")
         lines.append(textwrap.fill(text, 96, initial_indent="  %-18s " % spec, subsequent_indent=" " * 21))
     lines.append("e.g. --fault step-out=20000 --fault 3:alarm=4@50 --fault param=3:250 --fault no-origin")
-    try:
-        from .cia402 import FAULTS as CAN_FAULTS
-    except ImportError:
-        CAN_FAULTS = {}
+    CAN_FAULTS = sim_kinds.can_faults()
     lines.append("CAN node faults (--can-nodes; --fault can:[ID:]NAME[=VALUE]; without ID: the wired node, else every CAN node):")
     for name, (value, default, what) in CAN_FAULTS.items():
         spec = "can:" + name + ("=" + value if value else "")
@@ -191,15 +189,10 @@ def check_setup(args):
             if node is not None and node not in args.can_nodes:
                 raise ValueError("--fault %s: no CAN node %d (--can-nodes %s)"
                                  % (spec, node, ",".join(str(i) for i in args.can_nodes)))
-            try:
-                from .cia402 import parse_fault as parse_can_node_fault
-            except ImportError:  # (no CiA 402 node model: the node's set_fault judges)
-                parse_can_node_fault = None
-            if parse_can_node_fault is not None:
-                try:
-                    parse_can_node_fault(name[len(CAN_FAULT_PREFIX):], value)
-                except ValueError as exc:
-                    raise ValueError("--fault %s: %s" % (spec, exc)) from None
+            try:  # (without the node model, parse_can_fault returns None: its set_fault judges)
+                sim_kinds.parse_can_fault(name[len(CAN_FAULT_PREFIX):], value)
+            except ValueError as exc:
+                raise ValueError("--fault %s: %s" % (spec, exc)) from None
             faults.append((node, name, value))
             continue
         try:

@@ -1,7 +1,7 @@
 """The axis model both simulated drives share: one motor, two protocol faces.
 
-The Plus-R drive (``driver.SimDriver``, RS-485) and the CiA 402 drive
-(``cia402.Cia402Node``, CANopen) move their shaft with the same ``Motion``: a
+The Plus-R drive (``driver.SimDriver``, RS-485) and the CANopen drive of ``sim.kinds``
+(CiA 402) move their shaft with the same ``Motion``: a
 trapezoidal profile integrated in ``STEP_MS`` steps of the bench's clock, whose
 duration ``profile_time`` gives in closed form. Positions are in pulses (counts),
 speeds in pulses (counts) per second. The Plus-R face gives its ramps as times

@@ -60,6 +60,7 @@ from .canhal import SLCAN_RATES, DirectSlcanAdapter
 from .clock import TICKS_MASK, PacedClock, VirtualClock
 from .cpumodel import CpuModel
 from .driver import SimDriver
+from . import kinds as sim_kinds
 from .hal import SimFS, SimHAL
 from .link import Bus
 
@@ -229,7 +230,7 @@ class SimBench:
 
         The CAN side (``can_nodes``: CANopen node ids; ``can`` True: a CAN bus even
         without nodes): ``can_bus`` at ``can_bitrate``, ``can_nodes`` {id: node} made by
-        ``can_node_factory(clock, bus, node_id)`` (default ``cia402.Cia402Node``), the
+        ``can_node_factory(clock, bus, node_id)`` (default: ``sim.kinds``' CAN node), the
         jig's HAL with ``can_open`` and its SLCAN port ``slcan``. ``direct`` or
         ``direct_can``: the host's SLCAN port is a ``DirectSlcanAdapter`` on the bus
         instead of the jig's (``can_adapter``; the jig, if any, then has no CAN)."""
@@ -310,7 +311,7 @@ class SimBench:
             raise ValueError("a CAN node id is given twice: %s" % ",".join(map(str, node_ids)))
         self.can_bus = CanBus(self.clock, bitrate)
         if factory is None:
-            factory = cia402_node
+            factory = sim_kinds.can_node
         for i in node_ids:
             self.can_nodes[i] = factory(self.clock, self.can_bus, i)
         if direct:
@@ -558,13 +559,6 @@ class SimBench:
 
 
 CAN_FAULT_PREFIX = "can:"  # SimBench.set_fault / --fault: a fault of a CAN node
-
-
-def cia402_node(clock, bus, node_id):
-    """The default CAN node: a simulated CiA 402 drive (imported when first needed)."""
-    from .cia402 import Cia402Node
-
-    return Cia402Node(clock, bus, node_id)
 
 
 def _diag_names():

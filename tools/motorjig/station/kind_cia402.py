@@ -14,6 +14,21 @@ from motorjig.station import schema_cia402 as S
 from motorjig.station.kinds import DriveKind
 
 
+_ODS = {}  # EDS path -> its ObjectDictionary (a run's phases share one plug; a test runs many runs)
+
+
+def object_dictionary(path):
+    """The canopen ObjectDictionary of an EDS (default: the one the project ships), read once."""
+    import canopen
+
+    from motorjig.can import EDS_PATH
+
+    path = path or EDS_PATH
+    if path not in _ODS:
+        _ODS[path] = canopen.import_od(path)
+    return _ODS[path]
+
+
 class PlanDrive:
     """A CiA 402 drive as a plan names it: ``node_id`` on the CAN bus at ``bitrate``; ``eds``: its
     EDS (absolute path), ``od``: the canopen ObjectDictionary read from it."""
@@ -93,6 +108,9 @@ class Cia402Kind(DriveKind):
     def record_code(self, drive):
         return self.CODE
 
+    def stored_text(self, d):
+        return "CiA 402, CAN node %s, device type 0x%08X (%s)" % (d["slave"], d["slave_type"] or 0, d["name"] or "-")
+
     def identity_text(self, drive):
         """'vendor 0x4D4A4947 product 0x00000402 rev 0x00010000 serial 0x53490005'."""
         if drive.get("vendor_id") is None:
@@ -136,8 +154,6 @@ class Cia402Kind(DriveKind):
 
         from motorjig.errors import JigError
         from motorjig.station.drive_cia402 import Cia402Drive
-        from motorjig.station.plug import object_dictionary
-
         conf = configuration.CONF
         if not conf.motorjig_can_port:
             raise JigError("no CAN port: set motorjig_can_port (jigctl test --can-port ...)")
@@ -213,8 +229,6 @@ class Cia402Kind(DriveKind):
     def after_abort(self, plan, ports):
         """Quick stop and disable voltage once more, on a CAN connection of its own."""
         from motorjig.station.drive_cia402 import make_safe_on
-        from motorjig.station.plug import object_dictionary
-
         if ports.get("can_port"):
             make_safe_on(ports["can_port"], plan.drive.node_id, plan.drive.bitrate,
                          getattr(plan.drive, "od", None) or object_dictionary(getattr(plan.drive, "eds", None)))

@@ -83,6 +83,9 @@ class PlusRKind(DriveKind):
             raise ck.error(("wiring", "slave"), "the fixture is wired to slave %s, the plan tests slave %d"
                            % (wiring.slave, drive.slave))
 
+    def stored_text(self, d):
+        return "slave %s, Ver%s, type %s (%s)" % (d["slave"], d["protocol"], d["slave_type"], d["name"] or "-")
+
     # --- the run ----------------------------------------------------------------------------------
     checks_on_port = True
 

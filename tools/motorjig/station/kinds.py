@@ -75,6 +75,11 @@ class DriveKind:
         except (TypeError, ValueError):
             return None
 
+    def stored_text(self, d):
+        """A stored run's drive in words (``d``: the results database's drive: slave, protocol,
+        slave_type, name), for ``jigctl results show``."""
+        return "%s, slave %s, %s (%s)" % (self.title, d["slave"], d["slave_type"], d["name"] or "-")
+
     def identity_text(self, drive):
         """The drive's identity in words for the database's drive_name, or None (its name says it)."""
         return None
@@ -143,6 +148,16 @@ def get(name):
     if name in _BUILTIN:
         return register(importlib.import_module(_BUILTIN[name]).KIND)
     raise KeyError(name)
+
+
+def of_record_code(code):
+    """The kind whose records carry ``code`` in the database's drive_protocol (its ``CODE``); the
+    default kind's otherwise (its codes are its variants)."""
+    for name in names():
+        kind = get(name)
+        if getattr(kind, "CODE", None) == code:
+            return kind
+    return get(DEFAULT)
 
 
 def kind_of(plan):

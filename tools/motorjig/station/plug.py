@@ -185,20 +185,6 @@ class SafetyNet:
         self.saved = None
 
 
-_ODS = {}  # EDS path -> its ObjectDictionary (a run's phases share one plug; a test runs many runs)
-
-
-def object_dictionary(path):
-    import canopen
-
-    from motorjig.can import EDS_PATH
-
-    path = path or EDS_PATH
-    if path not in _ODS:
-        _ODS[path] = canopen.import_od(path)
-    return _ODS[path]
-
-
 class MotorJigPlug(plugs.BasePlug):
     """The bus, the drive under test (``slave``; ``drive``: the station.drive interface to it) and
     the jig (``jig_id``). ``kind``: the drive's kind (``motorjig_protocol``), which opens the drive
