@@ -147,6 +147,7 @@ class App:
         self.scanner = Scanner(self.bridge, self.params)
         self.lease = SafetyLease(self.params)  # the run's safety net: the PC port's and the CAN port's watches
         self.safety = SafetyStop(self.bridge, self.params, self.counters, self.lease)
+        self._notice = self.lease.notice  # [0]: pending (the slow pass looks without a call)
         self.trace = Trace(self)  # (after the parsers and the bridge: it reads both)
         # The CAN port (an SLCAN adapter on the HAL's third CDC port); None on a HAL
         # without CAN (no can_open): the app runs as before.
@@ -360,7 +361,8 @@ class App:
         bridge.poll(now)
         self.scanner.poll(now)
         self.safety.poll(now)
-        self.lease.poll(now)
+        if self._notice[0]:  # (a safety stop's notice is waiting: its age, in whole seconds)
+            self.lease.poll(now)
         tracing = self._trace_on[0]
         if tracing:
             self.trace.poll(now)
