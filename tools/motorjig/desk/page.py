@@ -186,45 +186,39 @@ class DeskPage:
                 tid(ui.button("OK", on_click=self._notice_seen), "btn-safety-notice-ok").props("flat dense")
         self.notice_banner.set_visibility(False)
         with ui.tabs().classes("w-full") as tabs:
-            t_conn = tid(ui.tab("Connect & bus"), "tab-connect")
-            t_plan = tid(ui.tab("Test"), "tab-plan") if self.station is not None else None
-            t_axis = tid(ui.tab("Axis"), "tab-axis")
-            t_test = tid(ui.tab("Motion test"), "tab-test")
-            t_par = tid(ui.tab("Parameters"), "tab-params")
-            t_io = tid(ui.tab("I/O"), "tab-io")
-            t_diag = tid(ui.tab("Jig diagnostics"), "tab-diag")
-            t_raw = tid(ui.tab("Raw frames & log"), "tab-raw")
-            t_can = tid(ui.tab("CAN"), "tab-can")
+            made = [(testid, tid(ui.tab(label), testid), build) for testid, label, build in self._tab_list()]
         self.tabs = tabs
+        opened = dict((testid, tab) for testid, tab, _build in made)
+        first = opened["tab-connect"] if not s.connected or s.axis is None else opened["tab-axis"]
         # Not animated: a sliding panel is half-way across the screen when the operator clicks in it.
-        with ui.tab_panels(tabs, value=t_conn if not s.connected or s.axis is None else t_axis,
-                           animated=False).classes("w-full"):
-            with ui.tab_panel(t_conn):
-                self._connect_panel()
-            if t_plan is not None:
-                from motorjig.desk.runpanel import TestPanel
-
-                with ui.tab_panel(t_plan):
-                    self.test_panel = TestPanel(self, self.station)
-                    self.test_panel.build()
-            with ui.tab_panel(t_axis):
-                self._axis_panel()
-            with ui.tab_panel(t_test):
-                self._test_panel()
-            with ui.tab_panel(t_par):
-                self._param_panel()
-            with ui.tab_panel(t_io):
-                self._io_panel()
-            with ui.tab_panel(t_diag):
-                self._diag_panel()
-            with ui.tab_panel(t_raw):
-                self._raw_panel()
-            with ui.tab_panel(t_can):
-                from motorjig.desk.cantab import CanTab
-
-                CanTab(self, self.can_link, self.can_why).build()
+        with ui.tab_panels(tabs, value=first, animated=False).classes("w-full"):
+            for _testid, tab, build in made:
+                with ui.tab_panel(tab):
+                    build()
         ui.timer(0.1, self._refresh)
         ui.timer(0.25, self._refresh_plot)
+
+    def _tab_list(self):
+        """The page's tabs in order: (test id, label, the method that builds its panel). The Test tab is
+        there when the Desk has a station."""
+        tabs = [("tab-connect", "Connect & bus", self._connect_panel)]
+        if self.station is not None:
+            tabs.append(("tab-plan", "Test", self._plan_tab))
+        return tabs + [("tab-axis", "Axis", self._axis_panel), ("tab-test", "Motion test", self._test_panel),
+                       ("tab-params", "Parameters", self._param_panel), ("tab-io", "I/O", self._io_panel),
+                       ("tab-diag", "Jig diagnostics", self._diag_panel),
+                       ("tab-raw", "Raw frames & log", self._raw_panel), ("tab-can", "CAN", self._can_tab)]
+
+    def _plan_tab(self):
+        from motorjig.desk.runpanel import TestPanel
+
+        self.test_panel = TestPanel(self, self.station)
+        self.test_panel.build()
+
+    def _can_tab(self):
+        from motorjig.desk.cantab import CanTab
+
+        CanTab(self, self.can_link, self.can_why).build()
 
     def _seen(self):
         self.s.viewers += 1
