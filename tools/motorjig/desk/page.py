@@ -229,15 +229,28 @@ class DeskPage:
     async def _esc(self, _e=None):
         await self._stop(True)
 
+    def _axes(self):
+        """Every axis STOP reaches, in order: (its stop(emergency) -> a sentence, or None when it had
+        nothing to stop; whether it is there to stop now). The CAN tab's axis (halt / quick stop of the
+        nodes it enabled or watches, ``canaxis.CanAxis.stop``), then the bus session's (the selected
+        axis; a running motion test, scan or test run)."""
+        out = []
+        can_axis = getattr(self.can_link, "axis", None)
+        if can_axis is not None:
+            out.append((can_axis.stop, lambda: True))
+        out.append((lambda emergency: (self.s.emergency_stop if emergency else self.s.stop_axis)(),
+                    lambda: self.s.state not in ("disconnected", "lost")))
+        return out
+
     async def _stop(self, emergency):
-        """STOP AXIS / EMERGENCY STOP / Esc: the CAN tab's CiA 402 axis first (halt / quick stop, when its
-        port is open and a node is chosen: ``canaxis.CanAxis.stop``), then the Plus-R axes as before
-        (left out when only the CAN axis was there to stop)."""
-        axis = getattr(self.can_link, "axis", None)
-        can_said = await self.act(axis.stop, emergency) if axis is not None else None
-        if can_said and self.s.state in ("disconnected", "lost"):  # no Plus-R axis to stop, no run to abort
-            return
-        await self.act(self.s.emergency_stop if emergency else self.s.stop_axis)
+        """STOP AXIS / EMERGENCY STOP / Esc: every axis of ``_axes`` in turn. An axis that is not
+        there (the bus not connected) is left out when another one stopped something, so the
+        operator reads what was stopped, not a refusal."""
+        stopped = False
+        for stop, present in self._axes():
+            if stopped and not present():
+                continue
+            stopped = bool(await self.act(stop, emergency)) or stopped
 
     def _notice_seen(self):
         self.s.safety_notice = ""  # said: every tab lets it go
