@@ -171,10 +171,9 @@ class SafetyStop:
         not armed, or only a reply or the bridge's timeout moves things on)."""
         if self.todo:
             return -1 if self.waiting or self.bridge.busy() else 0
-        ms = self.params.ram[P_SAFETY_TIMEOUT_MS]
-        if ms == 0 or self.bridge.bs[B_PC_FRAMES] == 0 or self.fired_at == self.bridge.bs[B_PC_FRAMES]:
+        if not self._armed():
             return -1
-        d = ms * 1000 - ticks_diff(now, self.bridge.bs[B_T_PC])
+        d = self.params.ram[P_SAFETY_TIMEOUT_MS] * 1000 - ticks_diff(now, self.bridge.bs[B_T_PC])
         return d if d > 0 else 0
 
     def _armed(self):
@@ -331,10 +330,8 @@ class CanSafety:
         self.next_node = _NMT if self.params.ram[P_CAN_SAFETY] == CAN_SAFETY_NMT_STOP else 1
 
     def _armed(self):
-        port = self.port
-        pr = self.params.ram
-        return (pr[P_CAN_SAFETY] != CAN_SAFETY_OFF and pr[P_SAFETY_TIMEOUT_MS] != 0 and port.is_open
-                and not port.listen and port.lines != 0 and self.fired_at != port.lines)
+        # Its own silence watch: armed once the host has spoken on this port.
+        return self.port.lines != 0 and self._armed_any()
 
     def wait_us(self, now):
         """µs until the silence limit (0: frames still to queue; -1: not armed)."""
