@@ -203,10 +203,6 @@ class Cia402Kind(DriveKind):
         if not d.ready:  # the plan's lss step gives the drive its id first: identified there
             test.test_record.metadata["drive"] = dict(protocol=self.name, node_id=d.node_id, bitrate=d.bitrate,
                                                       eds=getattr(plan.drive, "eds", None))
-            if plan.reset_jig_counters:
-                bus.master.reset_counters(bus.jig_id)
-            runner.arm_safety_net(test, bus, ctx)
-            bus.master.roundtrips.clear()
             return
         device_type = d.read(0x1000)
         if device_type & 0xFFFF != 402:
@@ -219,12 +215,8 @@ class Cia402Kind(DriveKind):
             device_type=device_type, **ident)
         if not serial:
             test.dut_id = "node%d-%08X-%08X" % (d.node_id, ident["product_code"], ident["serial"])
-        if plan.reset_jig_counters:
-            bus.master.reset_counters(bus.jig_id)
-        runner.arm_safety_net(test, bus, ctx)
         test.test_record.metadata["sampling"] = {"by": "drive", "period_us": int(round(d.period * 1e6)),
                                                  "dated_by": "jig"}
-        bus.master.roundtrips.clear()
 
     def after_abort(self, plan, ports):
         """Quick stop and disable voltage once more, on a CAN connection of its own."""

@@ -130,11 +130,7 @@ class PlusRKind(DriveKind):
                                               "name": info.version}
         if not serial:
             test.dut_id = "slave%d-%s" % (s, re.sub(r"[^A-Za-z0-9.]+", "-", info.version).strip("-"))
-        if plan.reset_jig_counters:
-            bus.master.reset_counters(bus.jig_id)
-        runner.arm_safety_net(test, bus, ctx)
         runner.choose_sampling(test, bus, plan)
-        bus.master.roundtrips.clear()
 
     def after_abort(self, plan, ports):
         from motorjig.station import runner

@@ -118,7 +118,8 @@ class DriveKind:
 
     def preflight(self, test, bus, plan, serial, ctx):
         """Before the first step: the drive is the plan's; the record's ``drive`` metadata and the
-        DUT id set; the safety net armed (``runner.arm_safety_net``). PreflightError refuses."""
+        DUT id set (who samples the axis too, if the kind says). PreflightError refuses. The runner
+        then resets the jig's counters, arms its safety net and starts counting bus time."""
 
     def after_abort(self, plan, ports):
         """After an aborted run, the emergency stop once more on a connection of its own."""

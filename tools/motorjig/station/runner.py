@@ -201,6 +201,11 @@ def _preflight(plan, serial, ctx):
         if ctx.aborted:
             raise PreflightError("aborted before the first step")
         bus.kind.preflight(test, bus, plan, serial, ctx)
+        # every kind's: the jig's counters from here, its safety net for the run, bus time from here
+        if plan.reset_jig_counters:
+            bus.master.reset_counters(bus.jig_id)
+        arm_safety_net(test, bus, ctx)
+        bus.master.roundtrips.clear()
 
     return preflight
 
