@@ -57,6 +57,10 @@ def test_check_notes_a_prompt_nobody_could_answer_but_needs_no_terminal(tmp_path
     assert len(p.stderr.strip().splitlines()) == 1
     ok = jigctl("test", "--check", EOL, "--yes")
     assert ok.returncode == 0 and ok.stderr == ""
+    with Bench(driver_ids=(DRIVE,), baud=115200, pty=False) as b:  # the drive read too: the note stays
+        p = jigctl("test", "--check", EOL, "--port", b.tcp_url)
+    assert p.returncode == 0 and "the drive is the plan's" in p.stdout, p.stderr
+    assert p.stderr.startswith("jigctl: note: step prompt asks the operator to confirm"), p.stderr
 
 
 def test_a_run_with_a_prompt_and_no_terminal_moves_nothing(tmp_path):

@@ -236,7 +236,7 @@ def _status_loop(args, m, s, count, tty, take_notice):
         if not shown:  # after the drive answered: a jig's notice never hides the drive's own reply
             notice = take_notice()
             if notice:
-                sys.stderr.write("jigctl: note: %s.\n" % notice)
+                note(notice)
         if args.json:
             emit(args, dict(jsonable(st), slave=s, t=time.time()), "")
         else:
@@ -775,6 +775,12 @@ def cmd_crashlog(args):
     emit(args, {"jig": args.jig_id, "crash_log": text},
          "jig (slave %d) crash log: %s" % (args.jig_id, shown))
     return EXIT_OK
+
+
+def note(message):
+    """A note for the user on stderr, one sentence: 'jigctl: note: ...'."""
+    sys.stderr.write("jigctl: note: %s.\n" % message.rstrip("."))
+    sys.stderr.flush()
 
 
 def fail(code, message):

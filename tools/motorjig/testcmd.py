@@ -91,6 +91,8 @@ def cmd_test(args):
         from motorjig.station import plan as P
     except ImportError as exc:
         return _err("the station needs the 'station' extra (%s): pip install 'motorjig[station]'" % exc, args)
+    from motorjig.commands import note
+
     try:
         plan = P.load_plan(args.plan)
     except P.PlanError as exc:
@@ -105,11 +107,11 @@ def cmd_test(args):
     if args.check:
         if args.port and kind.checks_on_port:
             try:
-                problem = kind.check_on_port(ports, plan)
+                refused = kind.check_on_port(ports, plan)
             except JigError as exc:
                 return _err(str(exc), args)
-            if problem:
-                return _err("%s: %s" % (args.plan, problem), args)
+            if refused:
+                return _err("%s: %s" % (args.plan, refused), args)
         if args.json:
             print(json.dumps({"plan": plan.name, "version": plan.version, "hash": plan.hash, "ok": True,
                               "steps": [s.name for s in plan.steps]}))
@@ -118,7 +120,7 @@ def cmd_test(args):
                 args.plan, plan.name, plan.version, len(plan.steps), ", ".join(s.name for s in plan.steps),
                 "; the drive is the plan's" if args.port and kind.checks_on_port else ""), flush=True)
         if problem and not args.json:  # a check moves nothing and asks nothing: a note for the run
-            sys.stderr.write("jigctl: note: %s (when it runs).\n" % problem)
+            note("%s (when it runs)" % problem)
         return EXIT_PASS
     if not args.port:
         return _err("no port: give --port (or set JIGCTL_PORT)", args)
@@ -135,11 +137,11 @@ def cmd_test(args):
     except PortError as exc:
         return _err(str(exc), args)
     try:
-        notice = safetynotice.take(m)  # what a run before this one left behind, said once
+        notice = safetynotice.take(m, plan.drive.jig_id)  # what a run before this one left behind, said once
     finally:
         m.close()
     if notice:
-        sys.stderr.write("jigctl: note: %s.\n" % notice)
+        note(notice)
     from motorjig.station import runner
 
     store = None
