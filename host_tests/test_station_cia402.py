@@ -20,6 +20,7 @@ from motorjig.sim import Bench
 from motorjig.station import load_plan, run_plan
 
 from jig.params import P_CAN_SAFETY
+from test_station_signals import safety_params, stats_twice
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SMOKE = os.path.join(ROOT, "plans", "cia402-smoke.toml")
@@ -225,14 +226,6 @@ def wait_operation_disabled(b, within_s=5.0):
     assert operation_disabled(b), node(b).state
 
 
-SAFETY_PARAMS = (9, 10, 18)  # safety_timeout_ms, safety_action, can_safety
-
-
-def safety_params(url):
-    with Master(url, timeout=0.3) as m:
-        return [m.get_parameter(1, n) for n in SAFETY_PARAMS]
-
-
 def frames_a_quiet_session_sees(url, seconds=3.0):
     """A fresh python-can session on the jig's SLCAN port that sends nothing: what it receives."""
     import can
@@ -269,10 +262,9 @@ def test_sigkill_mid_move_the_jig_stops_the_drive_then_leaves_a_quiet_bus_as_bef
         assert safety_params(b.tcp_url) == before
         assert frames_a_quiet_session_sees(b.slcan_url) == []
         assert operation_disabled(b)
-        first = subprocess.run([JIGCTL, "--port", b.tcp_url, "stats"], capture_output=True, text=True, timeout=60)
-        again = subprocess.run([JIGCTL, "--port", b.tcp_url, "stats"], capture_output=True, text=True, timeout=60)
-    assert "note: the jig stopped CAN node 5 after the run's master went silent at" in first.stdout, first  # (6: never heard)
-    assert "note:" not in again.stdout
+        first, again = stats_twice(b.tcp_url)
+    assert "note: the jig stopped CAN node 5 after the run's master went silent at" in first, first  # (6: never heard)
+    assert "note:" not in again
 
 
 LSS_PLAN = ('[plan]\nname = "lss402"\nversion = "1"\n[drive]\nprotocol = "cia402"\nnode_id = 5\n'

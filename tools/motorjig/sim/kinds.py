@@ -18,8 +18,7 @@ def _can_model():
 
 def can_node(clock, bus, node_id):
     """The default CAN node: a simulated drive of the table's model (imported when first needed)."""
-    module, _, name = CAN_NODE.partition(":")
-    return getattr(importlib.import_module(module), name)(clock, bus, node_id)
+    return getattr(_can_model(), CAN_NODE.partition(":")[2])(clock, bus, node_id)
 
 
 def can_faults():
