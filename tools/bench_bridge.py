@@ -187,7 +187,8 @@ def polling_rate(baud, direct=False, forward_mode=P.CUT_THROUGH, n=40, cpu_model
     b.down_bus.monitor = seen
     req_hops, rep_hops, req_lags, rep_lags, req_pre, rep_pre = [], [], [], [], [], []
     pre = 0.0 if direct else b.app.params.get(P.P_DE_PRE_US)
-    first_cpu = CpuModel.of(cpu_model).pass_us + CpuModel.of(cpu_model).byte_us  # the pass that reads a frame's first byte on its own
+    model = CpuModel.of(cpu_model)
+    first_cpu = model.pass_us + model.byte_us  # the pass that reads a frame's first byte on its own
     bt = 10e6 / baud
 
     def pre_left(src, out):

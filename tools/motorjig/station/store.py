@@ -301,17 +301,6 @@ def _record_kind(drive):
     return kinds.get(protocol if isinstance(protocol, str) and protocol in kinds.names() else kinds.DEFAULT)
 
 
-def _protocol_code(drive):
-    """drive_protocol in the runs table: the number its kind gives the record (a Plus-R drive's variant,
-    6 or 8; 402 for a CiA 402 drive, whose drive_slave is then its node id)."""
-    return _record_kind(drive).record_code(drive)
-
-
-def _identity_name(drive):
-    """The drive's identity in words, when its kind has one beyond its name."""
-    return _record_kind(drive).identity_text(drive)
-
-
 def _int(v):
     try:
         return int(v)
@@ -334,6 +323,7 @@ def _flatten(record, files):
         record = record_dict(record)
     md_ = record.get("metadata") or {}
     drive = md_.get("drive") or {}
+    kind = _record_kind(drive)  # the drive_protocol number and the identity text are its kind's
     start = _ms(record.get("start_time_millis"))
     if start is None:
         raise StoreError("the record has no start time (start_time_millis): not a test record")
@@ -344,9 +334,9 @@ def _flatten(record, files):
            "plan_hash": md_.get("plan_hash") or None, "plan_file": md_.get("plan_file") or None,
            "dut": str(record.get("dut_id") or "unknown"), "station": str(record.get("station_id") or ""),
            "operator": operator_name(md_.get("operator")),
-           "drive_slave": _int(drive.get("slave", drive.get("node_id"))), "drive_protocol": _protocol_code(drive),
+           "drive_slave": _int(drive.get("slave", drive.get("node_id"))), "drive_protocol": kind.record_code(drive),
            "drive_slave_type": _int(drive.get("slave_type", drive.get("device_type"))),
-           "drive_name": drive.get("name") or _identity_name(drive),
+           "drive_name": drive.get("name") or kind.identity_text(drive),
            "start_ms": start, "end_ms": _ms(record.get("end_time_millis")),
            "verdict": str(record.get("outcome") or "ERROR").upper(), "details": details,
            "stored_ms": int(time.time() * 1000)}
