@@ -14,6 +14,7 @@ from canopen.profiles.p402 import State402
 
 from motorjig.can import power402 as P
 from motorjig.sim import cia402 as C
+from motorjig.sim import drive402 as D
 from motorjig.sim.canbus import CanBus
 from motorjig.sim.clock import VirtualClock
 
@@ -135,20 +136,20 @@ def test_states_only_the_drive_enters_or_leaves_have_no_path(a, b, why):
 # --- the simulated drive ----------------------------------------------------------------------------
 def _sim_command(cw, previous):
     """The command the simulated drive reads in a controlword (its own table, COMMANDS)."""
-    if cw & C.CW_FAULT_RESET and not previous & C.CW_FAULT_RESET:
-        return C.FAULT_RESET
-    return next((name for name, mask, value in C.COMMANDS if cw & mask == value), None)
+    if cw & D.CW_FAULT_RESET and not previous & D.CW_FAULT_RESET:
+        return D.FAULT_RESET
+    return next((name for name, mask, value in D.COMMANDS if cw & mask == value), None)
 
 
 def test_the_simulated_drives_states_are_these():
-    assert C.STATES == {n: (m, v) for n, m, v in P.STATES}
-    assert (C.NOT_READY, C.SWITCH_ON_DISABLED, C.READY, C.SWITCHED_ON, C.OPERATION_ENABLED, C.QUICK_STOP_ACTIVE,
-            C.FAULT_REACTION, C.FAULT) == P.STATE_NAMES
+    assert D.STATES == {n: (m, v) for n, m, v in P.STATES}
+    assert (D.NOT_READY, D.SWITCH_ON_DISABLED, D.READY, D.SWITCHED_ON, D.OPERATION_ENABLED, D.QUICK_STOP_ACTIVE,
+            D.FAULT_REACTION, D.FAULT) == P.STATE_NAMES
 
 
 def test_the_simulated_drives_table_is_this_one():
     # every row of the drive's table is one of ours (its "3+4": 0x0F in READY goes on to OPERATION ENABLED)
-    for (source, command), (target, label) in C.TRANSITIONS.items():
+    for (source, command), (target, label) in D.TRANSITIONS.items():
         if label == "3+4":
             assert [t.number for t in P.route(source, target)] == [3, 4]
             assert _sim_command(P.COMMANDS["ENABLE OPERATION"], 0) == command
@@ -159,7 +160,7 @@ def test_the_simulated_drives_table_is_this_one():
     # and every commanded row of ours is in the drive's table
     for t in P.TRANSITIONS:
         if t.command is not None:
-            assert C.TRANSITIONS[(t.source, _sim_command(t.controlword, 0))] == (t.target, str(t.number)), t
+            assert D.TRANSITIONS[(t.source, _sim_command(t.controlword, 0))] == (t.target, str(t.number)), t
 
 
 class SdoMaster:
@@ -221,7 +222,7 @@ def test_every_path_runs_on_the_simulated_drive(option, a, b):
     if a == FLT:
         run_path(master, SOD, OE, option)
         master.write_u16(0x6040, 0, 0x80)  # bit 7 left high: the path must lower it first
-        node.fault(C.EMCY_OVERCURRENT, C.ERR_CURRENT)
+        node.fault(D.EMCY_OVERCURRENT, D.ERR_CURRENT)
         assert [label for _t, label in node.transitions[-2:]] == ["13", "14"]
     else:
         run_path(master, SOD, a, option)

@@ -14,6 +14,7 @@ from canopen.objectdictionary import import_od
 
 from motorjig.can import EDS_PATH
 from motorjig.sim import cia402 as C
+from motorjig.sim import drive402 as D
 from motorjig.sim.axis import profile_time, ramp_ms
 from motorjig.sim.canbus import CanBus
 from motorjig.sim.clock import VirtualClock
@@ -137,7 +138,7 @@ def sw(master):
 
 
 def state_of(word):
-    for name, (mask, value) in C.STATES.items():
+    for name, (mask, value) in D.STATES.items():
         if word & mask == value:
             return name
     return None
@@ -250,7 +251,7 @@ def test_store_and_restore_parameters():
     master.set(0x6081, 0, "<I", 4321)
     with pytest.raises(Abort) as e:
         master.set(0x1010, 1, "<I", 0x12345678)
-    assert e.value.code == C.ABORT_STORE
+    assert e.value.code == D.ABORT_STORE
     master.download(0x1010, 1, b"save")
     master.nmt(0x81)
     assert master.get(0x6081) == 4321
@@ -269,7 +270,7 @@ def test_sdo_expedited_upload_and_download():
     assert r[0] == 0x4F and r[4] == 1  # one byte: n = 3
     master.set(0x6083, 0, "<I", 250000)
     assert master.get(0x6083) == 250000
-    assert master.get(0x1018, 4) == C.SERIAL_BASE + NID
+    assert master.get(0x1018, 4) == D.SERIAL_BASE + NID
     master.set(0x607A, 0, "<i", -12345)
     assert master.get(0x607A, 0, "<i") == -12345
 
@@ -288,18 +289,18 @@ def test_sdo_segmented_upload_of_the_device_name_and_segmented_download():
 
 
 ABORT_CASES = {
-    "no object": (lambda m: m.get(0x2345), C.ABORT_NO_OBJECT),
-    "no sub-index": (lambda m: m.get(0x1018, 9), C.ABORT_NO_SUBINDEX),
-    "read-only": (lambda m: m.set(0x6041, 0, "<H", 1), C.ABORT_READ_ONLY),
-    "const": (lambda m: m.download(0x1008, 0, b"x"), C.ABORT_READ_ONLY),
-    "write-only": (lambda m: m.get(0x2001), C.ABORT_WRITE_ONLY),
-    "length": (lambda m: m.set(0x6081, 0, "<H", 5), C.ABORT_LENGTH),
-    "segmented length": (lambda m: m.download(0x6081, 0, b"12345678", segmented=True), C.ABORT_LENGTH),
-    "value": (lambda m: m.set(0x6060, 0, "<b", 2), C.ABORT_VALUE),
-    "value too high": (lambda m: m.set(0x1600, 0, "<B", 9), C.ABORT_VALUE_HIGH),
-    "block upload": (lambda m: m.sdo(struct.pack("<BHB", 0xA0, 0x1008, 0)), C.ABORT_COMMAND),
-    "block download": (lambda m: m.sdo(struct.pack("<BHB", 0xC2, 0x6081, 0)), C.ABORT_COMMAND),
-    "segment without transfer": (lambda m: m.sdo(b"\x60"), C.ABORT_COMMAND),
+    "no object": (lambda m: m.get(0x2345), D.ABORT_NO_OBJECT),
+    "no sub-index": (lambda m: m.get(0x1018, 9), D.ABORT_NO_SUBINDEX),
+    "read-only": (lambda m: m.set(0x6041, 0, "<H", 1), D.ABORT_READ_ONLY),
+    "const": (lambda m: m.download(0x1008, 0, b"x"), D.ABORT_READ_ONLY),
+    "write-only": (lambda m: m.get(0x2001), D.ABORT_WRITE_ONLY),
+    "length": (lambda m: m.set(0x6081, 0, "<H", 5), D.ABORT_LENGTH),
+    "segmented length": (lambda m: m.download(0x6081, 0, b"12345678", segmented=True), D.ABORT_LENGTH),
+    "value": (lambda m: m.set(0x6060, 0, "<b", 2), D.ABORT_VALUE),
+    "value too high": (lambda m: m.set(0x1600, 0, "<B", 9), D.ABORT_VALUE_HIGH),
+    "block upload": (lambda m: m.sdo(struct.pack("<BHB", 0xA0, 0x1008, 0)), D.ABORT_COMMAND),
+    "block download": (lambda m: m.sdo(struct.pack("<BHB", 0xC2, 0x6081, 0)), D.ABORT_COMMAND),
+    "segment without transfer": (lambda m: m.sdo(b"\x60"), D.ABORT_COMMAND),
 }
 
 
@@ -319,11 +320,11 @@ def test_sdo_toggle_bit_and_timeout_aborts():
     clock, bus, master, node = bench()
     master.sdo(struct.pack("<BHB", 0x40, 0x1008, 0))
     r = master.sdo(b"\x70")  # toggle 1 first: not alternated
-    assert r[0] == 0x80 and struct.unpack_from("<I", r, 4)[0] == C.ABORT_TOGGLE
+    assert r[0] == 0x80 and struct.unpack_from("<I", r, 4)[0] == D.ABORT_TOGGLE
     r = master.sdo(struct.pack("<BHB", 0x40, 0x1008, 0))
     assert r[0] == 0x41
     r = master.wait(0x585, 1500, pred=lambda d: d[0] == 0x80)[1]  # the client went silent
-    assert struct.unpack_from("<HBI", r, 1) == (0x1008, 0, C.ABORT_TIMEOUT)
+    assert struct.unpack_from("<HBI", r, 1) == (0x1008, 0, D.ABORT_TIMEOUT)
 
 
 def test_sdo_abort_fault_answers_every_request_with_its_code():
@@ -356,17 +357,17 @@ def test_pdo_remap_then_sync_driven_tpdo_content():
     # mapping refused while the PDO is valid, a non-mappable object, too long a PDO
     with pytest.raises(Abort) as e:
         master.set(0x1A02, 0, "<B", 0)
-    assert e.value.code == C.ABORT_UNSUPPORTED
+    assert e.value.code == D.ABORT_UNSUPPORTED
     master.set(0x1802, 1, "<I", 0x80000000 | 0x385)
     master.set(0x1A02, 0, "<B", 0)
     with pytest.raises(Abort) as e:
         master.set(0x1A02, 1, "<I", 0x10080008)
-    assert e.value.code == C.ABORT_NOT_MAPPABLE
+    assert e.value.code == D.ABORT_NOT_MAPPABLE
     for i in (1, 2, 3):
         master.set(0x1A02, i, "<I", 0x60640020)
     with pytest.raises(Abort) as e:
         master.set(0x1A02, 0, "<B", 3)
-    assert e.value.code == C.ABORT_PDO_LENGTH
+    assert e.value.code == D.ABORT_PDO_LENGTH
     remap_tpdo(master, 2, 2, [0x60640020, 0x60410010, 0x60610008])  # every 2nd SYNC
     node.motion.pos = 4242.0
     master.nmt(0x01)
@@ -426,39 +427,39 @@ def test_rpdo_controlword_drives_the_state_machine_and_tpdo1_shows_it():
     master.nmt(0x01)
     t = clock.now
     rpdo1(master, 0x06)
-    assert node.state == C.READY
+    assert node.state == D.READY
     last = master.frames(0x185, t)[-1][1]
     assert struct.unpack("<Hb", last) == (0x0221, 1)
     rpdo1(master, 0x07)
     rpdo1(master, 0x0F, 3)
-    assert node.state == C.OPERATION_ENABLED and master.get(0x6061, 0, "<b") == 3
+    assert node.state == D.OPERATION_ENABLED and master.get(0x6061, 0, "<b") == 3
     last = master.frames(0x185, t)[-1][1]
     assert struct.unpack("<Hb", last)[0] & 0x6F == 0x27 and last[2] == 3
 
 
 # --- the power state machine ------------------------------------------------------------------------
 CW = {"DISABLE VOLTAGE": 0x00, "QUICK STOP": 0x02, "SHUTDOWN": 0x06, "SWITCH ON": 0x07, "ENABLE OPERATION": 0x0F,
-      C.FAULT_RESET: 0x80}
+      D.FAULT_RESET: 0x80}
 PATH = {  # controlwords from SWITCH ON DISABLED to a state
-    C.SWITCH_ON_DISABLED: (),
-    C.READY: (0x06,),
-    C.SWITCHED_ON: (0x06, 0x07),
-    C.OPERATION_ENABLED: (0x06, 0x07, 0x0F),
-    C.QUICK_STOP_ACTIVE: (0x06, 0x07, 0x0F, 0x02),
+    D.SWITCH_ON_DISABLED: (),
+    D.READY: (0x06,),
+    D.SWITCHED_ON: (0x06, 0x07),
+    D.OPERATION_ENABLED: (0x06, 0x07, 0x0F),
+    D.QUICK_STOP_ACTIVE: (0x06, 0x07, 0x0F, 0x02),
 }
 
 
-@pytest.mark.parametrize("step", sorted(C.TRANSITIONS, key=lambda k: int(C.TRANSITIONS[k][1].split("+")[0])),
+@pytest.mark.parametrize("step", sorted(D.TRANSITIONS, key=lambda k: int(D.TRANSITIONS[k][1].split("+")[0])),
                          ids=lambda k: "%s-%s" % k)
 def test_every_transition_of_the_power_state_machine(step):
     clock, bus, master, node = bench()
     start, command = step
-    new, label = C.TRANSITIONS[step]
+    new, label = D.TRANSITIONS[step]
     master.set(0x605A, 0, "<h", 6)  # quick stop, then stay in QUICK STOP ACTIVE (for 16)
-    if start == C.FAULT:
-        for cw in PATH[C.OPERATION_ENABLED]:
+    if start == D.FAULT:
+        for cw in PATH[D.OPERATION_ENABLED]:
             master.set(0x6040, 0, "<H", cw)
-        node.fault(C.EMCY_OVERCURRENT, C.ERR_CURRENT)
+        node.fault(D.EMCY_OVERCURRENT, D.ERR_CURRENT)
     else:
         for cw in PATH[start]:
             master.set(0x6040, 0, "<H", cw)
@@ -466,7 +467,7 @@ def test_every_transition_of_the_power_state_machine(step):
     master.set(0x6040, 0, "<H", CW[command])
     word = sw(master)
     assert state_of(word) == new
-    mask, value = C.STATES[new]
+    mask, value = D.STATES[new]
     assert word & mask == value
     assert node.transitions[-1][1] == label
 
@@ -475,10 +476,10 @@ def test_commands_outside_the_table_change_nothing():
     clock, bus, master, node = bench()
     for cw in (0x0F, 0x07, 0x80):  # enable / switch on from SWITCH ON DISABLED; fault reset without a fault
         master.set(0x6040, 0, "<H", cw)
-        assert state_of(sw(master)) == C.SWITCH_ON_DISABLED
+        assert state_of(sw(master)) == D.SWITCH_ON_DISABLED
     master.set(0x6040, 0, "<H", 0x06)
     master.set(0x6040, 0, "<H", 0x0F)  # 3+4
-    assert state_of(sw(master)) == C.OPERATION_ENABLED
+    assert state_of(sw(master)) == D.OPERATION_ENABLED
 
 
 def test_quick_stop_ramps_down_then_switch_on_disabled():
@@ -489,9 +490,9 @@ def test_quick_stop_ramps_down_then_switch_on_disabled():
     master.run(500)
     assert node.motion.moving
     rpdo1(master, 0x02)  # 0x605A = 2: quick stop deceleration 0x6085, then switch on disabled
-    assert node.state == C.QUICK_STOP_ACTIVE and node.motion.moving
+    assert node.state == D.QUICK_STOP_ACTIVE and node.motion.moving
     master.run(30)
-    assert node.state == C.SWITCH_ON_DISABLED and not node.motion.moving
+    assert node.state == D.SWITCH_ON_DISABLED and not node.motion.moving
     assert [lab for _t, lab in node.transitions[-2:]] == ["11", "12"]
 
 
@@ -507,14 +508,14 @@ def test_profile_position_move_handshake_target_reached_and_duration():
     rpdo1(master, 0x1F)
     t_cmd = [tt for tt, cob, d in master.tx_done if cob == 0x205 and d[0] == 0x1F][-1]
     words = [struct.unpack_from("<H", d)[0] for _t, d in master.frames(0x185, t)]
-    assert words[-1] & C.SW_BIT12 and not words[-1] & C.SW_TARGET_REACHED  # set-point acknowledged, moving
+    assert words[-1] & D.SW_BIT12 and not words[-1] & D.SW_TARGET_REACHED  # set-point acknowledged, moving
     rpdo1(master, 0x0F)
     assert not master.frames(0x185, clock.now - 2 * MS)[-1][1][1] & 0x10  # acknowledge cleared with bit 4
     t_done, d = master.wait(0x185, 5000, pred=lambda d: d[1] & 0x04)  # bit 10
     expect = profile_time(20000, 10000, ramp_ms(10000, 50000), ramp_ms(10000, 40000))
     assert (t_done - t_cmd) / 1e6 == pytest.approx(expect, abs=0.003)
     word = struct.unpack_from("<H", d)[0]
-    assert word & 0x6F == 0x27 and not word & C.SW_BIT13 and not word & C.SW_BIT12
+    assert word & 0x6F == 0x27 and not word & D.SW_BIT13 and not word & D.SW_BIT12
     assert master.get(0x6064, 0, "<i") == 20000 and master.get(0x60F4, 0, "<i") == 0
     t = clock.now
     master.send(0x080)
@@ -544,7 +545,7 @@ def test_homing_finds_the_home_switch_and_sets_the_home_offset():
     assert node.homing == "search"
     t, d = master.wait(0x185, 3000, pred=lambda d: d[1] & 0x14 == 0x14)  # attained + target reached
     assert master.get(0x6064, 0, "<i") == 1234
-    assert master.get(0x60FD) & C.IN_HOME
+    assert master.get(0x60FD) & D.IN_HOME
     # the home switch broken: the homing gives up with the homing error
     node.set_fault("no-origin")
     rpdo1(master, 0x0F, 6)
@@ -563,16 +564,16 @@ def test_following_error_fault_sends_emcy_then_fault_reset():
     move(master, 100000)
     t_emcy, d = master.wait(0x085, 2000, t)
     code, reg = struct.unpack_from("<HB", d)
-    assert code == 0x8611 and reg & C.ERR_GENERIC and len(d) == 8
+    assert code == 0x8611 and reg & D.ERR_GENERIC and len(d) == 8
     master.run(100)
-    assert state_of(sw(master)) == C.FAULT and node.transitions[-2][1] == "13"
+    assert state_of(sw(master)) == D.FAULT and node.transitions[-2][1] == "13"
     assert master.get(0x603F, 0, "<H") == 0x8611 and master.get(0x1001, 0, "<B") == reg
     assert master.get(0x1003, 0, "<B") == 1 and master.get(0x1003, 1) == 0x8611
     node.clear_faults()
     t = clock.now
     rpdo1(master, 0x80)
     assert master.wait(0x085, 10, t)[1] == bytes(8)  # EMCY 0x0000: error reset
-    assert state_of(sw(master)) == C.SWITCH_ON_DISABLED
+    assert state_of(sw(master)) == D.SWITCH_ON_DISABLED
     assert master.get(0x1001, 0, "<B") == 0 and master.get(0x603F, 0, "<H") == 0
     master.set(0x1003, 0, "<B", 0)
     assert master.get(0x1003, 0, "<B") == 0
@@ -586,10 +587,10 @@ def test_overcurrent_mid_move():
     move(master, 50000)
     t_start = [tt for tt, cob, d in master.tx_done if cob == 0x205 and d[0] & 0x10][-1]
     t_emcy, d = master.wait(0x085, 500, t)
-    assert struct.unpack_from("<HB", d) == (0x2310, C.ERR_GENERIC | C.ERR_CURRENT)
+    assert struct.unpack_from("<HB", d) == (0x2310, D.ERR_GENERIC | D.ERR_CURRENT)
     assert (t_emcy - t_start) / MS == pytest.approx(50, abs=2)
     master.run(100)
-    assert node.state == C.FAULT and not node.motion.moving
+    assert node.state == D.FAULT and not node.motion.moving
 
 
 def test_sluggish_motor_takes_longer():
@@ -613,7 +614,7 @@ def test_fault_names_and_values():
     clock, bus, master, node = bench()
     node.set_fault("dead-input", 2)
     node.mech = node.origin_pos
-    assert not master.get(0x60FD) & C.IN_HOME
+    assert not master.get(0x60FD) & D.IN_HOME
     assert node.active_faults() == ["dead-input=2"]
 
 
@@ -667,7 +668,7 @@ def test_lss_fast_scan_finds_an_unconfigured_node_and_gives_it_an_id():
 
 def test_lss_switch_state_selective_and_inquire_node_id():
     clock, bus, master, node = bench()
-    ident = (0x4D4A4947, 0x402, 0x00010000, C.SERIAL_BASE + NID)
+    ident = (0x4D4A4947, 0x402, 0x00010000, D.SERIAL_BASE + NID)
     for cs, value in zip((0x40, 0x41, 0x42), ident):
         assert lss(master, struct.pack("<BI", cs, value)) is None
     assert lss(master, struct.pack("<BI", 0x43, ident[3])) == bytes([0x44]) + bytes(7)

@@ -14,6 +14,7 @@ from test_sim_cia402 import MS, NID, Abort, Master, state_of
 
 from jig import frame as F
 from motorjig.sim import cia402 as C
+from motorjig.sim import drive402 as D
 from motorjig.sim.__main__ import check_setup, main, parse_args
 from motorjig.sim.axis import profile_time, ramp_ms
 from motorjig.sim.bench import SimBench
@@ -172,9 +173,9 @@ def test_relays_drive_the_nodes_digital_inputs_and_its_outputs_reach_the_jig():
 def test_a_wired_home_switch_replaces_the_drives_own():
     b, master, node = bench()
     node.mech = node.origin_pos  # on the flag: not connected, the wire is
-    assert not master.get(0x60FD) & C.IN_HOME
+    assert not master.get(0x60FD) & D.IN_HOME
     relays(b, on=1 << RELAY_HOME)
-    assert master.get(0x60FD) & C.IN_HOME
+    assert master.get(0x60FD) & D.IN_HOME
 
 
 def test_homing_stops_at_the_home_switch_relay():
@@ -198,16 +199,16 @@ def test_a_limit_switch_during_a_move_stops_it_with_internal_limit_active(relay,
     master.set(0x6085, 0, "<I", 200000)
     start_move(master, target)
     master.run(300)
-    assert node.motion.moving and not sw(master) & C.SW_INTERNAL_LIMIT
+    assert node.motion.moving and not sw(master) & D.SW_INTERNAL_LIMIT
     relays(b, on=1 << relay)
     t_relay = b.clock.now
     t, d = master.wait(0x180 + NID, 200, pred=lambda d: d[1] & 0x04)  # stopped: bit 10
     word = struct.unpack_from("<H", d)[0]
-    assert word & C.SW_INTERNAL_LIMIT and word & 0x6F == 0x27  # still OPERATION ENABLED, bit 11
+    assert word & D.SW_INTERNAL_LIMIT and word & 0x6F == 0x27  # still OPERATION ENABLED, bit 11
     assert (t - t_relay) / MS < ramp_ms(10000, 200000) + 5  # within the quick stop ramp (50 ms) + a step
     assert master.get(0x60FD) & 1 << bit
     stopped = master.get(0x6064, 0, "<i")
-    assert abs(stopped) < 200000 and not node.motion.moving and node.state == C.OPERATION_ENABLED
+    assert abs(stopped) < 200000 and not node.motion.moving and node.state == D.OPERATION_ENABLED
     # a new set-point towards the limit does not move; away from it does, and bit 11 goes with the switch
     start_move(master, target)
     master.run(50)
@@ -216,7 +217,7 @@ def test_a_limit_switch_during_a_move_stops_it_with_internal_limit_active(relay,
     master.run(50)
     assert abs(master.get(0x6064, 0, "<i")) < abs(stopped)
     relays(b, off=1 << relay)
-    assert not sw(master) & C.SW_INTERNAL_LIMIT
+    assert not sw(master) & D.SW_INTERNAL_LIMIT
 
 
 def test_a_limit_switch_ends_a_homing_in_the_homing_error():
@@ -236,7 +237,7 @@ def test_profile_velocity_held_by_a_limit_switch():
     enable(master, 3)
     master.set(0x60FF, 0, "<i", 5000)
     master.run(100)
-    assert not node.motion.moving and sw(master) & C.SW_INTERNAL_LIMIT
+    assert not node.motion.moving and sw(master) & D.SW_INTERNAL_LIMIT
     master.set(0x60FF, 0, "<i", -5000)
     master.run(100)
     assert master.get(0x606C, 0, "<i") == -5000
@@ -261,12 +262,12 @@ def test_following_error_faults_when_0x6065_and_0x6066_say():
     t = b.clock.now
     start_move(master, 200000, 20000)
     t_emcy, d = master.wait(0x80 + NID, 3000, t)
-    assert struct.unpack_from("<H", d)[0] == C.EMCY_FOLLOWING_ERROR
+    assert struct.unpack_from("<H", d)[0] == D.EMCY_FOLLOWING_ERROR
     # lost 15 000 counts/s: past 4000 counts after ~0.27 s of the move, + 50 ms; not before
-    first_bit13 = next(tt for tt, dd in master.frames(0x180 + NID, t) if struct.unpack_from("<H", dd)[0] & C.SW_BIT13)
+    first_bit13 = next(tt for tt, dd in master.frames(0x180 + NID, t) if struct.unpack_from("<H", dd)[0] & D.SW_BIT13)
     assert (t_emcy - first_bit13) / MS == pytest.approx(50, abs=3)
     master.run(200)
-    assert state_of(sw(master)) == C.FAULT
+    assert state_of(sw(master)) == D.FAULT
 
 
 def test_following_error_inside_the_window_is_no_fault():
@@ -276,7 +277,7 @@ def test_following_error_inside_the_window_is_no_fault():
     enable(master)
     start_move(master, 20000)
     master.run(3000)
-    assert node.state == C.OPERATION_ENABLED and master.get(0x60F4, 0, "<i") > 1000 and not node.emcys
+    assert node.state == D.OPERATION_ENABLED and master.get(0x60F4, 0, "<i") > 1000 and not node.emcys
 
 
 def test_overcurrent_mid_move():
@@ -286,9 +287,9 @@ def test_overcurrent_mid_move():
     t = b.clock.now
     start_move(master, 50000)
     _t, d = master.wait(0x80 + NID, 500, t)
-    assert struct.unpack_from("<HB", d) == (C.EMCY_OVERCURRENT, C.ERR_GENERIC | C.ERR_CURRENT)
+    assert struct.unpack_from("<HB", d) == (D.EMCY_OVERCURRENT, D.ERR_GENERIC | D.ERR_CURRENT)
     master.run(100)
-    assert node.state == C.FAULT and not node.motion.moving and not b.can_nodes[6].emcys
+    assert node.state == D.FAULT and not node.motion.moving and not b.can_nodes[6].emcys
 
 
 def test_sluggish():
@@ -378,7 +379,7 @@ def test_sdo_aborts_and_the_pdos_still_disable_it():
         master.get(0x1000)
     assert exc.value.code == 0x08000022
     cw(master, 0x00)  # the controlword by RPDO1 still gets through
-    assert node.state == C.SWITCH_ON_DISABLED
+    assert node.state == D.SWITCH_ON_DISABLED
 
 
 def test_sdo_aborts_for_one_object_only():
@@ -408,7 +409,7 @@ def test_bench_set_fault_without_a_node_id_goes_to_the_wired_node():
 
 
 # --- after a fault the drive can be left with operation disabled ---------------------------------------
-FAULTING = [("following-error", 5000, C.EMCY_FOLLOWING_ERROR), ("overcurrent", 30, C.EMCY_OVERCURRENT)]
+FAULTING = [("following-error", 5000, D.EMCY_FOLLOWING_ERROR), ("overcurrent", 30, D.EMCY_OVERCURRENT)]
 
 
 @pytest.mark.parametrize("name, value, code", FAULTING)
@@ -423,14 +424,14 @@ def test_a_faulted_drive_ends_with_operation_disabled(name, value, code):
     # reaction ramps down, then FAULT (operation enabled bit 2 clear) until a fault reset
     for word in (0x00, 0x06, 0x07, 0x0F):
         master.set(0x6040, 0, "<H", word)
-        assert state_of(sw(master)) in (C.FAULT_REACTION, C.FAULT)
+        assert state_of(sw(master)) in (D.FAULT_REACTION, D.FAULT)
     master.run(200)
     word = sw(master)
-    assert state_of(word) == C.FAULT and not word & 0x04 and not node.motion.moving
+    assert state_of(word) == D.FAULT and not word & 0x04 and not node.motion.moving
     # what the station does at the end: fault reset, then disable voltage
     master.set(0x6040, 0, "<H", 0x80)
     master.set(0x6040, 0, "<H", 0x00)
-    assert state_of(sw(master)) == C.SWITCH_ON_DISABLED and not node.motion.moving
+    assert state_of(sw(master)) == D.SWITCH_ON_DISABLED and not node.motion.moving
 
 
 def test_disable_while_the_fault_reaction_ramps_down():
@@ -440,15 +441,15 @@ def test_disable_while_the_fault_reaction_ramps_down():
     enable(master)
     start_move(master, 500000, 20000)
     master.run(1000)
-    node.fault(C.EMCY_OVERCURRENT, C.ERR_CURRENT)
-    assert node.state == C.FAULT_REACTION and node.motion.moving
+    node.fault(D.EMCY_OVERCURRENT, D.ERR_CURRENT)
+    assert node.state == D.FAULT_REACTION and node.motion.moving
     master.set(0x6040, 0, "<H", 0x00)  # the reaction goes on (the drive decides how it stops)
-    assert node.state == C.FAULT_REACTION and node.motion.moving
+    assert node.state == D.FAULT_REACTION and node.motion.moving
     master.run(2500)
-    assert state_of(sw(master)) == C.FAULT and not node.motion.moving
+    assert state_of(sw(master)) == D.FAULT and not node.motion.moving
     master.set(0x6040, 0, "<H", 0x80)  # and the station's end: fault reset, disable voltage
     master.set(0x6040, 0, "<H", 0x00)
-    assert state_of(sw(master)) == C.SWITCH_ON_DISABLED
+    assert state_of(sw(master)) == D.SWITCH_ON_DISABLED
 
 
 @pytest.mark.parametrize("name, value", [("sluggish", 2), ("dead-input", 1), ("no-origin", None),
@@ -460,7 +461,7 @@ def test_servo_off_works_with_every_other_fault_on(name, value):
     start_move(master, 100000)
     master.run(100)
     master.set(0x6040, 0, "<H", 0x00)
-    assert state_of(sw(master)) == C.SWITCH_ON_DISABLED and not node.motion.moving
+    assert state_of(sw(master)) == D.SWITCH_ON_DISABLED and not node.motion.moving
 
 
 # --- python -m motorjig.sim --can-nodes 5 --wiring FILE --------------------------------------------------

@@ -55,6 +55,7 @@ from jig.parser import FrameParser
 
 from .axis import STEP_MS, Motion, at_origin, profile_time  # noqa: F401 (the model lives in axis.py)
 from .clock import TICKS_MASK
+from .faults import SLUGGISH, Fault, FaultTable, dead_input, in_range, number, speed_limit, switch
 
 # Parameters 0-28: (min, max) and defaults (25-28 are STEP-specific guesses)
 # (min, max) per parameter
@@ -133,33 +134,53 @@ for _t in VER8_UNMODELLED:
 
 
 # --- faults of a failing drive: set_fault(name, value) ----------------------------
-# name -> (value it takes, default, what it does); the one list set_fault, the CLI's
-# --fault and the docs go by.
-FAULTS = {
-    "step-out": ("PPS", 20000, "above PPS the motor loses steps: the actual position falls behind "
-                               "(GetPosError grows and stays)"),
-    "alarm": ("CODE[@MS]", "1@30", "MS ms after a move starts (homing and jogs too) the drive raises alarm "
-                                   "CODE (§7.4; 1 over-current, 4 overload) mid-move: halt, servo off"),
-    "sluggish": ("FACTOR", 1.5, "every move takes FACTOR times its profile time (the motor runs slow)"),
-    "dead-input": ("BIT", None, "a broken wire: physical input BIT (0..31) always reads 0 (repeatable)"),
-    "param": ("NUM:VALUE", None, "RAM and ROM parameter NUM read VALUE (repeatable)"),
-    "no-origin": ("", None, "the origin sensor never reads active: homing runs on until stopped or a limit"),
-    "silent": ("", None, "never answers"),
-    "garbage": ("", None, "answers 3-19 random bytes"),
-    "bad-crc": ("", None, "its replies fail their CRC"),
-    "late": ("US", None, "answers US microseconds later than its turnaround"),
-    "wrong-id": ("ID", None, "answers with slave id ID"),
-}
-_SWITCHES = ("no-origin", "silent", "garbage", "bad-crc")
+# the one list set_fault, the CLI's --fault and the docs go by (sim.faults)
+def _alarm(value):
+    if isinstance(value, tuple):
+        code, ms = value
+    else:
+        code, _, ms = str(value).partition("@")
+        ms = ms or 30
+    code = number(code, int, "CODE or CODE@MS (an alarm code 1..16, §7.4; MS a time in ms)")
+    ms = number(ms, float, "CODE@MS with MS a time in ms")
+    if not 1 <= code <= 16 or not 0 <= ms < float("inf"):
+        raise ValueError("expected CODE 1..16 (§7.4) and MS >= 0, got %d@%g" % (code, ms))
+    return code, ms
 
 
-def _number(value, cast, what):
-    if isinstance(value, bool):
-        raise ValueError("expected %s, got %r" % (what, value))
-    try:
-        return cast(value)
-    except (TypeError, ValueError):
-        raise ValueError("expected %s, got %r" % (what, value)) from None
+def _param(value):
+    if isinstance(value, tuple):
+        num, val = value
+    else:
+        num, sep, val = str(value).partition(":")
+        if not sep:
+            raise ValueError("expected NUM:VALUE, e.g. 3:250, got %r" % (value,))
+    num = number(num, int, "NUM:VALUE with NUM a parameter number 0..28")
+    val = number(val, int, "NUM:VALUE with VALUE an integer")
+    if not 0 <= num <= 28:
+        raise ValueError("parameter number must be 0..28, got %d" % num)
+    lo, hi = PARAM_RANGE[num]
+    if not lo <= val <= hi:
+        raise ValueError("parameter %d must be %d..%d, got %d" % (num, lo, hi, val))
+    return num, val
+
+
+FAULTS = FaultTable([
+    speed_limit("step-out", "above PPS the motor loses steps: the actual position falls behind "
+                            "(GetPosError grows and stays)"),
+    Fault("alarm", "CODE[@MS]", "1@30", "MS ms after a move starts (homing and jogs too) the drive raises alarm "
+                                        "CODE (§7.4; 1 over-current, 4 overload) mid-move: halt, servo off", _alarm),
+    SLUGGISH,
+    dead_input("physical input"),
+    Fault("param", "NUM:VALUE", None, "RAM and ROM parameter NUM read VALUE (repeatable)", _param),
+    switch("no-origin", "the origin sensor never reads active: homing runs on until stopped or a limit"),
+    switch("silent", "never answers"),
+    switch("garbage", "answers 3-19 random bytes"),
+    switch("bad-crc", "its replies fail their CRC"),
+    Fault("late", "US", None, "answers US microseconds later than its turnaround",
+          lambda v: in_range(v, float, "a delay in µs >= 0", 0, None)),
+    Fault("wrong-id", "ID", None, "answers with slave id ID", lambda v: in_range(v, int, "a slave id 0..255", 0, 255)),
+], aliases={"following-error": "step-out"})
 
 
 def parse_fault(name, value=None):
@@ -170,76 +191,7 @@ def parse_fault(name, value=None):
     param -> (number, value); late -> float µs; wrong-id -> int; the switches
     (no-origin, silent, garbage, bad-crc) -> True or False.
     """
-    if name not in FAULTS:
-        raise ValueError("unknown fault %r (known: %s)" % (name, ", ".join(FAULTS)))
-    try:
-        return _fault_value(name, value)
-    except ValueError as exc:
-        raise ValueError("%s: %s" % (name, exc)) from None
-
-
-def _fault_value(name, value):
-    if name in _SWITCHES:
-        if value is None or value is True:
-            return True
-        if value is False:
-            return False
-        raise ValueError("takes no value, got %r" % (value,))
-    if value is None:
-        value = FAULTS[name][1]
-        if value is None:
-            raise ValueError("needs a value: %s=%s" % (name, FAULTS[name][0]))
-    if name == "step-out":
-        pps = _number(value, int, "a speed in pps > 0")
-        if pps <= 0:
-            raise ValueError("expected a speed in pps > 0, got %d" % pps)
-        return pps
-    if name == "alarm":
-        if isinstance(value, tuple):
-            code, ms = value
-        else:
-            code, _, ms = str(value).partition("@")
-            ms = ms or 30
-        code = _number(code, int, "CODE or CODE@MS (an alarm code 1..16, §7.4; MS a time in ms)")
-        ms = _number(ms, float, "CODE@MS with MS a time in ms")
-        if not 1 <= code <= 16 or not 0 <= ms < float("inf"):
-            raise ValueError("expected CODE 1..16 (§7.4) and MS >= 0, got %d@%g" % (code, ms))
-        return code, ms
-    if name == "sluggish":
-        factor = _number(value, float, "a factor >= 1")
-        if not 1.0 <= factor < float("inf"):
-            raise ValueError("expected a factor >= 1, got %g" % factor)
-        return factor
-    if name == "dead-input":
-        bit = _number(value, int, "an input bit 0..31")
-        if not 0 <= bit <= 31:
-            raise ValueError("expected an input bit 0..31, got %d" % bit)
-        return bit
-    if name == "param":
-        if isinstance(value, tuple):
-            num, val = value
-        else:
-            num, sep, val = str(value).partition(":")
-            if not sep:
-                raise ValueError("expected NUM:VALUE, e.g. 3:250, got %r" % (value,))
-        num = _number(num, int, "NUM:VALUE with NUM a parameter number 0..28")
-        val = _number(val, int, "NUM:VALUE with VALUE an integer")
-        if not 0 <= num <= 28:
-            raise ValueError("parameter number must be 0..28, got %d" % num)
-        lo, hi = PARAM_RANGE[num]
-        if not lo <= val <= hi:
-            raise ValueError("parameter %d must be %d..%d, got %d" % (num, lo, hi, val))
-        return num, val
-    if name == "late":
-        us = _number(value, float, "a delay in µs >= 0")
-        if not 0 <= us < float("inf"):
-            raise ValueError("expected a delay in µs >= 0, got %g" % us)
-        return us
-    # wrong-id
-    sid = _number(value, int, "a slave id 0..255")
-    if not 0 <= sid <= 255:
-        raise ValueError("expected a slave id 0..255, got %d" % sid)
-    return sid
+    return FAULTS.parse(name, value)[1]
 
 
 def parse_fault_spec(spec):
@@ -498,7 +450,7 @@ class SimDriver:
     def set_fault(self, name, value=None):
         """Make the drive fail like a real one (``FAULTS``; values as ``parse_fault``,
         None: the default). ValueError for an unknown name or a bad value."""
-        v = parse_fault(name, value)
+        name, v = FAULTS.parse(name, value)
         self.update()  # the fault starts now, not at the last request
         if name == "step-out":
             self.step_out_pps = v
