@@ -10,7 +10,7 @@ BUILD       ?= $(CURDIR)/build/STM32H7_JIG
 BOARD_DIR   := $(CURDIR)/boards/STM32H7_JIG
 
 .DEFAULT_GOAL := run
-.PHONY: help setup run test check-mpy bench docs sim firmware flash deploy test-qemu clean
+.PHONY: help setup run test check-mpy bench docs screenshots sim firmware flash deploy test-qemu clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -25,23 +25,29 @@ test: setup check-mpy ## compile firmware for Cortex-M7, then run all host tests
 	@$(PY) -m pytest
 
 check-mpy: setup ## compile every firmware module with mpy-cross -march=armv7emdp
-	@$(PY) tools/check_mpy.py
+	@$(PY) tools/firmware/check_mpy.py
 
 bench: setup ## print parser, bridge, trace, CAN, station (Plus-R and CiA 402) and results-database figures (takes several minutes)
-	@$(PY) tools/run_benchmarks.py
+	@$(PY) tools/bench/run_benchmarks.py
 
 docs: setup ## regenerate every document made from the code's tables (make test fails when one is stale)
-	@$(PY) tools/gen_parser_doc.py
-	@$(PY) tools/gen_slcan_doc.py
-	@$(PY) tools/gen_cia402_doc.py
+	@$(PY) tools/docgen/gen_parser_doc.py
+	@$(PY) tools/docgen/gen_slcan_doc.py
+	@$(PY) tools/docgen/gen_cia402_doc.py
 	@PYTHONPATH=firmware:tools $(PY) -m motorjig.sim.doctables --write
 	@PYTHONPATH=firmware:tools $(PY) -m motorjig.capture.luagen --write
+
+screenshots: setup ## retake the docs' pictures of the Desk and of Wireshark (needs chromium and wireshark)
+	@$(PY) tools/screens/desk_screenshots.py
+	@$(PY) tools/screens/desk_screenshots.py --can
+	@$(PY) tools/screens/capture_screenshot.py
+	@$(PY) tools/screens/capture_screenshot.py --can
 
 sim: setup ## start the virtual bench (pty + TCP) and run the demo: make sim SIM_ARGS="--tcp-port 5000"
 	@$(PY) -m motorjig.sim $(SIM_ARGS)
 
 firmware: ## build the STM32H7_JIG image: make firmware MICROPY_DIR=/path/to/micropython
-	@tools/build_firmware.sh "$(MICROPY_DIR)" "$(BUILD)" "$(BOARD_DIR)"
+	@tools/firmware/build_firmware.sh "$(MICROPY_DIR)" "$(BUILD)" "$(BOARD_DIR)"
 
 flash: setup ## flash the built image (DFU, st-flash or pyocd)
 	@$(PY) tools/flash.py flash --build "$(BUILD)"
@@ -50,7 +56,7 @@ deploy: setup ## copy firmware/ as .mpy onto a stock MicroPython board with mpre
 	@$(PY) tools/flash.py deploy
 
 test-qemu: setup ## run the frozen firmware on an emulated Cortex-M7: make test-qemu MICROPY_DIR=...
-	@tools/test_qemu.sh "$(MICROPY_DIR)" "$(CURDIR)/build/qemu"
+	@tools/firmware/test_qemu.sh "$(MICROPY_DIR)" "$(CURDIR)/build/qemu"
 
 clean: ## remove build output and caches (keeps .venv)
 	rm -rf build .pytest_cache .hypothesis

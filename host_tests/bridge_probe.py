@@ -1,7 +1,7 @@
 """The jig's App on a minimal in-memory HAL, for measurements under CPython and MicroPython.
 
 Used by host_tests/test_bridge_vm.py (through host_tests/wasm/run_vm.mjs: the
-real MicroPython VM) and by tools/bench_bridge.py. Nothing here allocates in the
+real MicroPython VM) and by tools/bench/bench_bridge.py. Nothing here allocates in the
 steady state either, so heap growth measured with the collector disabled is the
 firmware's own.
 

@@ -1,10 +1,11 @@
-"""Shared pytest setup: the firmware package is importable as ``jig`` from the source tree."""
+"""Shared pytest setup: the firmware package is importable as ``jig`` from the source tree, the PC
+side as ``motorjig``, and the benchmark and doc-generator scripts by their names."""
 
 import os
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-for sub in ("firmware", "tools"):
+for sub in ("firmware", "tools", os.path.join("tools", "bench"), os.path.join("tools", "docgen")):
     path = os.path.join(ROOT, sub)
     if path not in sys.path:
         sys.path.insert(0, path)

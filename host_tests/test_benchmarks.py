@@ -16,7 +16,7 @@ import pytest
 import run_benchmarks
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-TOOLS = os.path.join(ROOT, "tools")
+TOOLS = os.path.join(ROOT, "tools", "bench")
 ENV = dict(os.environ, PYTHONPATH=os.pathsep.join(os.path.join(ROOT, d) for d in ("firmware", "tools")))
 NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?")
 

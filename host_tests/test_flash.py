@@ -395,8 +395,8 @@ def test_auto_switches_a_running_jig_to_dfu_then_flashes(env, monkeypatch):
     assert "0x08000000:leave" in (env.tmp / "dfu.args").read_text()
 
 
-# --- tools/build_firmware.sh and tools/test_qemu.sh -------------------------------------------
-SCRIPTS = os.path.join(flash.ROOT, "tools")
+# --- tools/firmware/build_firmware.sh and tools/firmware/test_qemu.sh -------------------------------------------
+SCRIPTS = os.path.join(flash.ROOT, "tools", "firmware")
 
 
 def sh(script, *args, env=None):

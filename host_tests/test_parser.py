@@ -44,9 +44,9 @@ def test_byte_classes():
 
 
 def test_generated_state_doc_is_committed_and_current():
-    import gen_parser_doc  # tools/ is on the path (conftest)
+    import gen_parser_doc  # tools/docgen is on the path (conftest)
     with open(os.path.join(ROOT, "docs", "parser-states.md"), encoding="utf-8") as f:
-        assert f.read() == gen_parser_doc.render(), "run: python tools/gen_parser_doc.py"
+        assert f.read() == gen_parser_doc.render(), "run: python tools/docgen/gen_parser_doc.py"
 
 
 def test_feed_stops_after_each_good_frame():

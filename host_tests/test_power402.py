@@ -265,7 +265,7 @@ def test_python_canopens_transition_table_agrees():
 # --- the generated document ---------------------------------------------------------------------------
 def test_generated_state_doc_is_committed_and_current():
     with open(os.path.join(ROOT, "docs", "cia402-states.md"), encoding="utf-8") as f:
-        assert f.read() == gen_cia402_doc.render(), "run: python tools/gen_cia402_doc.py"
+        assert f.read() == gen_cia402_doc.render(), "run: python tools/docgen/gen_cia402_doc.py"
 
 
 def test_the_statechart_has_an_edge_for_every_transition():

@@ -1,4 +1,4 @@
-"""tools/qemu/can_suite.py: the CAN port's figures for the emulated Cortex-M7 also run
+"""tools/firmware/qemu/can_suite.py: the CAN port's figures for the emulated Cortex-M7 also run
 (quickly) here, on Python stand-ins for its C models, so the frozen code cannot rot
 between `make test-qemu` runs: the port opens on the host's O, frames go both ways in
 the probes and the bridge completes its transactions beside a busy CAN port."""
@@ -11,7 +11,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def load_suite(monkeypatch):
-    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools", "qemu"))
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools", "firmware", "qemu"))
     monkeypatch.syspath_prepend(os.path.join(ROOT, "host_tests"))
     for name in ("qemu_suite", "can_suite"):
         sys.modules.pop(name, None)

@@ -1,4 +1,4 @@
-"""tools/qemu: the suite that runs on the emulated Cortex-M7 also runs (quickly) here.
+"""tools/firmware/qemu: the suite that runs on the emulated Cortex-M7 also runs (quickly) here.
 
 Keeps the frozen test code from rotting between `make test-qemu` runs: the capture
 module generator, the replay against CPython's own reports, the CRC parity and the
@@ -14,11 +14,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_generated_captures_and_quick_suite(tmp_path, monkeypatch, capsys):
-    gen = os.path.join(ROOT, "tools", "qemu", "gen_captures.py")
+    gen = os.path.join(ROOT, "tools", "firmware", "qemu", "gen_captures.py")
     r = subprocess.run([sys.executable, gen, str(tmp_path)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools", "qemu"))
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools", "firmware", "qemu"))
     monkeypatch.syspath_prepend(os.path.join(ROOT, "host_tests"))
     for name in ("qemu_captures", "qemu_suite"):
         sys.modules.pop(name, None)
@@ -34,7 +34,7 @@ def test_generated_captures_and_quick_suite(tmp_path, monkeypatch, capsys):
 
 
 def test_suite_reports_a_broken_capture(tmp_path, monkeypatch, capsys):
-    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools", "qemu"))
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools", "firmware", "qemu"))
     monkeypatch.syspath_prepend(os.path.join(ROOT, "host_tests"))
     sys.modules.pop("qemu_suite", None)
     suite = importlib.import_module("qemu_suite")

@@ -19,7 +19,7 @@
   wrap, through both and compares offsets, events, fields, counts and the partial
   line after every call; the viper constants mirror jig.slcan's; the runs of hex
   digits it reads without the table are the table's self-loops; the viper encoder
-  writes the portable one's lines. (tools/slcan_qemu.py runs the machine code.)
+  writes the portable one's lines. (tools/firmware/slcan_qemu.py runs the machine code.)
 """
 
 import glob
@@ -112,9 +112,9 @@ def test_byte_classes():
 
 
 def test_generated_state_doc_is_committed_and_current():
-    import gen_slcan_doc  # tools/ is on the path (conftest)
+    import gen_slcan_doc  # tools/docgen is on the path (conftest)
     with open(os.path.join(ROOT, "docs", "slcan-states.md"), encoding="utf-8") as f:
-        assert f.read() == gen_slcan_doc.render(), "run: python tools/gen_slcan_doc.py"
+        assert f.read() == gen_slcan_doc.render(), "run: python tools/docgen/gen_slcan_doc.py"
 
 
 def test_bitrates_are_pythoncans_s0_to_s8():

@@ -1,6 +1,6 @@
 """The SLCAN reader's machine code (jig.slcanfast) on the emulated Cortex-M7.
 
-tools/slcan_qemu.py on the ELF of ``make test-qemu`` (build/qemu/build/firmware.elf,
+tools/firmware/slcan_qemu.py on the ELF of ``make test-qemu`` (build/qemu/build/firmware.elf,
 or the one named by SLCAN_QEMU_ELF): the work tree's jig.slcan and jig.slcanfast
 compiled there by the port's own native emitter, the captures replayed through the
 viper engine and the table engine give CPython's report, pseudo-random streams give
@@ -27,7 +27,7 @@ def report():
         pytest.skip("qemu-system-arm is not installed")
     if not os.path.isfile(ELF):
         pytest.skip("no %s (make test-qemu MICROPY_DIR=... builds it)" % ELF)
-    run = subprocess.run([sys.executable, os.path.join(ROOT, "tools", "slcan_qemu.py"), "--elf", ELF,
+    run = subprocess.run([sys.executable, os.path.join(ROOT, "tools", "firmware", "slcan_qemu.py"), "--elf", ELF,
                           "--streams", "100"], capture_output=True, text=True, timeout=300)
     return run.returncode, run.stdout.splitlines(), run.stderr
 

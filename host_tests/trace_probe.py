@@ -2,7 +2,7 @@
 
 Runs under CPython, on the WebAssembly MicroPython VM (host_tests/test_trace.py:
 heap bytes per sample with the collector off) and frozen into the qemu build
-(tools/qemu/qemu_suite.py). ``TraceRig.sample_once`` is one slot: the clock moves
+(tools/firmware/qemu/qemu_suite.py). ``TraceRig.sample_once`` is one slot: the clock moves
 to the slot, a pass sends the GetAllStatus request, the drive's reply comes in, a
 pass stores the sample.
 """

@@ -1,6 +1,6 @@
 """Measurements of the frame parser that are run inside a MicroPython VM.
 
-Used by host_tests/test_micropython_vm.py and tools/bench_parser.py through
+Used by host_tests/test_micropython_vm.py and tools/bench/bench_parser.py through
 host_tests/wasm/run_vm.mjs, which puts this file, capture_format.py, the firmware
 package and the captures on the WebAssembly VM's filesystem. Everything here is
 MicroPython-compatible and also runs under CPython (where ``gc.mem_alloc`` is

@@ -35,7 +35,7 @@ MICROPY_PY_BLUETOOTH = 0
 # Frozen code: the jig firmware package and main.py (see manifest.py). The frozen
 # bytecode and viper code target the Cortex-M7 with double-precision FPU.
 # The port's default for H7 is plain armv7m; `override` makes this board's choice
-# stick even when the port's stm32.mk assigns it afterwards. tools/build_firmware.sh
+# stick even when the port's stm32.mk assigns it afterwards. tools/firmware/build_firmware.sh
 # also passes MPY_CROSS_FLAGS=-march=armv7emdp on the command line.
 FROZEN_MANIFEST ?= $(BOARD_DIR)/manifest.py
 override MPY_CROSS_MCU_ARCH_h7 = armv7emdp

@@ -6,7 +6,7 @@ reads them with the state machine below, and ``encode_frame``
 writes a received CAN frame as the ``t``/``T``/``r``/``R`` line the host expects.
 
 The table is the machine (``docs/slcan-states.md`` is generated from it by
-``tools/gen_slcan_doc.py``): every byte is classified, and (state, byte class)
+``tools/docgen/gen_slcan_doc.py``): every byte is classified, and (state, byte class)
 gives an action and the next state. The counted fields (the id's 3 or 8 hex
 digits, 2 per data byte, the 4 of ``sXXYY``) stay in their state until the last
 digit, then go where the table says.

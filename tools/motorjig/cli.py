@@ -239,12 +239,12 @@ def build_parser():
     sp = add("capture", cmd_capture, "record both buses through the jig (--jig CAPTURE_PORT) or one bus through a "
                                      "listen-only adapter (--sniff PORT) to pcapng for Wireshark, with a live line "
                                      "per frame; install the dissector and the extcaps")
-    from motorjig.capture.command import add_capture_arguments
+    from motorjig.capture.capturecmd import add_capture_arguments
 
     add_capture_arguments(sp)
     sp = add("can", cmd_can, "CANopen through the jig's SLCAN port (python-can, python-canopen): scan, nmt, "
                              "sdo read/write, dump, lss")
-    from motorjig.can.command import add_can_arguments
+    from motorjig.can.cancmd import add_can_arguments
 
     add_can_arguments(sp, lambda p: _global_options(p, True))
     sp = add("gui", cmd_gui, "MotorJig Desk: the bench program as a local web page (prints its URL)")
@@ -261,13 +261,13 @@ def cmd_test(args):
 
 
 def cmd_capture(args):
-    from motorjig.capture.command import cmd_capture as run
+    from motorjig.capture.capturecmd import cmd_capture as run
 
     return run(args)
 
 
 def cmd_can(args):
-    from motorjig.can.command import cmd_can as run
+    from motorjig.can.cancmd import cmd_can as run
 
     return run(args)
 

@@ -6,7 +6,7 @@ command that makes each one (none for the automatic ones the drive makes itself)
 ``path`` finds the shortest run of commands from one state to another. The state names
 are python-canopen's (``canopen.profiles.p402.State402``) and the simulated drive's
 (``motorjig.sim.cia402``), so a state from any of the three compares equal.
-docs/cia402-states.md is generated from these tables by tools/gen_cia402_doc.py.
+docs/cia402-states.md is generated from these tables by tools/docgen/gen_cia402_doc.py.
 """
 
 from collections import namedtuple

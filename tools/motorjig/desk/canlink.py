@@ -34,7 +34,7 @@ import canopen
 
 from motorjig.can import EDS_PATH, cia301
 from motorjig.can import objects as O
-from motorjig.can.command import describe_node
+from motorjig.can.cancmd import describe_node
 from motorjig.can.dump import FrameText
 from motorjig.can.port import NOTIFIER_CYCLE_S, SLCAN_BITRATES, open_bus
 from motorjig.commands import UsageError

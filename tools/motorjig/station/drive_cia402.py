@@ -529,7 +529,7 @@ class Cia402Drive(Drive):
         by its identity 0x1018 read there), give it this drive's node id and bitrate, store them
         and switch every node back to waiting, where it boots with its new id. Returns its
         identity (vendor, product, revision, serial), or None when no node was found."""
-        from motorjig.can.command import LSS_BIT_TIMING
+        from motorjig.can.cancmd import LSS_BIT_TIMING
 
         lss = self.network.lss
         with self._lock:
