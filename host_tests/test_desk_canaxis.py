@@ -119,29 +119,59 @@ def test_a_fault_is_named_and_enable_refused_until_fault_reset(bench, link):
 
 
 def test_a_cia402_plan_borrows_the_can_tabs_port_and_refuses_without_one(bench, link):
+    from motorjig.desk.axes import give_back
     from motorjig.desk.session import BusSession
     from motorjig.desk.testrun import Station
     from motorjig.station import load_plan
 
     plan = load_plan(os.path.join(ROOT, "plans", "cia402-smoke.toml"))
     station = Station(BusSession(), plans_dir=os.path.join(ROOT, "plans"), out_dir=os.path.join(ROOT, "results"))
-    with pytest.raises(UserError, match="cia402-smoke drives a CiA 402 node on the jig's CAN port: start the Desk "
+    with pytest.raises(UserError, match="cia402-smoke: its drive is on the jig's SLCAN port: start the Desk "
                                         "with --can-port"):
-        station._lend_can(plan)
-    station.can_link = link
+        station._lend_ports(plan)
+    station.axes = [link.desk_axis]
     link.axis.watch(5)
     link.axis.enable()
-    can = station._lend_can(plan)
-    assert can == (bench.slcan_url, 500000)
+    ports, lent = station._lend_ports(plan)
+    assert ports == {"can_port": bench.slcan_url} and lent == [link.desk_axis]
     assert link.state == "closed" and link.summary() == "lent to the test run (cia402-smoke)"
+    assert link.desk_axis.status() == "lent to the test run (cia402-smoke)"
     with pytest.raises(UserError, match=r"the SLCAN port is lent to the test run \(cia402-smoke\)"):
         link.open()
     with pytest.raises(UserError, match=r"the SLCAN port is lent to the test run \(cia402-smoke\)"):
         link.axis.enable()
     assert link.axis.describe() == {"state": "the SLCAN port is lent to the test run (cia402-smoke)"}
-    station._take_can_back(can)
+    assert give_back(lent) == []
     assert link.is_open and link.lent == ""
     assert state(link) == power402.SWITCH_ON_DISABLED  # made safe before it was lent
+
+
+def test_a_port_that_cannot_come_back_is_said_and_the_other_axes_still_get_theirs(link):
+    from motorjig.desk.axes import DeskAxis, give_back, lend_ports
+
+    class Other(DeskAxis):
+        title, run_port, back = "the other port", "other_port", 0
+
+        def lend(self, who):
+            return "other:" + who
+
+        def take_back(self):
+            self.back += 1
+            return ""
+
+    class Broken(Other):
+        title, run_port = "a broken port", "broken_port"
+
+        def take_back(self):
+            raise OSError("unplugged")
+
+    other, broken = Other(), Broken()
+    kw, lent = lend_ports([broken, other], [("broken_port", "--b", "b port"), ("other_port", "--o", "o port")], "run")
+    assert kw == {"broken_port": "other:run", "other_port": "other:run"}
+    assert give_back(lent) == ["a broken port could not be taken back: unplugged"] and other.back == 1
+    with pytest.raises(LookupError, match="its drive is on the jig's c port: start the Desk with --c"):
+        lend_ports([other], [("other_port", "--o", "o"), ("c_port", "--c", "c port")], "run")
+    assert other.back == 2  # the port it had already lent came back
 
 
 def test_stopping_the_desk_mid_jog_leaves_the_node_standing_disabled(bench, link):

@@ -230,27 +230,21 @@ class DeskPage:
         await self._stop(True)
 
     def _axes(self):
-        """Every axis STOP reaches, in order: (its stop(emergency) -> a sentence, or None when it had
-        nothing to stop; whether it is there to stop now). The CAN tab's axis (halt / quick stop of the
-        nodes it enabled or watches, ``canaxis.CanAxis.stop``), then the bus session's (the selected
-        axis; a running motion test, scan or test run)."""
-        out = []
-        can_axis = getattr(self.can_link, "axis", None)
-        if can_axis is not None:
-            out.append((can_axis.stop, lambda: True))
-        out.append((lambda emergency: (self.s.emergency_stop if emergency else self.s.stop_axis)(),
-                    lambda: self.s.state not in ("disconnected", "lost")))
-        return out
+        """Every axis STOP reaches, in order (``axes.DeskAxis``): the tabs' own (the CAN tab's: halt /
+        quick stop of the nodes it enabled or watches), then the bus session's (the selected axis; a
+        running motion test, scan or test run)."""
+        tabs = [self.can_link.desk_axis] if self.can_link is not None else []
+        return tabs + [self.s.desk_axis]
 
     async def _stop(self, emergency):
         """STOP AXIS / EMERGENCY STOP / Esc: every axis of ``_axes`` in turn. An axis that is not
         there (the bus not connected) is left out when another one stopped something, so the
         operator reads what was stopped, not a refusal."""
         stopped = False
-        for stop, present in self._axes():
-            if stopped and not present():
+        for axis in self._axes():
+            if stopped and not axis.present():
                 continue
-            stopped = bool(await self.act(stop, emergency)) or stopped
+            stopped = bool(await self.act(axis.stop, emergency)) or stopped
 
     def _notice_seen(self):
         self.s.safety_notice = ""  # said: every tab lets it go

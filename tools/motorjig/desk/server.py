@@ -339,7 +339,7 @@ def serve(args, out=None):
     can_link, can_why = make_link(can_port or "", getattr(args, "can_bitrate", 500000), read_only)
     if can_why:
         out.write("CAN tab: %s\n" % can_why)
-    station.can_link = can_link  # a CiA 402 plan's run borrows the CAN tab's SLCAN port
+    station.axes = [can_link.desk_axis] if can_link is not None else []  # a run borrows its ports from them
     page.build(session, station, capture, can_link)
     token = None
     if not is_loopback(args.host):

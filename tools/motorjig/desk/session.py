@@ -45,6 +45,7 @@ from motorjig.errors import JigError, MotionRefusedError, PortError
 from motorjig.master import BAUD_RATES, AxisStatus, Frame, Master
 
 from motorjig.desk import forms
+from motorjig.desk.axes import DeskAxis
 
 #: parser counters that mean a broken frame arrived, and how the log names them
 LINE_ERRORS = (("crc_errors", "frame with a bad CRC"), ("stuff_errors", "bad escape sequence"),
@@ -110,12 +111,33 @@ def wire_frame(wire):
     return None, "not a complete frame"
 
 
+class SessionAxis(DeskAxis):
+    """The bus session (the jig's PC port: the selected axis, a motion test, a scan, a test run) as
+    one of the Desk's axes (``axes.DeskAxis``). A run gets the PC port through ``lend_port``."""
+
+    title = "the bus"
+
+    def __init__(self, session):
+        self.session = session
+
+    def present(self):
+        return self.session.state not in ("disconnected", "lost")
+
+    def stop(self, emergency):
+        s = self.session
+        return s.emergency_stop() if emergency else s.stop_axis()
+
+    def status(self):
+        return self.session.state
+
+
 class BusSession:
     """Connection, selected axis, polled status, history, log and jobs of one Desk server."""
 
     def __init__(self, poll_interval=0.05, history_seconds=120.0, log_size=3000, timeout=0.1,
                  master_factory=Master, read_only=False):
         self.read_only = read_only
+        self.desk_axis = SessionAxis(self)  # what the page's STOP sees of it
         self.poll_interval = poll_interval
         self.timeout = timeout
         self.history_seconds = history_seconds

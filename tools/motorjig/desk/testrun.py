@@ -26,6 +26,7 @@ import socket
 import threading
 import time
 
+from motorjig.desk.axes import give_back, lend_ports
 from motorjig.desk.session import UserError
 from motorjig.tomlsource import SourceError, read_toml
 
@@ -124,7 +125,8 @@ class Run:
         self.ended = None
         self.version = 0  # bumped by every change, so a page redraws only what changed
         self.ctx = None
-        self.can = None  # a CiA 402 plan's (SLCAN url, bitrate to reopen the CAN tab's port at, or None)
+        self.ports = {}  # the ports its drive kind needs beside the PC port, borrowed from the Desk's axes
+        self.lent = []  # the axes.DeskAxis they were borrowed from (given back after the run)
         self.abort_requested = False
         self.cause = None  # why it was aborted, for the records
         self._abort_delivered = False  # the engine's executor existed when ctx.abort() was called
@@ -276,7 +278,7 @@ class Station:
         self._own_files = set()  # the files this Desk's runs wrote (real paths)
         self.records_error = ""
         self.records_version = 0
-        self.can_link = None  # the CAN tab's canlink.CanLink (server.py sets it): a CiA 402 plan's SLCAN port
+        self.axes = []  # the tabs' axes.DeskAxis a run borrows its drive kind's ports from (server.py sets it)
         try:
             from motorjig.station import load_plan, run_plan  # noqa: F401
             self.unavailable = ""
@@ -379,15 +381,15 @@ class Station:
         with self._lock:
             if self.running:
                 raise UserError("a test is running: wait for its verdict, or press Abort")
-            can = self._lend_can(entry.plan)
+            ports, lent = self._lend_ports(entry.plan)
             self._number += 1
             run = Run(self._number, entry.plan, serial, str(operator or self.operator or "").strip())
             try:
                 url, baud = self.session.lend_port("the test run (%s)" % entry.plan.name, run.abort)
             except Exception:
-                self._take_can_back(can)
+                give_back(lent)
                 raise
-            run.can = can
+            run.ports, run.lent = ports, lent
             self.run = run
         self.session.log("info", "test %s %s started for %s" % (entry.plan.name, entry.plan.version,
                                                                  serial or "the drive's own id"))
@@ -396,50 +398,26 @@ class Station:
         self._worker.start()
         return "test %s started%s" % (entry.plan.name, " for %s" % serial if serial else "")
 
-    def _lend_can(self, plan):
-        """A CiA 402 plan's drive is on the jig's SLCAN port, which one program holds at a time: the CAN
-        tab's link lends it to the run (its axis made safe and its port closed first; reopened after the
-        run). (url, reopen) for the run, None for a Plus-R plan."""
+    def _lend_ports(self, plan):
+        """The ports the plan's drive kind needs beside the jig's PC port (``DriveKind.ports``), each
+        borrowed from the tab's axis that holds it (made safe and its port closed first; reopened
+        after the run): ({key: port} for run_plan, the axes lent)."""
         from motorjig.station import kinds
 
-        if "can_port" not in {port for port, _option, _what in kinds.kind_of(plan).ports}:
-            return None
-        link = self.can_link
-        url = link.url if link is not None else ""
-        if not url:
-            raise UserError("%s drives a CiA 402 node on the jig's CAN port: start the Desk with --can-port "
-                            "(or choose the SLCAN port in the CAN tab)" % plan.name)
-        if link.read_only:
-            raise UserError("refused: this Desk is read-only (--read-only)")
-        reopen = None
-        if link.state != "closed":
-            reopen = link.bitrate if link.is_open else None
-            link.close()  # the axis is quick-stopped and disabled first
-        link.lent = "the test run (%s)" % plan.name
-        return url, reopen
-
-    def _take_can_back(self, can):
-        if can is None:
-            return
-        self.can_link.lent = ""
-        if can[1] is None:
-            return
         try:
-            self.can_link.open(can[0], can[1])
-        except Exception as exc:
-            self.session.log("error", "the CAN tab's SLCAN port could not be opened again after the run: %s" % exc)
+            return lend_ports(self.axes, kinds.kind_of(plan).ports, "the test run (%s)" % plan.name)
+        except LookupError as exc:
+            raise UserError("%s: %s" % (plan.name, exc)) from None
 
     def _work(self, run, url, baud):
         from motorjig.station import run_plan
 
         record, files, error = None, {}, ""
-        can = getattr(run, "can", None)
         try:
-            kw = {"can_port": can[0]} if can is not None else {}
             ctx = run_plan(run.plan, url, baud=baud, serial=run.serial or None, operator=run.operator or None,
                            station=self.station, out_dir=self.out_dir, out=None, confirm=run.confirm,
                            timeout_ms=max(1, round(self.session.timeout * 1000)), on_event=run.on_event,
-                           on_start=run.on_start, db=self.store, **kw)
+                           on_start=run.on_start, db=self.store, **run.ports)
             record, files = ctx.record, ctx.files
             if getattr(ctx, "store_error", None):
                 error = "the run was not stored in the results database: %s (its files are written)" % (
@@ -452,7 +430,8 @@ class Station:
                 self.session.take_port_back()
             except Exception as exc:  # never leave the run without its verdict
                 self.session.log("error", "the port could not be taken back: %s" % exc)
-            self._take_can_back(can)
+            for problem in give_back(run.lent):
+                self.session.log("error", problem)
             if error and record is not None:
                 self.records_error = error
             for path in (files or {}).values():
