@@ -33,9 +33,9 @@ fi
 
 stamp=.venv/.motorjig-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-    say "installing the project and its test/bench/board/gui/station extras into .venv"
+    say "installing the project and its test/bench/board/gui/station/can/ecat extras into .venv"
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e '.[test,bench,board,gui,station,can]'
+    .venv/bin/python -m pip install -q -e '.[test,bench,board,gui,station,can,ecat]'
     touch "$stamp"
 fi
 

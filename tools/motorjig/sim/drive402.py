@@ -140,7 +140,12 @@ TRANSITIONS = {
 MODE_PP = 1
 MODE_PV = 3
 MODE_HOMING = 6
-MODES = (0, MODE_PP, MODE_PV, MODE_HOMING)
+MODE_CSP = 8  # cyclic synchronous position: the master sends a target position every cycle
+MODE_CSV = 9  # cyclic synchronous velocity
+MODES = (0, MODE_PP, MODE_PV, MODE_HOMING)  # what a CANopen face offers; cyclic modes need a cyclic bus
+CYCLIC_MODES = (MODE_CSP, MODE_CSV)
+CSV_ACCEL = 10 ** 9  # counts/s²: in CSV the drive takes each cycle's velocity at once
+CSP_IDLE_US = 3000.0  # a CSP drive without a new target for this long stands (velocity 0)
 # homing methods: method -> search direction (0: the present position is home)
 HOMING_METHODS = {19: 1, 20: 1, 21: -1, 22: -1, 35: 0, 37: 0}
 HOMING_GIVE_UP_TURNS = 2  # a homing that has not seen the home switch after this many turns fails
@@ -264,6 +269,7 @@ class Drive402:
     subclasses it, sets ``node_id`` (0 when its bus has none) and calls ``power_on``."""
 
     FAULTS = FaultTable(DRIVE_FAULTS.values(), FAULT_ALIASES)  # a face's own table replaces it
+    modes = MODES  # the modes of operation 0x6060 takes (a cyclic bus's face adds CSP and CSV)
 
     def __init__(self, clock, od, serial):
         self.clock = clock
@@ -298,6 +304,9 @@ class Drive402:
         self.state = NOT_READY
         self._fe_since = None
         self._stepping = False
+        self.csp_t = None  # when the last CSP target came (µs)
+        self.csp_vel = 0.0  # counts/s between the last two CSP targets
+        self.csp_since = None  # when the present CSP motion began (overcurrent's clock)
 
     # --- hooks of the bus face ------------------------------------------------------------------
     def _emergency(self, code, reg):
@@ -390,7 +399,7 @@ class Drive402:
             return ABORT_STORE
         if index == 0x1011 and sub and value != SIG_LOAD:
             return ABORT_STORE
-        if index == 0x6060 and value not in MODES:
+        if index == 0x6060 and value not in self.modes:
             return ABORT_VALUE
         if index == 0x6098 and value not in HOMING_METHODS:
             return ABORT_VALUE
@@ -425,6 +434,8 @@ class Drive402:
             self._set_mode(value)
         elif index == 0x60FF:
             self._pv_reconcile()
+        elif index == 0x607A and self.mode == MODE_CSP:
+            self._csp_target(value)
         elif index == 0x1003:
             for i in range(1, 9):
                 self.values[(0x1003, i)] = 0
@@ -482,7 +493,36 @@ class Drive402:
             return value.encode("ascii") if isinstance(value, str) else bytes(value)
         return var.STRUCT_TYPES[var.data_type].pack(value)
 
-    # --- LSS slave ------------------------------------------------------------------------
+    def upload(self, index, sub):
+        """An SDO upload of object ``index``:``sub`` as bytes: (data, 0), or (None, the abort code)."""
+        var, code = self._lookup(index, sub)
+        if var is None:
+            return None, code
+        if not var.readable:
+            return None, ABORT_WRITE_ONLY
+        self._refresh()
+        return self._encode(var, self.values[(index, sub)]), 0
+
+    def download(self, index, sub, data):
+        """An SDO download of ``data`` (bytes) to object ``index``:``sub``: 0 or the abort code.
+        The value is checked and acts as a written one does."""
+        var, code = self._lookup(index, sub)
+        if var is None:
+            return code
+        if not var.writable:
+            return ABORT_READ_ONLY
+        if var.data_type == 0x9:
+            value = bytes(data).decode("ascii", errors="replace")
+        else:
+            st = var.STRUCT_TYPES[var.data_type]
+            if len(data) != st.size:
+                return ABORT_LENGTH
+            (value,) = st.unpack(bytes(data))
+        code = self._store(index, sub, value)
+        if not code:
+            self._after_change()
+        return code
+
     def identity(self):
         return [self.values[(0x1018, i)] for i in (1, 2, 3, 4)]
 
@@ -572,6 +612,9 @@ class Drive402:
         self.mode = mode
         self.pp_active = False
         self.pp_buffer = None
+        self.csp_t = self.csp_since = None
+        self.csp_vel = 0.0
+        self.internal_limit = False
         self._pv_reconcile()
 
     def _stop(self, decel):
@@ -651,11 +694,13 @@ class Drive402:
             self._pp_start(target)
 
     def _pv_reconcile(self):
-        """Profile velocity: steer the axis towards 0x60FF (stop first to reverse)."""
-        if self.state != OPERATION_ENABLED or self.mode != MODE_PV:
+        """Profile velocity and CSV: steer the axis towards 0x60FF (stop first to reverse; CSV at once)."""
+        if self.state != OPERATION_ENABLED or self.mode not in (MODE_PV, MODE_CSV):
             return
         m = self.motion
-        v = self.values
+        v = dict(self.values)
+        if self.mode == MODE_CSV:
+            v[(0x6083, 0)] = v[(0x6084, 0)] = CSV_ACCEL
         target = 0 if self.halted else v[(0x60FF, 0)]
         d = 1 if target > 0 else -1
         if self.digital_inputs() & (IN_LIMIT_PLUS if d > 0 else IN_LIMIT_MINUS):
@@ -664,6 +709,53 @@ class Drive402:
             self._stop(v[(0x6084, 0)])
         elif not m.moving or m.stopping or m.vmax != abs(target):
             self._move(None, abs(target), d, v[(0x6083, 0)], v[(0x6084, 0)])
+
+    def _csp_target(self, target):
+        """Cyclic synchronous position: the demand is the master's target at once; the shaft follows
+        unless it cannot (lost steps: the following error 0x60F4 grows, then the fault of 0x6065/0x6066)."""
+        if self.state != OPERATION_ENABLED or self.halted:
+            return
+        self.update()
+        now = self.clock.now
+        m = self.motion
+        dt = (now - self.csp_t) / 1e6 if self.csp_t is not None and now - self.csp_t < CSP_IDLE_US else 0.001
+        dt = max(dt, 1e-4)
+        dp = target - m.pos
+        m.pos = float(target)
+        moved = dp
+        if self.step_out_pps is not None and abs(dp) > self.step_out_pps * dt:
+            moved = math.copysign(self.step_out_pps * dt, dp)
+            self.actual_offset -= dp - moved
+        self.mech += moved
+        self.csp_vel = dp / dt
+        if dp and self.csp_since is None:
+            self.csp_since = now
+        elif not dp:
+            self.csp_since = None
+        self.csp_t = self.t_motion = now
+        bits = self.digital_inputs()
+        if dp and bits & (IN_LIMIT_PLUS if dp > 0 else IN_LIMIT_MINUS):
+            self.internal_limit = True
+        if self.csp_since is not None and self.overcurrent_ms is not None and \
+                now - self.csp_since >= self.overcurrent_ms * 1000.0:
+            self.fault(EMCY_OVERCURRENT, ERR_CURRENT)
+        self._check_following_error()
+
+    def connection_lost(self, emcy_code):
+        """The bus lost its master (the EtherCAT watchdog, leaving OP): the reaction of 0x6007 (abort
+        connection option code: 0 none, 1 fault with EMCY ``emcy_code``, 2 disable voltage, 3 quick stop)."""
+        self.update()
+        if self.state not in (OPERATION_ENABLED, QUICK_STOP_ACTIVE, SWITCHED_ON, READY):
+            return
+        option = self.values.get((0x6007, 0), 1)
+        if option == 1:
+            self.fault(emcy_code, ERR_GENERIC)
+        elif option == 2:
+            self.cw = 0
+            self._controlword(0)  # disable voltage
+        elif option == 3 and self.state == OPERATION_ENABLED:
+            self._controlword(0x0002)  # quick stop
+        self._after_change()
 
     def _homing_start(self):
         method = self.values[(0x6098, 0)]
@@ -796,6 +888,12 @@ class Drive402:
 
     # --- what the drive shows -------------------------------------------------------------
     def velocity_actual(self):
+        if self.mode == MODE_CSP and self.state == OPERATION_ENABLED:
+            fresh = self.csp_t is not None and self.clock.now - self.csp_t < CSP_IDLE_US
+            v = self.csp_vel if fresh else 0.0
+            if self.step_out_pps is not None and abs(v) > self.step_out_pps:
+                v = math.copysign(self.step_out_pps, v)
+            return int(round(v))
         v = self.motion.vel / self.sluggish
         if self.step_out_pps is not None and abs(v) > self.step_out_pps:
             v = math.copysign(self.step_out_pps, v)
@@ -861,6 +959,14 @@ class Drive402:
                     sw |= SW_TARGET_REACHED
             elif m.phase == 2 and not m.stopping and m.vmax * m.direction == self.values[(0x60FF, 0)]:
                 sw |= SW_TARGET_REACHED
+        elif self.mode in CYCLIC_MODES:
+            if not self.halted:
+                sw |= SW_BIT12  # the target is followed (0: ignored)
+            window = self.values[(0x6065, 0)]
+            if self.mode == MODE_CSP and window != 0xFFFFFFFF and abs(self.actual_offset) > window:
+                sw |= SW_BIT13
+            if self.internal_limit:
+                sw |= SW_INTERNAL_LIMIT
         elif self.mode == MODE_HOMING:
             h = self.homing
             if h == "attained":

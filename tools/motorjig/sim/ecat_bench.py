@@ -1,0 +1,93 @@
+"""The bench's EtherCAT bus as a program: simulated CiA 402 servos behind a network interface a master opens.
+
+    python -m motorjig.sim.ecat_bench [--slaves N] [--fault [POS:]NAME[=VALUE]] [--tag TAG]
+
+makes a network namespace with a veth pair (``ecat_bus.Wire``), puts N simulated servos
+(``ecat_servo.EcatServo``) in a line on its inner end, prints the interface a master opens
+(``EtherCAT bench: ... interface mjm1234``), and answers frames until Ctrl-C or SIGTERM, then
+removes the namespace. ``python -m motorjig.sim --ecat-slaves N`` starts it beside the jig's
+bench. It needs root; without root it says so in one sentence and exits 2.
+"""
+
+import argparse
+import signal
+import sys
+
+from .clock import PacedClock
+from .ecat_bus import Segment, Wire
+from .ecat_servo import FAULTS, EcatServo
+
+MAX_SLAVES = 64
+
+
+def parse_fault(spec, slaves):
+    """``[POS:]NAME[=VALUE]`` -> (positions, name, value); POS is the slave's position from 0 (all
+    slaves without it). ValueError with the reason."""
+    head, eq, value = spec.strip().partition("=")
+    pos, colon, name = head.partition(":")
+    if not colon:
+        positions, name = list(range(slaves)), head
+    else:
+        try:
+            p = int(pos)
+        except ValueError:
+            raise ValueError("expected [POS:]NAME[=VALUE], e.g. 0:following-error=20000; %r is not a slave "
+                             "position" % pos) from None
+        if not 0 <= p < slaves:
+            raise ValueError("slave position %d is not on the bus (0..%d)" % (p, slaves - 1))
+        positions = [p]
+    name = name.strip()
+    FAULTS.parse(name, value.strip() if eq else None)
+    return positions, name, value.strip() if eq else None
+
+
+def build(clock, slaves):
+    """The servos in line order, each slave's clock offset by its own power-up time."""
+    return [EcatServo(clock, n, clock_offset_ns=(n + 1) * 1234567) for n in range(slaves)]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m motorjig.sim.ecat_bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--slaves", type=int, default=2, help="simulated servos on the line (1..%d, default 2)" % MAX_SLAVES)
+    ap.add_argument("--fault", action="append", default=[], metavar="[POS:]NAME[=VALUE]",
+                    help="make a servo fail (all servos without POS): " + ", ".join(FAULTS))
+    ap.add_argument("--tag", help="the namespace's and interfaces' suffix (default: this process id)")
+    args = ap.parse_args(argv)
+    if not 1 <= args.slaves <= MAX_SLAVES:
+        print("ecat_bench: --slaves must be 1..%d, got %d" % (MAX_SLAVES, args.slaves), file=sys.stderr)
+        return 2
+    try:
+        faults = [parse_fault(f, args.slaves) for f in args.fault]
+    except ValueError as exc:
+        print("ecat_bench: --fault: %s" % exc, file=sys.stderr)
+        return 2
+    why = Wire.check_permissions()
+    if why:
+        print("ecat_bench: %s." % why, file=sys.stderr)
+        return 2
+    clock = PacedClock()
+    servos = build(clock, args.slaves)
+    for positions, name, value in faults:
+        for p in positions:
+            servos[p].set_fault(name, value)
+    wire = Wire(args.tag)
+    try:
+        wire.create()
+    except OSError as exc:
+        print("ecat_bench: cannot make the EtherCAT wire: %s" % exc, file=sys.stderr)
+        return 3
+    stopping = []
+    signal.signal(signal.SIGTERM, lambda *_a: stopping.append(1))
+    try:
+        print("EtherCAT bench: %d simulated servo%s (%s) on interface %s (namespace %s); Ctrl-C stops" % (
+            len(servos), "" if len(servos) == 1 else "s", servos[0].name, wire.master_ifname, wire.netns), flush=True)
+        wire.serve(Segment(servos), clock, stop=lambda: bool(stopping))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        wire.remove()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
