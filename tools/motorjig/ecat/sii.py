@@ -94,10 +94,10 @@ def image(device, serial=0, alias=0):
         struct.pack_into("<HHHHH", words, 0x18 * 2, *(mbx + (device.mailbox,)))
     struct.pack_into("<HH", words, 0x3E * 2, size * 8 // 1024 - 1, 1)
     strings = _Strings()
+    name = strings.add(device.name)  # string 1: what masters (SOEM) show as the slave's name
+    order = strings.add(device.type_name)
     group = strings.add(device.group_name or device.group_type)
     image_idx = 0
-    order = strings.add(device.type_name)
-    name = strings.add(device.name)
     general = struct.pack("<BBBBBBBBBBBBhBBHH12x", group, image_idx, order, name, 0, device.coe, 0, 0, 0,
                           1 if device.coe else 0, 0, 0, 0, group, 0, PORTS_MII_MII, 0)
     fmmu = bytes(FMMU_USE.get(f, 0) for f in device.fmmus)

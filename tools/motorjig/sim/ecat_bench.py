@@ -41,6 +41,33 @@ def parse_fault(spec, slaves):
     return positions, name, value.strip() if eq else None
 
 
+def command(servos, line, out=sys.stdout):
+    """One line of the bench's control channel (``--control``): ``fault [POS:]NAME[=VALUE]``,
+    ``clear [POS]``, ``state [POS]``, ``power-cycle [POS]``; the answer is one line, ``ok ...`` or ``error ...``."""
+    word, _, rest = line.strip().partition(" ")
+    try:
+        if word == "fault":
+            positions, name, value = parse_fault(rest, len(servos))
+            for p in positions:
+                servos[p].set_fault(name, value)
+            said = "ok %s on %s" % (name, ", ".join(str(p) for p in positions))
+        elif word in ("clear", "state", "power-cycle"):
+            positions = [int(rest)] if rest.strip() else list(range(len(servos)))
+            for p in positions:
+                if word == "clear":
+                    servos[p].clear_faults()
+                elif word == "power-cycle":
+                    servos[p].power_on()
+            said = "ok " + "; ".join("%d: AL %s, %s, faults %s" % (
+                p, servos[p].slave.state, servos[p].state, ",".join(servos[p].active_faults()) or "none")
+                for p in positions)
+        else:
+            said = "error unknown command %r (fault, clear, state, power-cycle)" % word
+    except (ValueError, IndexError) as exc:
+        said = "error %s" % exc
+    print(said, file=out, flush=True)
+
+
 def build(clock, slaves):
     """The servos in line order, each slave's clock offset by its own power-up time."""
     return [EcatServo(clock, n, clock_offset_ns=(n + 1) * 1234567) for n in range(slaves)]
@@ -52,6 +79,8 @@ def main(argv=None):
     ap.add_argument("--fault", action="append", default=[], metavar="[POS:]NAME[=VALUE]",
                     help="make a servo fail (all servos without POS): " + ", ".join(FAULTS))
     ap.add_argument("--tag", help="the namespace's and interfaces' suffix (default: this process id)")
+    ap.add_argument("--control", action="store_true",
+                    help="read commands on stdin (fault [POS:]NAME[=VALUE], clear [POS], state [POS], power-cycle [POS]): for tests")
     args = ap.parse_args(argv)
     if not 1 <= args.slaves <= MAX_SLAVES:
         print("ecat_bench: --slaves must be 1..%d, got %d" % (MAX_SLAVES, args.slaves), file=sys.stderr)
@@ -81,7 +110,8 @@ def main(argv=None):
     try:
         print("EtherCAT bench: %d simulated servo%s (%s) on interface %s (namespace %s); Ctrl-C stops" % (
             len(servos), "" if len(servos) == 1 else "s", servos[0].name, wire.master_ifname, wire.netns), flush=True)
-        wire.serve(Segment(servos), clock, stop=lambda: bool(stopping))
+        control = (sys.stdin, lambda line: command(servos, line)) if args.control else None
+        wire.serve(Segment(servos), clock, stop=lambda: bool(stopping), control=control)
     except KeyboardInterrupt:
         pass
     finally:

@@ -165,17 +165,25 @@ class Wire:
         subprocess.run(["ip", "netns", "del", self.netns], capture_output=True)
         subprocess.run(["ip", "link", "del", self.master_ifname], capture_output=True)
 
-    def serve(self, segment, clock, stop=lambda: False, on_frame=None):
+    def serve(self, segment, clock, stop=lambda: False, on_frame=None, control=None):
         """Answer the master's frames until ``stop()``: each frame through the segment at once, the
-        bench's events (drive motion, watchdogs) in between, at the wall clock's pace."""
+        bench's events (drive motion, watchdogs) in between, at the wall clock's pace.
+        ``control``: (a readable file, fn(line)) for the bench's own commands."""
         sock = self.sock
+        watch = [sock] + ([control[0]] if control else [])
         while not stop():
             wall = clock.wall()
             VirtualClock.run_until(clock, wall)
             nxt = clock.next_time()
             timeout = 0.01 if nxt is None else min(0.01, max(0.0, (nxt - clock.wall()) / 1e6))
-            ready, _w, _x = select.select([sock], [], [], timeout)
-            if not ready:
+            ready, _w, _x = select.select(watch, [], [], timeout)
+            if control and control[0] in ready:
+                line = control[0].readline()
+                if not line:
+                    watch.remove(control[0])  # the controlling side went away: serve on
+                else:
+                    control[1](line)
+            if sock not in ready:
                 continue
             while True:
                 try:

@@ -29,8 +29,8 @@ def _sdo(payload):
 
 
 def abort(index, sub, code):
-    """An SDO abort transfer message."""
-    return _sdo(struct.pack("<BHBI", 0x80, index, sub, code))
+    """An SDO abort transfer message: sent as an SDO *request* (ETG.1000.6), whichever side aborts."""
+    return _coe(SERVICE_SDO_REQUEST, struct.pack("<BHBI", 0x80, index, sub, code))
 
 
 def emergency(code, register, data=b""):

@@ -134,14 +134,23 @@ class EcatServo(Drive402):
         self.node_id = 0
         self.position = position
         self.clock_offset_ns = clock_offset_ns
-        self.esc = Esc(self.local_ns, sii.image(device, serial))
-        rx, tx = esi.sm_of(device, "MBoxOut")[1], esi.sm_of(device, "MBoxIn")[1]
-        self.slave = EcatSlave(clock, self.esc, self, (rx.start, rx.size, tx.start, tx.size))
-        self.sdo = ecat_coe.SdoServer(self, rx.size)
         self.lost_every = None
         self.outputs_applied = 0
         self.emcys = []  # (t_us, code, register)
         self.power_on()
+
+    def power_on(self):
+        """Power-up: a fresh ESC (INIT, registers cleared, the SII loaded) and the drive's objects from
+        their defaults (a PDO remap or a parameter written by SDO is gone, as in a real drive's RAM)."""
+        device = self.device
+        self.esc = Esc(self.local_ns, sii.image(device, self.serial))
+        rx, tx = esi.sm_of(device, "MBoxOut")[1], esi.sm_of(device, "MBoxIn")[1]
+        self.slave = EcatSlave(self.clock, self.esc, self, (rx.start, rx.size, tx.start, tx.size))
+        self.sdo = ecat_coe.SdoServer(self, rx.size)
+        self.clear_faults()
+        self.motion.halt()
+        self._reset_values(comm_only=False)
+        self._reset_drive()
 
     def local_ns(self):
         """The slave's own clock (ns): the bench's, shifted as each slave powers up at its own time."""
@@ -150,11 +159,6 @@ class EcatServo(Drive402):
     @property
     def name(self):
         return self.device.name
-
-    def power_on(self):
-        self.motion.halt()
-        self._reset_values(comm_only=False)
-        self._reset_drive()
 
     # --- what the EtherCAT firmware asks ---------------------------------------------------------
     def _layout(self, assign, maps):
