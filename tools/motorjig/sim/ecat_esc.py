@@ -253,23 +253,20 @@ class Esc:
         n = len(data)
         read = write = False
         out = bytes(data) if cmd == LRW else None
+        maps = []
         for f in range(self.fmmus):
-            base = REG_FMMU + 16 * f
-            start, length, _sb, _eb, phys, _pb, kind, active = struct.unpack_from("<IHBBHBBB", self.mem, base)
-            if not active & 1 or not length:
-                continue
+            start, length, _sb, _eb, phys, _pb, kind, active = struct.unpack_from("<IHBBHBBB", self.mem,
+                                                                                 REG_FMMU + 16 * f)
             lo, hi = max(start, address), min(start + length, address + n)
-            if lo >= hi:
-                continue
-            p = phys + lo - start
-            if kind & 1 and cmd in (LRD, LRW):
-                view = data[lo - address:hi - address]
-                if self._read(p, hi - lo, view, None):
-                    read = True
-            if kind & 2 and cmd in (LWR, LRW):
-                src = out if out is not None else data
-                if self._write(p, src[lo - address:hi - address], None):
-                    write = True
+            if active & 1 and length and lo < hi:
+                maps.append((kind, phys + lo - start, lo - address, hi - address))
+        # inputs go out as the firmware last left them; the outputs act after the frame has passed
+        for kind, p, a, b in maps:
+            if kind & 1 and cmd in (LRD, LRW) and self._read(p, b - a, data[a:b], None):
+                read = True
+        for kind, p, a, b in maps:
+            if kind & 2 and cmd in (LWR, LRW) and self._write(p, (out if out is not None else data)[a:b], None):
+                write = True
         return (1 if read else 0) + (2 if write else 0)
 
     # --- memory access with the ESC's rules ----------------------------------------------------------
