@@ -251,3 +251,50 @@ def test_a_slave_that_refuses_op_says_why(master, bench):
     master.read_state()
     assert master.slaves[0].state == pysoem.OP_STATE
     assert master.slaves[1].state == pysoem.SAFEOP_STATE | 0x10 and master.slaves[1].al_status == 0x001A
+
+
+def test_the_benchs_capture_decodes_in_tshark_as_ethercat_with_coe_and_nothing_malformed(tmp_path):
+    """`python -m motorjig.sim --ecat-slaves 1 --ecat-capture FILE`, as a user starts it; a scan and SDOs."""
+    import shutil
+
+    tshark = shutil.which("tshark")
+    if tshark is None:
+        pytest.skip("tshark is not installed (apt-get install tshark)")
+    path = tmp_path / "ecat.pcapng"
+    proc = subprocess.Popen([sys.executable, "-m", "motorjig.sim", "--ecat-slaves", "1", "--ecat-capture", str(path),
+                             "--no-demo", "--no-pty"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=ENV, cwd=ROOT)
+    try:
+        ifname = None
+        for _ in range(20):
+            line = proc.stdout.readline()
+            if "EtherCAT:" in line:
+                ifname = line.split("on interface ")[1].split()[0]
+                break
+        assert ifname, proc.stderr.read()
+        m = pysoem.Master()
+        m.open(ifname)
+        assert m.config_init() == 1
+        assert m.slaves[0].sdo_read(0x1008, 0).startswith(b"MotorJig")
+        with pytest.raises(pysoem.SdoError):
+            m.slaves[0].sdo_read(0x2345, 0)
+        m.close()
+    finally:
+        proc.terminate()
+        proc.wait(20)
+    assert "motorjig-ecat" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+
+    def fields(*args):
+        r = subprocess.run([tshark, "-r", str(path)] + list(args), capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return [line for line in r.stdout.splitlines() if line]
+
+    assert len(fields()) > 100
+    assert fields("-Y", "_ws.malformed") == []
+    # the only expert note is about SOEM's own source address (01:01:01:01:01:01 is a group address)
+    assert set(fields("-Y", "_ws.expert", "-T", "fields", "-e", "_ws.expert.message")) <= {
+        "Source MAC must not be a group address: IEEE 802.3-2002, Section 3.2.3(b)"}
+    coe = fields("-Y", "ecat_mailbox.coe", "-T", "fields", "-e", "ecat_mailbox.coe.sdoreq")
+    assert len(coe) >= 4  # the requests and the slave's answers, an abort among them
+    aborts = fields("-Y", "ecat_mailbox.coe.abortcode", "-T", "fields", "-e", "ecat_mailbox.coe.abortcode")
+    assert aborts and all(int(a, 0) == 0x06020000 for a in aborts)  # 'object does not exist', as answered

@@ -233,3 +233,29 @@ def test_an_unknown_fault_or_a_bad_value_is_one_sentence():
         servos[0].set_fault("nope")
     with pytest.raises(ValueError, match="refuse-op: expected an AL status code"):
         servos[0].set_fault("refuse-op", "x")
+
+
+def test_without_root_the_bench_says_what_to_run_in_one_sentence(monkeypatch, capsys):
+    from motorjig.sim import ecat_bench
+    from motorjig.sim.ecat_bus import Wire
+
+    monkeypatch.setattr("os.geteuid", lambda: 1000)
+    why = Wire.check_permissions()
+    assert why.startswith("the EtherCAT bench makes a network namespace") and "run it as root" in why
+    assert ecat_bench.main(["--slaves", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "run it as root (sudo)" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["--slaves", "0"], "--slaves must be 1..64, got 0"),
+    (["--fault", "5:overcurrent"], "--fault: slave position 5 is not on the bus (0..1)"),
+    (["--fault", "x:overcurrent"], "is not a slave position"),
+    (["--fault", "refuse-op=abc"], "refuse-op: expected an AL status code"),
+])
+def test_bad_bench_options_are_one_sentence(argv, said, capsys):
+    from motorjig.sim import ecat_bench
+
+    assert ecat_bench.main(argv) == 2
+    err = capsys.readouterr().err
+    assert said in err and err.count("\n") == 1

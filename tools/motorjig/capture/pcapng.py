@@ -1,4 +1,4 @@
-"""pcapng files of Plus-R and CAN records (standard library only).
+"""pcapng files of Plus-R and CAN records, and of EtherCAT frames (standard library only).
 
 Layout (pcapng, little-endian, every block 32-bit aligned)::
 
@@ -102,6 +102,27 @@ def interface_description(bus, linktype=None):
         opts.append((IF_SPEED, struct.pack("<Q", bus.baud)))
     opts.append((IF_TSRESOL, b"\x06"))
     return _block(IDB, struct.pack("<HHI", linktype, 0, 0) + _options(opts))
+
+
+LINKTYPE_ETHERNET = 1
+
+
+def ethernet_interface(name, description, speed=100000000):
+    """The IDB of an Ethernet interface (an EtherCAT bus: Wireshark's ecatf/ecat/ecat_mailbox decode it)."""
+    opts = [(IF_NAME, name.encode("utf-8")), (IF_DESCRIPTION, description.encode("utf-8")),
+            (IF_SPEED, struct.pack("<Q", speed)), (IF_TSRESOL, b"\x06")]
+    return _block(IDB, struct.pack("<HHI", LINKTYPE_ETHERNET, 0, 0) + _options(opts))
+
+
+def ethernet_packet(interface, t_us, frame, direction=0, comment=None):
+    """The EPB of one Ethernet frame on ``interface`` (its IDB's number) at ``t_us``; ``direction``
+    1 inbound, 2 outbound as seen from the master's interface."""
+    frame = bytes(frame)
+    opts = [(OPT_COMMENT, comment.encode("utf-8"))] if comment else []
+    if direction:
+        opts.append((EPB_FLAGS, struct.pack("<I", direction)))
+    head = struct.pack("<IIIII", interface, (t_us >> 32) & 0xFFFFFFFF, t_us & 0xFFFFFFFF, len(frame), len(frame))
+    return _block(EPB, head + _pad(frame) + _options(opts))
 
 
 def socketcan(rec):

@@ -1,17 +1,21 @@
 """The bench's EtherCAT bus as a program: simulated CiA 402 servos behind a network interface a master opens.
 
-    python -m motorjig.sim.ecat_bench [--slaves N] [--fault [POS:]NAME[=VALUE]] [--tag TAG]
+    python -m motorjig.sim.ecat_bench [--slaves N] [--fault [POS:]NAME[=VALUE]] [--capture FILE] [--tag TAG]
 
 makes a network namespace with a veth pair (``ecat_bus.Wire``), puts N simulated servos
 (``ecat_servo.EcatServo``) in a line on its inner end, prints the interface a master opens
 (``EtherCAT bench: ... interface mjm1234``), and answers frames until Ctrl-C or SIGTERM, then
-removes the namespace. ``python -m motorjig.sim --ecat-slaves N`` starts it beside the jig's
+removes the namespace. ``--capture FILE`` records every frame, the master's and the one that
+came back, in a pcapng file Wireshark decodes as EtherCAT with CoE. ``python -m motorjig.sim --ecat-slaves N`` starts it beside the jig's
 bench. It needs root; without root it says so in one sentence and exits 2.
 """
 
 import argparse
 import signal
 import sys
+import time
+
+from motorjig.capture import pcapng
 
 from .clock import PacedClock
 from .ecat_bus import Segment, Wire
@@ -68,6 +72,28 @@ def command(servos, line, out=sys.stdout):
     print(said, file=out, flush=True)
 
 
+class Capture:
+    """The bus's frames in a pcapng file (``pcapng.ethernet_*``), each written as it passes."""
+
+    def __init__(self, path, ifname, slaves):
+        self.f = open(path, "wb")
+        self.f.write(pcapng.section_header("MotorJig EtherCAT bench") + pcapng.ethernet_interface(
+            ifname, "EtherCAT bench: %d simulated servos" % slaves))
+        self.frames = 0
+
+    def __call__(self, request, reply):
+        t = int(time.time() * 1e6)
+        self.f.write(pcapng.ethernet_packet(0, t, request, 2))
+        if reply is not None:
+            self.f.write(pcapng.ethernet_packet(0, t, reply, 1))
+        self.frames += 1
+        if self.frames % 100 == 0:
+            self.f.flush()
+
+    def close(self):
+        self.f.close()
+
+
 def build(clock, slaves):
     """The servos in line order, each slave's clock offset by its own power-up time."""
     return [EcatServo(clock, n, clock_offset_ns=(n + 1) * 1234567) for n in range(slaves)]
@@ -78,6 +104,7 @@ def main(argv=None):
     ap.add_argument("--slaves", type=int, default=2, help="simulated servos on the line (1..%d, default 2)" % MAX_SLAVES)
     ap.add_argument("--fault", action="append", default=[], metavar="[POS:]NAME[=VALUE]",
                     help="make a servo fail (all servos without POS): " + ", ".join(FAULTS))
+    ap.add_argument("--capture", metavar="FILE", help="record the bus's frames in this pcapng file (Wireshark)")
     ap.add_argument("--tag", help="the namespace's and interfaces' suffix (default: this process id)")
     ap.add_argument("--control", action="store_true",
                     help="read commands on stdin (fault [POS:]NAME[=VALUE], clear [POS], state [POS], power-cycle [POS]): for tests")
@@ -105,17 +132,27 @@ def main(argv=None):
     except OSError as exc:
         print("ecat_bench: cannot make the EtherCAT wire: %s" % exc, file=sys.stderr)
         return 3
+    capture = None
+    if args.capture:
+        try:
+            capture = Capture(args.capture, wire.master_ifname, len(servos))
+        except OSError as exc:
+            wire.remove()
+            print("ecat_bench: --capture: cannot write %s: %s" % (args.capture, exc.strerror or exc), file=sys.stderr)
+            return 2
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_a: stopping.append(1))
     try:
         print("EtherCAT bench: %d simulated servo%s (%s) on interface %s (namespace %s); Ctrl-C stops" % (
             len(servos), "" if len(servos) == 1 else "s", servos[0].name, wire.master_ifname, wire.netns), flush=True)
         control = (sys.stdin, lambda line: command(servos, line)) if args.control else None
-        wire.serve(Segment(servos), clock, stop=lambda: bool(stopping), control=control)
+        wire.serve(Segment(servos), clock, stop=lambda: bool(stopping), control=control, on_frame=capture)
     except KeyboardInterrupt:
         pass
     finally:
         wire.remove()
+        if capture is not None:
+            capture.close()
     return 0
 
 
