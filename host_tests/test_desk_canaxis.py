@@ -170,7 +170,7 @@ def test_a_port_that_cannot_come_back_is_said_and_the_other_axes_still_get_their
     assert kw == {"broken_port": "other:run", "other_port": "other:run"}
     assert give_back(lent) == ["a broken port could not be taken back: unplugged"] and other.back == 1
     with pytest.raises(LookupError, match="its drive is on the jig's c port: start the Desk with --c"):
-        lend_ports([other], [("other_port", "--o", "o"), ("c_port", "--c", "c port")], "run")
+        lend_ports([other], [("other_port", "--o", "o"), ("c_port", "--c", "the jig's c port")], "run")
     assert other.back == 2  # the port it had already lent came back
 
 

@@ -265,11 +265,12 @@ def test_the_benchs_capture_decodes_in_tshark_as_ethercat_with_coe_and_nothing_m
                              "--no-demo", "--no-pty"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=ENV, cwd=ROOT)
     try:
-        ifname = None
+        ifname = netns = None
         for _ in range(20):
             line = proc.stdout.readline()
             if "EtherCAT:" in line:
                 ifname = line.split("on interface ")[1].split()[0]
+                netns = line.split("(namespace ")[1].split()[0].rstrip(",)")
                 break
         assert ifname, proc.stderr.read()
         m = pysoem.Master()
@@ -282,7 +283,7 @@ def test_the_benchs_capture_decodes_in_tshark_as_ethercat_with_coe_and_nothing_m
     finally:
         proc.terminate()
         proc.wait(20)
-    assert "motorjig-ecat" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert netns not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout.split()
 
     def fields(*args):
         r = subprocess.run([tshark, "-r", str(path)] + list(args), capture_output=True, text=True)

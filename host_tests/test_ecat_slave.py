@@ -214,6 +214,8 @@ def test_a_link_down_ends_the_line_before_the_slave_and_lost_frames_come_back_as
     assert struct.unpack("<H", d.data)[0] & 0x0C00 == 0x0400  # port 1 closed
     servos[1].clear_faults()
     servos[2].set_fault("lost-frames", 2)
+    assert [seg.process(F.build([dg("BRD", n=2)])) is None for _ in range(4)].count(True) == 0  # only in OP
+    servos[2].esc.set_al_status(8, False, 0)  # as if the master had taken it to OP
     assert [seg.process(F.build([dg("BRD", n=2)])) is None for _ in range(4)].count(True) == 2
 
 

@@ -194,7 +194,7 @@ def test_variants_given_twice(capsys, tmp_path):
 
 def test_a_protocol_that_is_neither(capsys, tmp_path):
     refused(capsys, tmp_path, GOOD.replace('"cia402"', '"canopen"'), 6, "drive.protocol",
-            ['"plusr" or "cia402", 6, 8 or [6, 8]', "'canopen'"])
+            ['"plusr" or "cia402" or "ethercat", 6, 8 or [6, 8]', "'canopen'"])
 
 
 def test_a_fixture_wired_to_another_node(capsys, tmp_path):
@@ -259,14 +259,17 @@ def test_a_stop_time_of_nothing(capsys, tmp_path):
 
 # --- the schema and its reference ------------------------------------------------------
 def test_every_protocol_has_its_kinds_and_the_docs_show_them():
-    assert kinds.BUILTIN == ("plusr", "cia402")
+    assert kinds.BUILTIN == ("plusr", "cia402", "ethercat")
     cia402 = set(schema.kinds("cia402"))
     assert cia402 == set(schema.kinds("plusr")) | {"lss"}
+    ethercat = set(schema.kinds("ethercat"))
+    assert ethercat == cia402 - {"lss", "io", "limit-sensor"}  # CAN's and the jig wiring's steps are not offered
     with open(os.path.join(ROOT, "docs", "station.md")) as f:
         text = f.read()
-    for kind in cia402 - {"prompt"}:
-        assert '`kind = "%s"` (cia402)' % kind in text
-    assert '#### `protocol = "cia402"`' in text
+    for name, its in (("cia402", cia402), ("ethercat", ethercat)):
+        for kind in its - {"prompt"}:
+            assert '`kind = "%s"` (%s)' % (kind, name) in text
+        assert '#### `protocol = "%s"`' % name in text
 
 
 def test_the_step_objects_are_in_the_shipped_eds():

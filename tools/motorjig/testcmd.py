@@ -26,9 +26,13 @@ EXIT_PASS, EXIT_FAIL, EXIT_ERROR = 0, 1, 2
 
 def add_test_arguments(sp):
     sp.add_argument("plan", help="the plan file (TOML), e.g. plans/smoke.toml")
-    sp.add_argument("--can-port", metavar="URL",
-                    help="the jig's SLCAN port (device or pyserial URL), for a plan whose drive is on the CAN bus "
-                         "(a CiA 402 drive)")
+    from motorjig.station import kinds
+
+    for kind in (kinds.get(n) for n in kinds.names()):
+        for key, option, what in kind.ports:  # each kind's ports beside the jig's PC port, from the table
+            if option not in sp._option_string_actions:
+                sp.add_argument(option, dest=key, metavar="NAME",
+                                help="%s, for a plan with protocol = \"%s\"" % (what, kind.name))
     sp.add_argument("--check", action="store_true",
                     help="only check the plan (with --port: also that the drive is the plan's variant and type)")
     sp.add_argument("--serial", help="the DUT's serial number (default: from the drive's own info)")
@@ -103,7 +107,8 @@ def cmd_test(args):
     if problem and not args.check:
         return _err("%s: %s" % (args.plan, problem), args)
     kind = kinds.kind_of(plan)
-    ports = {"port": args.port, "baud": args.baud, "timeout_ms": args.timeout, "can_port": args.can_port}
+    extra = {key: getattr(args, key, None) for key, _option, _what in kind.ports}
+    ports = dict(extra, port=args.port, baud=args.baud, timeout_ms=args.timeout)
     if args.check:
         if args.port and kind.checks_on_port:
             try:
@@ -126,7 +131,7 @@ def cmd_test(args):
         return _err("no port: give --port (or set JIGCTL_PORT)", args)
     for port, option, what in kind.ports:
         if not ports.get(port):
-            return _err("%s is a plan for a %s drive: give the jig's %s with %s" % (
+            return _err("%s is a plan for a %s drive: give %s with %s" % (
                 args.plan, kind.title, what, option), args)
     from motorjig.master import Master
 
@@ -170,8 +175,7 @@ def cmd_test(args):
         ctx = runner.run_plan(plan, args.port, baud=args.baud, serial=args.serial,
                               operator=args.operator or default_operator(), station=args.station,
                               out_dir=args.out, out=None if args.json else print, confirm=confirm,
-                              timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window,
-                              can_port=args.can_port)
+                              timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window, **extra)
     finally:
         if store is not None:
             store.close()

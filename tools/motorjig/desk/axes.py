@@ -50,7 +50,7 @@ def lend_ports(axes, needed, who):
         for key, option, what in needed:
             axis = by_port.get(key)
             if axis is None:
-                raise LookupError("its drive is on the jig's %s: start the Desk with %s" % (what, option))
+                raise LookupError("its drive is on %s: start the Desk with %s" % (what, option))
             kw[key] = axis.lend(who)
             lent.append(axis)
     except BaseException:

@@ -10,14 +10,11 @@ keeps serving until Ctrl-C (or --duration seconds). Each driver is Ver6 or Ver8 
 --fault makes drives fail the way real ones do. --can-nodes 5,6 adds a CAN bus with
 simulated CiA 402 drives and serves the jig's SLCAN port (python-can's slcan interface,
 jigctl can) on a TCP port and a pty of its own; a wiring with `node = 5` wires the jig
-to CAN node 5's digital inputs and outputs instead of a Plus-R drive. --ecat-slaves 2 adds an
-EtherCAT bus of simulated CiA 402 servos behind a network interface an EtherCAT master (SOEM,
-pysoem, TwinCAT on a VM) opens like a NIC (``ecat_bench``; root only: it makes a network
-namespace), --ecat-fault makes them fail and --ecat-capture records their frames for Wireshark.
+to CAN node 5's digital inputs and outputs instead of a Plus-R drive. The buses of the table of
+simulated kinds (``sim.kinds.EXTRA_BUSES``) add their own options and run beside the bench.
 """
 
 import argparse
-import os
 import signal
 import subprocess
 import sys
@@ -156,11 +153,8 @@ def parse_args(argv):
                     help="the CAN bus's bitrate, one of the SLCAN rates (default 500000)")
     ap.add_argument("--slcan-port", type=int, default=0, metavar="N",
                     help="TCP port of the jig's SLCAN port, one host at a time (default: a free one)")
-    ap.add_argument("--ecat-slaves", type=int, default=0, metavar="N",
-                    help="add an EtherCAT bus with N simulated CiA 402 servos (needs root: a network namespace)")
-    ap.add_argument("--ecat-fault", action="append", default=[], metavar="[POS:]NAME[=VALUE]",
-                    help="make an EtherCAT servo fail (python -m motorjig.sim.ecat_bench --help lists the faults)")
-    ap.add_argument("--ecat-capture", metavar="FILE", help="record the EtherCAT bus's frames in a pcapng file")
+    for bus in sim_kinds.extra_buses():
+        bus.add_arguments(ap)
     ap.add_argument("--no-demo", action="store_true", help="skip the scripted demo session")
     ap.add_argument("--no-pty", action="store_true",
                     help="create no pseudo-terminals (neither the PC side's nor the capture or SLCAN port's)")
@@ -271,59 +265,20 @@ def demo(url, ids, out=print):
         return True
 
 
-def _die_with_parent():
-    """In the child: SIGTERM when this bench dies, however it dies (SIGKILL too), so the EtherCAT
-    bench still removes its namespace."""
-    import ctypes
-
-    ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+def stop_all(procs):
+    """Stop the other buses' children (each removes what it made when it gets SIGTERM)."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
 def _terminate(*_args):
     raise KeyboardInterrupt  # SIGTERM ends the bench as Ctrl-C does: everything it started is stopped
-
-
-def start_ecat(args):
-    """The EtherCAT bench as a child process (it answers frames in real time, apart from this bench's
-    clock): the process, with ``banner`` its first line. ValueError with the reason it cannot start."""
-    from .ecat_bus import Wire
-
-    if not 1 <= args.ecat_slaves <= 64:
-        raise ValueError("--ecat-slaves must be 1..64%s" % (" (--ecat-fault and --ecat-capture need it)"
-                                                            if not args.ecat_slaves else ""))
-    why = Wire.check_permissions()
-    if why:
-        raise ValueError("--ecat-slaves: %s" % why)
-    cmd = [sys.executable, "-m", "motorjig.sim.ecat_bench", "--slaves", str(args.ecat_slaves)]
-    for spec in args.ecat_fault:
-        cmd += ["--fault", spec]
-    if args.ecat_capture:
-        cmd += ["--capture", args.ecat_capture]
-    tools = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([tools, os.path.join(os.path.dirname(tools), "firmware")] + [
-        p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
-                            env=env, preexec_fn=_die_with_parent)
-    line = proc.stdout.readline()
-    if not line.startswith("EtherCAT bench:"):
-        proc.wait()
-        said = proc.stderr.read().strip().replace("ecat_bench: --fault", "--ecat-fault").replace(
-            "ecat_bench: --capture", "--ecat-capture").replace("ecat_bench: ", "--ecat-slaves: ")
-        raise ValueError(said or "the EtherCAT bench did not start")
-    proc.banner = line.split(":", 1)[1].strip().replace("; Ctrl-C stops", "")
-    return proc
-
-
-def stop_ecat(proc):
-    """Stop the EtherCAT bench child: it removes its namespace on SIGTERM."""
-    if proc is None or proc.poll() is not None:
-        return
-    proc.terminate()
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
 
 
 def main(argv=None):
@@ -347,13 +302,16 @@ def main(argv=None):
     except ValueError as exc:
         print("error: %s" % exc, file=sys.stderr)
         return 2
-    ecat = None
-    if args.ecat_slaves or args.ecat_fault or args.ecat_capture:
+    extra = []  # the other buses, each a child process with its banner
+    for bus in sim_kinds.extra_buses():
         try:
-            ecat = start_ecat(args)
+            proc = bus.start(args)
         except ValueError as exc:
+            stop_all(extra)
             print("error: %s" % exc, file=sys.stderr)
             return 2
+        if proc is not None:
+            extra.append(proc)
     bench = Bench(driver_ids=tuple(args.drivers), baud=args.baud, tcp_port=args.tcp_port, pty=not args.no_pty,
                   capture_port=args.capture_port, slcan_port=args.slcan_port,
                   jig_ver8=args.jig_protocol == 8, ver8_drivers=args.drivers.ver8, wiring=wiring, faults=faults,
@@ -362,7 +320,7 @@ def main(argv=None):
         bench.start()
     except (OSError, ValueError, ImportError) as exc:  # (ValueError: a bad $MOTORJIG_SIM_START_US, a CAN fault)
         bench.stop()
-        stop_ecat(ecat)
+        stop_all(extra)
         print("error: cannot start the bench: %s" % exc, file=sys.stderr)
         return 1
     try:
@@ -381,8 +339,8 @@ def main(argv=None):
             print("  slcan: %s" % bench.slcan_url)
             if bench.slcan_pty_path:
                 print("  slcan pty: %s" % bench.slcan_pty_path)
-        if ecat is not None:
-            print("  EtherCAT: %s" % ecat.banner)
+        for proc in extra:
+            print("  %s" % proc.banner)
         sys.stdout.flush()
         if not args.no_demo:
             demo(bench.tcp_url, args.drivers)
@@ -393,16 +351,17 @@ def main(argv=None):
             if bench.error is not None:
                 print("error: simulation stopped: %s" % bench.error, file=sys.stderr)
                 return 1
-            if ecat is not None and ecat.poll() is not None:
-                print("error: the EtherCAT bench stopped: %s" % (ecat.stderr.read().strip() or "exit %d" % ecat.returncode),
-                      file=sys.stderr)
-                return 1
+            for proc in extra:
+                if proc.poll() is not None:
+                    print("error: %s stopped: %s" % (proc.title, proc.stderr.read().strip() or "exit %d" % proc.returncode),
+                          file=sys.stderr)
+                    return 1
             time.sleep(0.1)
     except KeyboardInterrupt:
         print("stopped")
     finally:
         bench.stop()
-        stop_ecat(ecat)
+        stop_all(extra)
     return 0
 
 

@@ -306,6 +306,7 @@ class Drive402:
         self._stepping = False
         self.csp_t = None  # when the last CSP target came (µs)
         self.csp_vel = 0.0  # counts/s between the last two CSP targets
+        self.csp_dt = 0.001  # the cycle the CSP targets come at (s), smoothed
         self.csp_since = None  # when the present CSP motion began (overcurrent's clock)
 
     # --- hooks of the bus face ------------------------------------------------------------------
@@ -718,8 +719,11 @@ class Drive402:
         self.update()
         now = self.clock.now
         m = self.motion
-        dt = (now - self.csp_t) / 1e6 if self.csp_t is not None and now - self.csp_t < CSP_IDLE_US else 0.001
-        dt = max(dt, 1e-4)
+        # the drive interpolates on its own cycle: the mean time between targets, not each one's
+        # arrival (a master's jitter is not a speed)
+        if self.csp_t is not None and now - self.csp_t < CSP_IDLE_US:
+            self.csp_dt += 0.05 * (max(1e-4, (now - self.csp_t) / 1e6) - self.csp_dt)
+        dt = self.csp_dt
         dp = target - m.pos
         m.pos = float(target)
         moved = dp

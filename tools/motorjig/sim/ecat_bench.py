@@ -11,6 +11,8 @@ bench. It needs root; without root it says so in one sentence and exits 2.
 """
 
 import argparse
+import gc
+import os
 import signal
 import sys
 import time
@@ -22,6 +24,7 @@ from .ecat_bus import Segment, Wire
 from .ecat_servo import FAULTS, EcatServo
 
 MAX_SLAVES = 64
+RT_PRIORITY = 50  # above a master's cycle (40): SOEM spins while it waits for the frame back, and the slaves stand for hardware that never waits
 
 
 def parse_fault(spec, slaves):
@@ -45,7 +48,7 @@ def parse_fault(spec, slaves):
     return positions, name, value.strip() if eq else None
 
 
-def command(servos, line, out=sys.stdout):
+def command(servos, line, out=sys.stdout, segment=None):
     """One line of the bench's control channel (``--control``): ``fault [POS:]NAME[=VALUE]``,
     ``clear [POS]``, ``state [POS]``, ``power-cycle [POS]``; the answer is one line, ``ok ...`` or ``error ...``."""
     word, _, rest = line.strip().partition(" ")
@@ -65,6 +68,8 @@ def command(servos, line, out=sys.stdout):
             said = "ok " + "; ".join("%d: AL %s, %s, faults %s" % (
                 p, servos[p].slave.state, servos[p].state, ",".join(servos[p].active_faults()) or "none")
                 for p in positions)
+            if word == "state" and segment is not None:
+                said += "; bus: " + segment.turnaround_text()
         else:
             said = "error unknown command %r (fault, clear, state, power-cycle)" % word
     except (ValueError, IndexError) as exc:
@@ -94,6 +99,16 @@ class Capture:
         self.f.close()
 
 
+def _realtime():
+    """This process on SCHED_FIFO when allowed (root): the slaves answer each frame at once, as
+    hardware does, however busy the machine is (a master's 1 ms cycle waits for them)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
+        return True
+    except (AttributeError, PermissionError, OSError):
+        return False
+
+
 def build(clock, slaves):
     """The servos in line order, each slave's clock offset by its own power-up time."""
     return [EcatServo(clock, n, clock_offset_ns=(n + 1) * 1234567) for n in range(slaves)]
@@ -121,11 +136,13 @@ def main(argv=None):
     if why:
         print("ecat_bench: %s." % why, file=sys.stderr)
         return 2
+    realtime = _realtime()
     clock = PacedClock()
     servos = build(clock, args.slaves)
     for positions, name, value in faults:
         for p in positions:
             servos[p].set_fault(name, value)
+    gc.freeze()  # the models built: collections stay short while frames wait for an answer
     wire = Wire(args.tag)
     try:
         wire.create()
@@ -143,10 +160,12 @@ def main(argv=None):
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_a: stopping.append(1))
     try:
-        print("EtherCAT bench: %d simulated servo%s (%s) on interface %s (namespace %s); Ctrl-C stops" % (
-            len(servos), "" if len(servos) == 1 else "s", servos[0].name, wire.master_ifname, wire.netns), flush=True)
-        control = (sys.stdin, lambda line: command(servos, line)) if args.control else None
-        wire.serve(Segment(servos), clock, stop=lambda: bool(stopping), control=control, on_frame=capture)
+        print("EtherCAT bench: %d simulated servo%s (%s) on interface %s (namespace %s%s); Ctrl-C stops" % (
+            len(servos), "" if len(servos) == 1 else "s", servos[0].name, wire.master_ifname, wire.netns,
+            ", real-time priority" if realtime else ""), flush=True)
+        segment = Segment(servos)
+        control = (sys.stdin, lambda line: command(servos, line, segment=segment)) if args.control else None
+        wire.serve(segment, clock, stop=lambda: bool(stopping), control=control, on_frame=capture)
     except KeyboardInterrupt:
         pass
     finally:

@@ -20,6 +20,7 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 
 from motorjig.ecat.frame import ETHERTYPE
 
@@ -37,6 +38,25 @@ class Segment:
         self.frames = 0
         self.lost = 0
         self.errors = 0  # frames that were not EtherCAT datagram frames
+        self.turnaround = [0] * 64  # frames by the time the slaves took to serve them, 50 µs bins (the last: more)
+        self.turnaround_max_us = 0.0
+
+    def turnaround_text(self):
+        """The slaves' time per frame, from receiving it to sending it back: median, p99, max."""
+        n = sum(self.turnaround)
+        if not n:
+            return "no frames yet"
+
+        def pct(q):
+            seen = 0
+            for i, c in enumerate(self.turnaround):
+                seen += c
+                if seen >= q * n:
+                    return (i + 1) * 50
+            return self.turnaround_max_us
+
+        return "%d frames, turnaround median < %d us, p99 < %d us, max %.0f us" % (n, pct(0.5), pct(0.99),
+                                                                               self.turnaround_max_us)
 
     def _line(self):
         """The slaves the frames reach now, their ports set as the line is."""
@@ -79,7 +99,7 @@ class Segment:
         for s in self._line():
             lost_every = getattr(s, "lost_every", None)
             s.esc.frames += 1
-            if lost_every and s.esc.frames % lost_every == 0:
+            if lost_every and s.esc.al_state == 8 and s.esc.frames % lost_every == 0:
                 self.lost += 1
                 return None
             t_ns = s.esc.clock_ns()
@@ -193,6 +213,7 @@ class Wire:
                 if address[2] == socket.PACKET_OUTGOING:
                     continue  # our own reply, seen on the way out
                 VirtualClock.run_until(clock, clock.wall())
+                t0 = time.perf_counter()
                 try:
                     out = segment.process(frame)
                 except Exception as exc:  # a slave model's bug: that frame is lost, the bus goes on
@@ -203,5 +224,9 @@ class Wire:
                               % (type(exc).__name__, exc), file=sys.stderr, flush=True)
                 if out is not None:
                     sock.send(out)
+                us = (time.perf_counter() - t0) * 1e6
+                segment.turnaround[min(63, int(us // 50))] += 1
+                if us > segment.turnaround_max_us:
+                    segment.turnaround_max_us = us
                 if on_frame is not None:
                     on_frame(frame, out)

@@ -65,7 +65,7 @@ FAULTS = FaultTable([
     Fault("refuse-op", "CODE", 0x001A, "the slave refuses OP with AL status code CODE (default 0x001A "
                                        "synchronization error)", lambda v: in_range(v, int, "an AL status code", 1, 0xFFFF)),
     switch("link-down", "the slave's port 0 loses its link: it and every slave after it fall off the bus"),
-    Fault("lost-frames", "N", 100, "every Nth frame is lost on its way through the slave (none comes back)",
+    Fault("lost-frames", "N", 100, "in OP, every Nth frame is lost on its way through the slave (none comes back)",
           lambda v: in_range(v, int, "a frame count N >= 2", 2, None)),
 ], FAULT_ALIASES)
 

@@ -37,3 +37,19 @@ def parse_can_fault(name, value):
     except ImportError:
         return None
     return parse(name, value)
+
+
+# the buses the bench can add beside its own, each a module with add_arguments(ap) and start(args)
+# (a child process with ``banner`` and ``title``, or None when its options ask for none)
+EXTRA_BUSES = ("motorjig.sim.ecat_cli",)
+
+
+def extra_buses():
+    """The modules of ``EXTRA_BUSES`` (one whose dependencies are missing is left out)."""
+    out = []
+    for name in EXTRA_BUSES:
+        try:
+            out.append(importlib.import_module(name))
+        except ImportError:
+            continue
+    return out

@@ -24,6 +24,9 @@ commands on the same clock.
 """
 
 
+from motorjig.errors import JigError
+
+
 class DriveFault(Exception):
     """The drive reported a fault during a step (a CiA 402 EMCY): the step fails with the code
     and its meaning, ``code`` and ``text``."""
@@ -31,6 +34,15 @@ class DriveFault(Exception):
     def __init__(self, code, text):
         super().__init__(text)
         self.code, self.text = code, text
+
+
+class SdoRefused(JigError):
+    """The drive answered an object access (an SDO, on CAN or in CoE) with an abort: a definite answer
+    about the drive (a step can judge it), unlike silence (the link). ``code`` is the CiA 301 abort code."""
+
+    def __init__(self, message, code):
+        super().__init__(message)
+        self.code = code
 
 
 class Drive:

@@ -46,7 +46,7 @@ from can.interfaces.slcan import slcanBus
 from motorjig.can import cia301, power402
 from motorjig.can import port as canport
 from motorjig.errors import JigError, PortError
-from motorjig.station.drive import Drive
+from motorjig.station.drive import Drive, SdoRefused
 
 _LOG = logging.getLogger(__name__)
 
@@ -90,15 +90,6 @@ CW_HALT = 1 << 8
 
 MODE_PROFILE_POSITION = 1
 MODE_HOMING = 6
-
-
-class SdoRefused(JigError):
-    """The drive answered an SDO request with an abort: a definite answer about the drive (a step
-    can judge it), unlike silence (the link). ``code`` is the CiA 301 abort code."""
-
-    def __init__(self, message, code):
-        super().__init__(message)
-        self.code = code
 
 
 class StampedSlcanBus(slcanBus):
@@ -555,6 +546,22 @@ class Cia402Drive(Drive):
             lss.store_configuration()
             lss.send_switch_state_global(lss.WAITING_STATE)
         return tuple(ids)
+
+    def new_trace(self, ctx, step):
+        """The trace a moving step samples this drive with: its TPDOs on the station's SYNC, dated by the jig."""
+        from motorjig.station.sampling_cia402 import Cia402Trace
+
+        return Cia402Trace(ctx, step)
+
+    def wait_target_reached(self, timeout):
+        """True once the statusword (by SDO) shows target reached (bit 10) within ``timeout`` s (0x6068
+        may delay it)."""
+        deadline = time.monotonic() + timeout
+        while not self.read_statusword() & SW_TARGET_REACHED:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
+        return True
 
     def unstamped(self):
         """Frames received without the jig's timestamp (their time is this PC's, not the bus's)."""

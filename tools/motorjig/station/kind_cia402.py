@@ -124,7 +124,7 @@ class Cia402Kind(DriveKind):
         return "vendor 0x%08X product 0x%08X rev 0x%08X serial 0x%08X" % tuple(values)
 
     # --- the run ----------------------------------------------------------------------------------
-    ports = (("can_port", "--can-port", "SLCAN port"),)
+    ports = (("can_port", "--can-port", "the jig's SLCAN port"),)
 
     def before_run(self, ports):
         import logging
@@ -179,20 +179,7 @@ class Cia402Kind(DriveKind):
         inner = getattr(P, "run_" + kind)
         if step.kind in P.OWN_EMCY_KINDS:
             return getattr(P, "measures_" + kind)(step, plan), inner
-
-        def run(test, bus, step, ctx):
-            n0 = len(bus.drive.emcys)
-            try:
-                inner(test, bus, step, ctx)
-            except Exception:
-                emcy = P.emcy_since(bus.drive, n0)
-                if emcy == "none":
-                    raise
-                test.measurements["emcy"] = emcy  # the drive's fault is the verdict, not what it broke
-                return
-            test.measurements["emcy"] = P.emcy_since(bus.drive, n0)
-
-        return getattr(P, "measures_" + kind)(step, plan) + [P.measures_emcy()], run
+        return P.with_emcy_rule(getattr(P, "measures_" + kind)(step, plan), inner)
 
     def preflight(self, test, bus, plan, serial, ctx):
         """The plug has opened the drive (node answers, trace TPDOs mapped); its device profile must

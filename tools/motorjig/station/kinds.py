@@ -16,6 +16,7 @@ import importlib
 _BUILTIN = {
     "plusr": "motorjig.station.kind_plusr",
     "cia402": "motorjig.station.kind_cia402",
+    "ethercat": "motorjig.station.kind_ecat",
 }
 BUILTIN = tuple(_BUILTIN)  # the kinds the project ships (the docs' reference shows these)
 _REGISTERED = {}
@@ -37,6 +38,9 @@ class DriveKind:
     step_kinds = ()
     emergency_words = "stop and switch off"
     disable_at_end = False  # a passing run ends with the drive switched off (tearDown)
+    # a sentence naming the drive's own watch of a dead master when it has one: the jig's safety stop
+    # is then not armed for the run (it would act on buses this run does not use)
+    own_safety_net = None
 
     def reference(self, kinds_text):
         """Its part of the plan format's reference (docs/station.md) as markdown lines;
@@ -85,7 +89,7 @@ class DriveKind:
         return None
 
     # --- the run -------------------------------------------------------------------------------
-    ports = ()  # (key, option, what) of each port a run needs beside the jig's PC port
+    ports = ()  # (key, option, what: "the jig's SLCAN port") of each port a run needs beside the jig's PC port
     checks_on_port = False  # check_on_port reads the drive (jigctl test --check --port)
 
     def check_on_port(self, ports, plan):

@@ -19,9 +19,9 @@ from openhtf.util import units
 
 from motorjig.can import cia301, power402
 from motorjig.errors import JigError
-from motorjig.station.drive_cia402 import SW_ACK, SW_ERROR, SW_INTERNAL_LIMIT, SW_TARGET_REACHED, SdoRefused
+from motorjig.station.drive import SdoRefused
+from motorjig.station.drive_cia402 import SW_ACK, SW_ERROR, SW_INTERNAL_LIMIT, SW_TARGET_REACHED
 from motorjig.station.sampling import UntrustedMeasurement
-from motorjig.station.sampling_cia402 import Cia402Trace
 
 COUNTS = units.UnitDescriptor("count", "count", "count")
 S = units.SECOND
@@ -170,7 +170,7 @@ def run_move(test, bus, step, ctx):
     target = a["position"] if a.get("mode", "inc") == "abs" else start + a["distance"]
     acc, dec = _profile(d, a, a["speed"])
     expected = _h().trapezoid_time(target - start, a["speed"], _ramp_ms(a["speed"], acc), _ramp_ms(a["speed"], dec))
-    trace = Cia402Trace(ctx, step)
+    trace = d.new_trace(ctx, step)
     trace.begin(d)
     try:
         trace.sent("move", d.move(target, a["speed"], a.get("accel"), a.get("decel")))
@@ -190,7 +190,7 @@ def run_move(test, bus, step, ctx):
     m["position_error"] = abs(target - actual)
     m["following_error"] = trace.peak_error
     fault = d.fault()
-    reached = _wait_bit(d, SW_TARGET_REACHED, 0.5) if done and not fault else False
+    reached = d.wait_target_reached(0.5) if done and not fault else False
     m["target_reached"] = bool(done and reached and actual == target and not fault)
     m["fault"] = fault
     m["samples"] = n
@@ -198,16 +198,6 @@ def run_move(test, bus, step, ctx):
     test.attach("trace", _h()._attachment(trace, target), "application/json")
     if done:
         trace.check(t_move, t_end, ctx.plan.sample_rate_min)
-
-
-def _wait_bit(d, bit, timeout):
-    """True once the statusword (by SDO) has ``bit`` set, within timeout (0x6068 may delay target reached)."""
-    deadline = time.monotonic() + timeout
-    while not d.read_statusword() & bit:
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 # --- home --------------------------------------------------------------------------------------
@@ -221,7 +211,7 @@ def measures_home(step, plan):
 
 def run_home(test, bus, step, ctx):
     d, a = bus.drive, step.args
-    trace = Cia402Trace(ctx, step)
+    trace = d.new_trace(ctx, step)
     trace.begin(d)
     homed, t_end = False, None
     try:
@@ -260,7 +250,7 @@ def run_stop_response(test, bus, step, ctx):
     d, a = bus.drive, step.args
     speed = a.get("speed", 20000)
     far = max(-I32_MAX, min(I32_MAX, d.position() + speed * 60))  # never reached: the stop ends it
-    trace = Cia402Trace(ctx, step)
+    trace = d.new_trace(ctx, step)
     trace.begin(d)
     stopped = False
     quick = a.get("stop", "quick-stop") == "quick-stop"
@@ -398,7 +388,7 @@ def run_limit_sensor(test, bus, step, ctx):
     relay, drive_input, _ = ctx.plan.wiring.find("relay", a["relay"])  # the loader checked it is wired
     direction = LIMIT_BITS.get(drive_input, +1)
     far = max(-I32_MAX, min(I32_MAX, d.position() + direction * a["speed"] * 60))
-    trace = Cia402Trace(ctx, step)
+    trace = d.new_trace(ctx, step)
     trace.begin(d)
     stopped = flag = False
     try:
@@ -461,3 +451,22 @@ def emcy_since(drive, n0):
     """'none', or the EMCYs with an error code received since drive.emcys[n0], named."""
     got = [e.text for e in drive.emcys[n0:] if e.code]
     return "; ".join(got) if got else "none"
+
+
+def with_emcy_rule(measures, inner):
+    """(measurements, run) of a step with the EMCY rule around it: the step measures ``emcy``, and an
+    EMCY that came while it failed is its verdict, not what it broke."""
+
+    def run(test, bus, step, ctx):
+        n0 = len(bus.drive.emcys)
+        try:
+            inner(test, bus, step, ctx)
+        except Exception:
+            emcy = emcy_since(bus.drive, n0)
+            if emcy == "none":
+                raise
+            test.measurements["emcy"] = emcy
+            return
+        test.measurements["emcy"] = emcy_since(bus.drive, n0)
+
+    return measures + [measures_emcy()], run

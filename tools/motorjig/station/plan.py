@@ -328,7 +328,10 @@ def _drive(ck, d, plan_dir):
                 " or ".join('"%s"' % p for p in K.names()), protocol))
     kind = K.get(protocol)
     own = kind.drive_keys
+    mine = {k.name for k in own}
     for name in table:
+        if name in mine:
+            continue  # another kind may have a key of the same name (eds): this kind's own is meant
         for other in K.names():
             if other != protocol and name in {k.name for k in K.get(other).drive_keys}:
                 raise ck.error(("drive", name), "'%s' is a key of protocol = \"%s\" drives; this plan's drive is "

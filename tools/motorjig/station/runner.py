@@ -229,7 +229,12 @@ def choose_sampling(test, bus, plan):
 
 def arm_safety_net(test, bus, ctx):
     """The jig's master-silence safety stop for the length of the run (plug.SafetyNet): what no
-    signal handler can catch (SIGKILL, a crashed PC, a pulled cable) the jig catches."""
+    signal handler can catch (SIGKILL, a crashed PC, a pulled cable) the jig catches. A drive kind with
+    a watch of its own (``DriveKind.own_safety_net``) relies on it: the jig is not armed."""
+    own = kinds.kind_of(ctx.plan).own_safety_net
+    if own:
+        test.test_record.metadata["safety_net"] = {"armed": False, "by": own}
+        return
     try:
         net = bus.arm_safety_net()
     except JigError as exc:
@@ -331,18 +336,23 @@ def _store(ctx, db, record):
 
 def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, out_dir=".", out=print,
              confirm=None, timeout_ms=100, on_event=None, on_start=None, db=None, safety_window_ms=1000,
-             can_port=None):
-    """Run ``plan`` on the drive behind ``port`` (a CiA 402 plan: the jig on ``port``, the drive on
-    the jig's SLCAN port ``can_port``); returns the RunContext (``record``, ``files``).
+             can_port=None, **more_ports):
+    """Run ``plan`` on the drive behind ``port`` (the jig's PC port); a kind whose drive is on another
+    port gets it by its key in ``DriveKind.ports`` (``can_port``: the jig's SLCAN port, and the other
+    kinds' keys in ``more_ports``); returns the RunContext (``record``, ``files``).
     ``db``: the results database to store the run in (None: none), see ``station.store``."""
     ctx = RunContext(plan, out, confirm, on_event)
     kind = kinds.kind_of(plan)
-    ports = {"port": port, "baud": baud, "timeout_ms": timeout_ms, "can_port": can_port}
+    ports = dict(more_ports, port=port, baud=baud, timeout_ms=timeout_ms, can_port=can_port)
     load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": getattr(plan.drive, "slave", 2),
             "motorjig_jig_id": plan.drive.jig_id, "motorjig_timeout_ms": timeout_ms,
             "motorjig_on_end": plan.on_end, "motorjig_safety_window_ms": safety_window_ms,
             "motorjig_protocol": kind.name, "motorjig_can_port": can_port, "motorjig_lss": False}
-    load.update(kind.conf(plan, ports))
+    own = kind.conf(plan, ports)
+    for name in own:  # a kind's own settings are declared by the kind's entry, not in the plug
+        if name not in CONF._declarations:
+            CONF.declare(name, "a setting of %s drives (station.kinds: %s)" % (kind.title, kind.name))
+    load.update(own)
     if station:
         load["station_id"] = station
     CONF.load(**load)

@@ -14,7 +14,7 @@ DRIVE_KEYS = (
         "must be in it, of its type, within its limits"),
 )
 
-_MOVE_LIMITS = (
+MOVE_LIMITS = (
     key("duration_s", "range", None, "limits of the move's duration, seconds"),
     key("duration_tolerance", "num", 0.15,
         "without duration_s: the duration must be within this fraction of the time the trapezoid "
@@ -72,7 +72,7 @@ STEP_KINDS = (
             sweep=True, obj=0x6083),
         key("decel", "int", None, "profile deceleration 0x6084, counts/s² (default: the drive's)", lo=1, hi=U32[1],
             sweep=True, obj=0x6084),
-    ) + _MOVE_LIMITS, ("duration", "duration_ratio", "expected_duration", "position_error",
+    ) + MOVE_LIMITS, ("duration", "duration_ratio", "expected_duration", "position_error",
                               "following_error", "target_reached", "fault", "samples", "sample_rate")),
     Kind("home", "Homing mode (0x6060 = 6): method 0x6098, speeds 0x6099, acceleration 0x609A; homing "
          "attained (statusword bits 12 and 10) within the limits.", (
