@@ -299,3 +299,41 @@ def test_the_benchs_capture_decodes_in_tshark_as_ethercat_with_coe_and_nothing_m
     assert len(coe) >= 4  # the requests and the slave's answers, an abort among them
     aborts = fields("-Y", "ecat_mailbox.coe.abortcode", "-T", "fields", "-e", "ecat_mailbox.coe.abortcode")
     assert aborts and all(int(a, 0) == 0x06020000 for a in aborts)  # 'object does not exist', as answered
+
+
+def jigctl(*args):
+    return subprocess.run([sys.executable, "-m", "motorjig.cli"] + list(args), capture_output=True, text=True,
+                          env=ENV, cwd=ROOT, timeout=120)
+
+
+def test_jigctl_ecat_scans_reads_writes_shows_the_pdos_and_dumps_the_sii(bench):
+    bench.cmd("power-cycle")
+    r = jigctl("ecat", "scan", "--ifname", bench.ifname)
+    assert r.returncode == 0, r.stderr
+    rows = [line for line in r.stdout.splitlines() if "MotorJig ECAT servo" in line]
+    assert len(rows) == 2 and "0x4D4A4947 0x00000402 0x00010000" in rows[0]
+    r = jigctl("ecat", "sdo", "write", "--ifname", bench.ifname, "1", "0x6081", "4321")
+    assert r.returncode == 0 and "written" in r.stdout, r.stderr
+    r = jigctl("ecat", "sdo", "read", "--ifname", bench.ifname, "1", "0x6081")
+    assert r.returncode == 0 and "0x6081:00 Profile velocity = 0x10E1 (4321)" in r.stdout, r.stdout + r.stderr
+    r = jigctl("ecat", "pdo", "--ifname", bench.ifname, "0")
+    assert r.returncode == 0 and "0x1C12 RxPDO (outputs): 0x1600" in r.stdout
+    assert "0x1600:2  0x607A:00  32 bits" in r.stdout, r.stdout
+    r = jigctl("ecat", "dump", "--ifname", bench.ifname, "0")
+    assert r.returncode == 0 and "vendor 0x4D4A4947 product 0x00000402" in r.stdout and "(checksum ok)" in r.stdout
+    assert "name: MotorJig ECAT servo" in r.stdout and "category SyncM (41): 32 bytes" in r.stdout, r.stdout
+    r = jigctl("ecat", "state", "--ifname", bench.ifname, "--set", "preop")
+    assert r.returncode == 0 and r.stdout.count("PRE-OP, AL status 0x0000") == 2, r.stdout
+
+
+@pytest.mark.parametrize("args, said", [
+    (["scan", "--ifname", "nosuch0"], "no network interface named nosuch0"),
+    (["sdo", "read", "--ifname", "IF", "7", "0x6041"], "slave position 7 is not on the line (2 slaves: 0..1)"),
+    (["sdo", "read", "--ifname", "IF", "0", "0x2345"], "abort 0x06020000"),
+    (["sdo", "read", "--ifname", "IF", "0", "nope"], "'nope' is not INDEX[:SUB]"),
+    (["sdo", "write", "--ifname", "IF", "0", "0x6041", "1"], "abort 0x06010002"),
+])
+def test_jigctl_ecat_errors_are_one_sentence(bench, args, said):
+    r = jigctl("ecat", *[bench.ifname if a == "IF" else a for a in args])
+    assert r.returncode != 0 and said in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1

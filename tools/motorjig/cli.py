@@ -247,6 +247,11 @@ def build_parser():
     from motorjig.can.cancmd import add_can_arguments
 
     add_can_arguments(sp, lambda p: _global_options(p, True))
+    sp = add("ecat", cmd_ecat, "an EtherCAT line from this PC's network interface (SOEM): scan, state, sdo "
+                               "read/write, pdo, dump (root)")
+    from motorjig.ecat.ecatcmd import add_ecat_arguments
+
+    add_ecat_arguments(sp)
     sp = add("gui", cmd_gui, "MotorJig Desk: the bench program as a local web page (prints its URL)")
     from motorjig.desk.server import add_gui_arguments
 
@@ -268,6 +273,12 @@ def cmd_capture(args):
 
 def cmd_can(args):
     from motorjig.can.cancmd import cmd_can as run
+
+    return run(args)
+
+
+def cmd_ecat(args):
+    from motorjig.ecat.ecatcmd import cmd_ecat as run
 
     return run(args)
 

@@ -65,9 +65,9 @@ def command(servos, line, out=sys.stdout, segment=None):
                     servos[p].clear_faults()
                 elif word == "power-cycle":
                     servos[p].power_on()
-            said = "ok " + "; ".join("%d: AL %s, %s, faults %s" % (
-                p, servos[p].slave.state, servos[p].state, ",".join(servos[p].active_faults()) or "none")
-                for p in positions)
+            said = "ok " + "; ".join("%d: AL %s, %s, velocity %d, faults %s" % (
+                p, servos[p].slave.state, servos[p].state, servos[p].velocity_actual(),
+                ",".join(servos[p].active_faults()) or "none") for p in positions)
             if word == "state" and segment is not None:
                 said += "; bus: " + segment.turnaround_text()
         else:
