@@ -179,3 +179,124 @@ def test_a_run_without_the_interface_or_with_a_wrong_one_is_refused_in_one_sente
     r = jigctl("test", SMOKE, "--port", jig.tcp_url, "--ecat-ifname", "nosuch0", "--db", "none", "--out",
                str(tmp_path))
     assert r.returncode == 2 and "no network interface named nosuch0" in r.stderr and "Traceback" not in r.stderr
+
+
+LONG_PLAN = ('[plan]\nname = "long-ecat"\nversion = "1"\n[drive]\nprotocol = "ethercat"\nposition = 0\n'
+             '[[steps]]\nkind = "servo"\n[[steps]]\nkind = "move"\nname = "long_move"\n'
+             'distance = 600000\nspeed = 20000\naccel = 500000\ndecel = 500000\n')
+
+
+def start_long_run(line, tmp_path):
+    """`jigctl test` of a 30 s move in a session of its own; returns once the shaft turns."""
+    import time
+
+    jig, ecat = line
+    ecat.cmd("power-cycle")
+    plan = tmp_path / "long.toml"
+    plan.write_text(LONG_PLAN)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(os.path.join(ROOT, d) for d in ("firmware", "tools")))
+    proc = subprocess.Popen([sys.executable, "-m", "motorjig.cli", "test", str(plan), "--port", jig.tcp_url,
+                             "--ecat-ifname", ecat.ifname, "--db", "none", "--out", str(tmp_path), "--yes"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT,
+                            start_new_session=True)
+    deadline = time.monotonic() + 30
+    while "velocity 20000" not in ecat.cmd("state 0"):
+        assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    return proc
+
+
+def wait_for(ecat, text, seconds):
+    import time
+
+    deadline = time.monotonic() + seconds
+    while True:
+        said = ecat.cmd("state 0")
+        if text in said:
+            return said
+        assert time.monotonic() < deadline, said
+        time.sleep(0.01)
+
+
+def test_sigterm_mid_move_ends_the_run_aborted_with_the_drive_stopped_and_disabled(line, tmp_path):
+    import glob
+    import json
+    import signal
+
+    proc = start_long_run(line, tmp_path)
+    os.kill(proc.pid, signal.SIGTERM)
+    proc.wait(30)
+    said = wait_for(line[1], ", velocity 0,", 5)
+    assert "OPERATION ENABLED" not in said, said
+    (path,) = glob.glob(str(tmp_path / "long-ecat_*.json"))
+    with open(path) as f:
+        assert json.load(f)["outcome"] == "ABORTED"
+
+
+def test_sigkill_of_jigctl_leaves_its_master_to_stop_and_disable_the_drive(line, tmp_path):
+    import signal
+
+    proc = start_long_run(line, tmp_path)
+    os.kill(proc.pid, signal.SIGKILL)  # the station's process only: its master process sees its pipe close
+    said = wait_for(line[1], "SWITCH ON DISABLED", 5)
+    assert ", velocity 0," in said
+    wait_for(line[1], "0: AL 0x01,", 5)  # and took the line to INIT
+
+
+def test_sigkill_of_everything_leaves_the_slaves_watchdog_to_stop_the_drive(line, tmp_path):
+    import signal
+    import time
+
+    proc = start_long_run(line, tmp_path)
+    t0 = time.monotonic()
+    os.killpg(proc.pid, signal.SIGKILL)  # jigctl and its master process: no frame goes out any more
+    said = wait_for(line[1], "FAULT", 2)
+    took = time.monotonic() - t0
+    assert ", velocity 0," in said and "AL 0x14" in said, said  # SAFE-OP with the error bit
+    assert took < 1.0, took  # the watchdog is 100 ms
+
+
+def test_the_desks_ethercat_link_opens_the_line_moves_stops_and_lends_it_to_a_plans_run(line):
+    from motorjig.desk import ecattab
+    from motorjig.desk.axes import give_back
+    from motorjig.desk.ecatlink import EcatLink
+    from motorjig.desk.page import DeskPage
+    from motorjig.desk.session import BusSession, UserError
+    from motorjig.desk.testrun import Station
+    import time
+
+    _jig, ecat = line
+    ecat.cmd("power-cycle")
+    link = EcatLink()
+    with pytest.raises(UserError, match="give the network interface"):
+        link.open("")
+    with pytest.raises(UserError, match="no network interface named nosuch0"):
+        link.open("nosuch0", 0)
+    assert "in OP" in link.open(ecat.ifname, 0)
+    try:
+        assert [s["name"] for s in link.slaves()] == ["MotorJig ECAT servo"] and link.line[0]["state"] == "OP"
+        assert link.sdo_read("0x1000").startswith("0x1000:00 = 0x20192")
+        with pytest.raises(UserError, match="press Enable first"):
+            link.move(1000, 10000)
+        assert link.enable() == "slave 0: OPERATION ENABLED"
+        target = link.status()["position"] + 5000  # the shaft is where the last test left it
+        link.move(target, 20000)
+        deadline = time.monotonic() + 5
+        while link.status()["position"] != target:
+            assert time.monotonic() < deadline, link.status()
+            time.sleep(0.02)
+        page = DeskPage(BusSession(), extra=[(ecattab, link, None)])
+        assert "tab-ecat" in [t[0] for t in page._tab_list()] and link.desk_axis in page._axes()
+        assert link.desk_axis.stop(True) == "slave 0: quick stop"  # the header's EMERGENCY STOP
+        plan = load_plan(SMOKE)
+        station = Station(BusSession(), plans_dir=os.path.join(ROOT, "plans"), out_dir=os.path.join(ROOT, "results"))
+        station.axes = [link.desk_axis]
+        ports, lent = station._lend_ports(plan)
+        assert ports == {"ecat_ifname": ecat.ifname} and link.summary() == "lent to the test run (ecat-smoke)"
+        assert ", velocity 0," in ecat.cmd("state 0") and "OPERATION ENABLED" not in ecat.cmd("state 0")
+        with pytest.raises(UserError, match="lent to the test run"):
+            link.open()
+        assert give_back(lent) == [] and link.is_open  # opened again after the run
+    finally:
+        link.close()
+    assert link.status() is None and "0: AL 0x01," in ecat.cmd("state 0")

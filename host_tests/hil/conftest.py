@@ -2,8 +2,10 @@
 
     .venv/bin/python -m pytest host_tests/hil --port /dev/ttyUSB0 [--baud 115200]
         [--slave 1] [--driver-id 2] [--usb /dev/ttyACM0] [--allow-move]
+    sudo .venv/bin/python -m pytest host_tests/hil --ecat-ifname eth1 [--ecat-position 0] [--ecat-allow-move]
 
-Without ``--port`` every test here is skipped (the normal ``make test`` run).
+Without ``--port`` every test here is skipped (the normal ``make test`` run); without
+``--ecat-ifname`` the EtherCAT ones are (``test_hil_ecat.py``: a real EtherCAT drive on a NIC).
 ``--driver-id`` names a real Plus-R driver behind the jig for the forwarding
 tests; ``--allow-move`` additionally lets one test turn its shaft by 100 pulses;
 ``--usb`` is the jig's USB REPL port, used to restart it with mpremote.
@@ -22,6 +24,10 @@ def pytest_addoption(parser):
     group.addoption("--driver-id", type=int, default=None, help="id of a real driver on the jig's driver bus")
     group.addoption("--usb", default=None, help="the jig's USB REPL port, for restarts with mpremote")
     group.addoption("--allow-move", action="store_true", default=False, help="allow a 100-pulse move of --driver-id")
+    group.addoption("--ecat-ifname", default=None, help="a network interface cabled to a real EtherCAT CiA 402 drive")
+    group.addoption("--ecat-position", type=int, default=0, help="that drive's position on its line (default 0)")
+    group.addoption("--ecat-allow-move", action="store_true", default=False,
+                    help="allow a 1 000-count CSP move of that drive")
 
 
 def _opt(config, name, default=None):

@@ -71,10 +71,11 @@ def protocol_key(ver8):
     return "auto" if ver8 is None else "8" if ver8 else "6"
 
 
-def build(session, station=None, capture=None, can_link=None):
+def build(session, station=None, capture=None, can_link=None, extra=()):
     """Register the page (and the run files' route) for one BusSession, its Station, its
     DeskCapture (None: a Desk without a capture port) and its CAN tab's ``canlink.CanLink``
-    (None: one without a port chosen yet)."""
+    (None: one without a port chosen yet); ``extra``: (module, link, why) of each drive kind's tab
+    (``kindtabs``)."""
     from nicegui import app
     from fastapi import HTTPException
     from fastapi.responses import FileResponse
@@ -88,7 +89,7 @@ def build(session, station=None, capture=None, can_link=None):
 
     @ui.page("/")
     async def index():
-        DeskPage(session, station, capture, can_link, can_why).build()
+        DeskPage(session, station, capture, can_link, can_why, extra).build()
 
     @app.get("/runs/{name}")
     def run_file(name: str):
@@ -110,8 +111,9 @@ def build(session, station=None, capture=None, can_link=None):
 class DeskPage:
     """One browser tab's widgets and the callbacks that feed them."""
 
-    def __init__(self, session, station=None, capture=None, can_link=None, can_why=None):
+    def __init__(self, session, station=None, capture=None, can_link=None, can_why=None, extra=()):
         self.s = session
+        self.extra = list(extra)  # (module, link, why) of the drive kinds' own tabs (kindtabs)
         self.can_link = can_link  # the CAN tab's link (one per server), or None: can_why says why
         self.can_why = can_why
         self.station = station
@@ -207,7 +209,9 @@ class DeskPage:
         return tabs + [("tab-axis", "Axis", self._axis_panel), ("tab-test", "Motion test", self._test_panel),
                        ("tab-params", "Parameters", self._param_panel), ("tab-io", "I/O", self._io_panel),
                        ("tab-diag", "Jig diagnostics", self._diag_panel),
-                       ("tab-raw", "Raw frames & log", self._raw_panel), ("tab-can", "CAN", self._can_tab)]
+                       ("tab-raw", "Raw frames & log", self._raw_panel), ("tab-can", "CAN", self._can_tab)] + [
+            (m.TAB_ID, m.LABEL, (lambda m=m, link=link, why=why: m.Tab(self, link, why).build()))
+            for m, link, why in self.extra]
 
     def _plan_tab(self):
         from motorjig.desk.runpanel import TestPanel
@@ -234,6 +238,7 @@ class DeskPage:
         quick stop of the nodes it enabled or watches), then the bus session's (the selected axis; a
         running motion test, scan or test run)."""
         tabs = [self.can_link.desk_axis] if self.can_link is not None else []
+        tabs += [link.desk_axis for _m, link, _why in self.extra if link is not None]
         return tabs + [self.s.desk_axis]
 
     async def _stop(self, emergency):

@@ -178,6 +178,10 @@ def add_gui_arguments(p):
                    help="the CAN tab's bitrate (default 500000); with --bench also the simulated CAN bus's")
     p.add_argument("--can-nodes", type=_can_ids, default=(), metavar="IDS",
                    help="with --bench: simulated CiA 402 nodes on the jig's CAN bus, e.g. 5,6 (default none)")
+    from motorjig.desk import kindtabs
+
+    for m in kindtabs.modules():  # the drive kinds' own tabs and their options
+        m.add_arguments(p)
 
 
 def build_parser():
@@ -219,7 +223,7 @@ def _hangup_stops_the_desk():
         signal.signal(signal.SIGHUP, lambda signum, frame: os.kill(os.getpid(), signal.SIGTERM))
 
 
-def stop_desk(session, station=None, store=None, bench=None, timeout=10.0, capture=None, can=None):
+def stop_desk(session, station=None, store=None, bench=None, timeout=10.0, capture=None, can=None, links=()):
     """What the Desk does when it stops: a running test is aborted and waited for (its tearDown:
     stop, emergency stop, servo off), then the recording (X), the CAN tab's SLCAN port (C), the
     bus session, the results database and the bench are closed, in that order."""
@@ -229,11 +233,12 @@ def stop_desk(session, station=None, store=None, bench=None, timeout=10.0, captu
     finally:
         if capture is not None:
             capture.close()
-        if can is not None and can.state != "closed":
-            try:
-                can.close()
-            except Exception:  # stopping: nothing to tell anyone
-                pass
+        for link in ([can] if can is not None else []) + list(links):  # their axes made safe first
+            if link.state != "closed":
+                try:
+                    link.close()
+                except Exception:  # stopping: nothing to tell anyone
+                    pass
         session.stop()
         if store is not None:
             store.close()
@@ -339,15 +344,23 @@ def serve(args, out=None):
     can_link, can_why = make_link(can_port or "", getattr(args, "can_bitrate", 500000), read_only)
     if can_why:
         out.write("CAN tab: %s\n" % can_why)
-    station.axes = [can_link.desk_axis] if can_link is not None else []  # a run borrows its ports from them
-    page.build(session, station, capture, can_link)
+    from motorjig.desk import kindtabs
+
+    extra = [(m,) + tuple(m.make_link(args, read_only)) for m in kindtabs.modules()]
+    for m, _link, why in extra:
+        if why:
+            out.write("%s tab: %s\n" % (m.LABEL, why))
+    links = [link for _m, link, _why in extra if link is not None]
+    # a run borrows its ports from these axes
+    station.axes = ([can_link.desk_axis] if can_link is not None else []) + [link.desk_axis for link in links]
+    page.build(session, station, capture, can_link, extra)
     token = None
     if not is_loopback(args.host):
         token = auth.new_token()
         app.add_middleware(auth.TokenGate, token=token, port=args.http_port)
     else:  # no token needed, but only under this computer's own names (no DNS rebinding)
         app.add_middleware(auth.HostGate, host=args.host, port=args.http_port)
-    app.on_shutdown(lambda: stop_desk(session, station, store, bench, capture=capture, can=can_link))
+    app.on_shutdown(lambda: stop_desk(session, station, store, bench, capture=capture, can=can_link, links=links))
     url = page_url(args.host, args.http_port, token)
     out.write("MotorJig Desk: %s  (Ctrl-C stops)%s\n" % (url, "  read-only" if read_only else ""))
     if args.host in ("0.0.0.0", "::"):

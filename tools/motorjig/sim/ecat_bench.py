@@ -65,8 +65,8 @@ def command(servos, line, out=sys.stdout, segment=None):
                     servos[p].clear_faults()
                 elif word == "power-cycle":
                     servos[p].power_on()
-            said = "ok " + "; ".join("%d: AL %s, %s, velocity %d, faults %s" % (
-                p, servos[p].slave.state, servos[p].state, servos[p].velocity_actual(),
+            said = "ok " + "; ".join("%d: AL 0x%02X, %s, velocity %d, faults %s" % (
+                p, servos[p].esc.u16(0x0130), servos[p].state, servos[p].velocity_actual(),
                 ",".join(servos[p].active_faults()) or "none") for p in positions)
             if word == "state" and segment is not None:
                 said += "; bus: " + segment.turnaround_text()

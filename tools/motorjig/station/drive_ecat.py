@@ -23,6 +23,7 @@ process-data watchdog stops the drive.
 import multiprocessing
 import queue
 import threading
+import time
 
 from motorjig.can import cia301, power402
 from motorjig.errors import JigError, PortError
@@ -127,6 +128,7 @@ class EcatDrive(Drive):
         self.ifname, self.position_on_line, self.eds, self.period = ifname, position, eds, cycle_s
         self.label = "slave %d" % position
         self.ready = False
+        self.bus_seconds = 0.0
         self.identity, self.dc = {}, False
         self._proc = self._conn = None
         self._lock = threading.Lock()
@@ -171,17 +173,26 @@ class EcatDrive(Drive):
     def _call(self, name, *args):
         if self._conn is None:
             raise JigError("the EtherCAT line is not open")
+        t0 = time.monotonic()
         with self._lock:
             try:
                 self._conn.send((name, args))
             except (BrokenPipeError, OSError):
                 raise JigError("the EtherCAT master's process ended (exit %s)" % self._proc.exitcode) from None
-            return self._reply(CALL_TIMEOUT_S, "answer %s" % name)
+            try:
+                return self._reply(CALL_TIMEOUT_S, "answer %s" % name)
+            finally:
+                # the run's split (motion, bus, engine): waiting for the line (SDOs, a command's cycle)
+                self.bus_seconds += time.monotonic() - t0
 
     # --- what the steps use (phases_cia402, phases_ecat) ---------------------------------------------
     @property
     def emcys(self):
         return [Emcy(*e) for e in self._call("emcy_list")] if self._conn is not None else []
+
+    def line(self):
+        """Every slave of the line (``ecat_master.EcatMaster.line``)."""
+        return self._call("line")
 
     def new_trace(self, ctx, step):
         return EcatTrace(ctx, step)

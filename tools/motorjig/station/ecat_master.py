@@ -355,6 +355,14 @@ class EcatMaster:
             ident[name] = self.read(0x1018, sub)
         return ident
 
+    def line(self):
+        """Every slave of the line: position, name, identity, AL state and status code."""
+        self.master.read_state()
+        return [{"position": i, "name": sl.name, "vendor": "0x%08X" % sl.man, "product": "0x%08X" % sl.id,
+                 "revision": "0x%08X" % sl.rev, "state": {1: "INIT", 2: "PRE-OP", 4: "SAFE-OP", 8: "OP"}.get(
+                     sl.state & 0x0F, "0x%02X" % sl.state) + (" + error" if sl.state & 0x10 else ""),
+                 "al_status": "0x%04X" % sl.al_status} for i, sl in enumerate(self.master.slaves)]
+
     def emcy_list(self):
         return [(e.t, e.code, e.register) for e in self.emcys]
 
