@@ -134,7 +134,9 @@ def test_lost_frames_make_a_move_an_error_of_the_measurement_never_a_fail(line, 
     rec = ctx.record
     assert rec["outcome"] == "ERROR", failed(rec)
     text = " ".join(d["description"] for d in rec["outcome_details"])
-    assert "cannot be judged" in text and "frame" in text, text
+    # a lost process-data frame during a move, or a lost mailbox frame during an SDO: either way the
+    # run could not judge the drive and says why
+    assert ("cannot be judged" in text and "frame" in text) or "did not answer the SDO" in text, text
     assert not any(p["outcome"] == "FAIL" for p in rec["phases"])
 
 
@@ -300,3 +302,19 @@ def test_the_desks_ethercat_link_opens_the_line_moves_stops_and_lends_it_to_a_pl
     finally:
         link.close()
     assert link.status() is None and "0: AL 0x01," in ecat.cmd("state 0")
+
+
+def test_the_ethercat_hil_tests_pass_against_the_benchs_line(line):
+    """host_tests/hil/test_hil_ecat.py, meant for a real drive on a NIC, run against the bench's line as a
+    user runs it (so it cannot rot before the first real drive)."""
+    _jig, ecat = line
+    ecat.cmd("power-cycle")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(os.path.join(ROOT, d) for d in ("firmware", "tools")))
+    r = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider",
+                        os.path.join(ROOT, "host_tests", "hil", "test_hil_ecat.py"), "--ecat-ifname", ecat.ifname,
+                        "--ecat-allow-move", "-rA"], capture_output=True, text=True, timeout=300, env=env, cwd=ROOT)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out
+    lines = out.splitlines()
+    assert not [x for x in lines if x.startswith(("SKIPPED", "FAILED", "ERROR"))], out
+    assert sum(1 for x in lines if x.startswith("PASSED")) == 3, out
