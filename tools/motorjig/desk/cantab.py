@@ -24,7 +24,7 @@ import time
 
 from nicegui import run, ui
 
-from motorjig.desk.widgets import Changed, tid
+from motorjig.desk.widgets import Changed, run_action, tid
 from motorjig.desk.session import UserError
 
 LOG_LINES = 500  # lines the browser keeps in the frame log
@@ -65,14 +65,7 @@ class CanTab:
     # --- actions --------------------------------------------------------------------------------------
     async def act(self, fn, *args, quiet=False):
         """Run a link method off the event loop; its sentence (unless quiet), or its failure's, in the tab."""
-        try:
-            res = await run.io_bound(fn, *args)
-        except UserError as exc:
-            self._say(str(exc), error=True)
-            return None
-        except Exception as exc:  # a bug: one sentence on the page, never a traceback
-            self._say("internal error (%s: %s)" % (type(exc).__name__, exc), error=True)
-            return None
+        res = await run_action(fn, args, self._say, UserError)
         if isinstance(res, str) and not quiet:
             self._say(res)
         return res

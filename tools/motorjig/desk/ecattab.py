@@ -7,10 +7,10 @@ status into the widgets. Every failure is one sentence in the tab (``ecat-messag
 traceback. The header's STOP AXIS and EMERGENCY STOP reach the axis through ``link.desk_axis``.
 """
 
-from nicegui import run, ui
+from nicegui import ui
 
 from motorjig.desk.session import UserError
-from motorjig.desk.widgets import Changed, tid
+from motorjig.desk.widgets import Changed, run_action, tid
 
 TAB_ID = "tab-ecat"
 LABEL = "EtherCAT"
@@ -38,14 +38,7 @@ class Tab:
         self.changed = Changed()
 
     async def act(self, fn, *args):
-        try:
-            res = await run.io_bound(fn, *args)
-        except UserError as exc:
-            self._say(str(exc), error=True)
-            return None
-        except Exception as exc:  # a bug: one sentence on the page, never a traceback
-            self._say("internal error (%s: %s)" % (type(exc).__name__, exc), error=True)
-            return None
+        res = await run_action(fn, args, self._say, UserError)
         if isinstance(res, str):
             self._say(res)
         return res

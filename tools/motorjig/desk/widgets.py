@@ -1,4 +1,4 @@
-"""Small helpers every tab of MotorJig Desk uses: stable test ids and change tracking."""
+"""Small helpers every tab of MotorJig Desk uses: stable test ids, change tracking, running an action."""
 
 
 def tid(element, name):
@@ -17,3 +17,18 @@ class Changed:
             return False
         self.last[key] = value
         return True
+
+
+async def run_action(fn, args, say, user_error):
+    """Run ``fn(*args)`` off the event loop (``nicegui.run.io_bound``); its failure (``user_error``: a
+    sentence; anything else: a bug, named in one sentence) goes to ``say(text, error=True)``. Returns
+    its result, or None when it failed."""
+    from nicegui import run
+
+    try:
+        return await run.io_bound(fn, *args)
+    except user_error as exc:
+        say(str(exc), error=True)
+    except Exception as exc:  # a bug: one sentence on the page, never a traceback
+        say("internal error (%s: %s)" % (type(exc).__name__, exc), error=True)
+    return None

@@ -45,6 +45,32 @@ class SdoRefused(JigError):
         self.code = code
 
 
+class Emcy:
+    """An emergency a CiA 402 drive sent (on CAN or in CoE): ``t`` its time, ``code``, ``register``, ``text``."""
+
+    __slots__ = ("t", "code", "register", "text")
+
+    def __init__(self, t, code, register):
+        from motorjig.can import cia301
+
+        self.t, self.code, self.register = t, code, register
+        self.text = "EMCY 0x%04X %s (error register 0x%02X)" % (code, cia301.emcy_name(code), register)
+
+
+def cia301_identity(read):
+    """What a CiA 301 device says it is, by ``read(index, sub)``: device type 0x1000, the names and
+    versions 0x1008-0x100A (None when a device has not the optional ones) and the identity 0x1018."""
+    ident = {"device_type": read(0x1000, 0)}
+    for index, name in ((0x1008, "device_name"), (0x1009, "hardware_version"), (0x100A, "software_version")):
+        try:
+            ident[name] = read(index, 0)
+        except JigError:
+            ident[name] = None
+    for sub, name in ((1, "vendor_id"), (2, "product_code"), (3, "revision"), (4, "serial")):
+        ident[name] = read(0x1018, sub)
+    return ident
+
+
 class Drive:
     """The interface (see the module's doc); implementations override every method."""
 

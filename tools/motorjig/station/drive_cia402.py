@@ -46,7 +46,7 @@ from can.interfaces.slcan import slcanBus
 from motorjig.can import cia301, power402
 from motorjig.can import port as canport
 from motorjig.errors import JigError, PortError
-from motorjig.station.drive import Drive, SdoRefused
+from motorjig.station.drive import Drive, Emcy, SdoRefused, cia301_identity
 
 _LOG = logging.getLogger(__name__)
 
@@ -145,14 +145,6 @@ def _stamp_ms(line):
         return int(line[n:n + 4], 16) if len(line) == n + 4 else None
     except (ValueError, IndexError):
         return None
-
-
-class Emcy:
-    __slots__ = ("t", "code", "register", "text")
-
-    def __init__(self, t, code, register):
-        self.t, self.code, self.register = t, code, register
-        self.text = "EMCY 0x%04X %s (error register 0x%02X)" % (code, cia301.emcy_name(code), register)
 
 
 class Cia402Drive(Drive):
@@ -384,15 +376,7 @@ class Cia402Drive(Drive):
 
     # --- the drive interface --------------------------------------------------------------
     def identify(self):
-        ident = {"device_type": self.read(0x1000)}
-        for index, name in ((0x1008, "device_name"), (0x1009, "hardware_version"), (0x100A, "software_version")):
-            try:
-                ident[name] = self.read(index)
-            except JigError:
-                ident[name] = None  # optional objects
-        for sub, name in ((1, "vendor_id"), (2, "product_code"), (3, "revision"), (4, "serial")):
-            ident[name] = self.read(0x1018, sub)
-        return ident
+        return cia301_identity(self.read)
 
     def state(self):
         return power402.state_of(self.read_statusword())

@@ -21,13 +21,12 @@ process-data watchdog stops the drive.
 """
 
 import multiprocessing
-import queue
 import threading
 import time
 
-from motorjig.can import cia301, power402
+from motorjig.can import power402
 from motorjig.errors import JigError, PortError
-from motorjig.station.drive import Drive, SdoRefused
+from motorjig.station.drive import Drive, Emcy, SdoRefused
 from motorjig.station.sampling import UntrustedMeasurement, _Sample
 from motorjig.station.sampling_cia402 import Cia402Trace, _Axis
 
@@ -36,16 +35,6 @@ LATE_BUDGET = 0.01  # the share of a step's time its late cycles may lose before
 LATE_BUDGET_MIN_MS = 3.0
 CALL_TIMEOUT_S = 30.0
 ERRORS = {"SdoRefused": SdoRefused, "PortError": PortError}
-
-
-class Emcy:
-    """An emergency from the drive (CoE): ``t`` the bus's time, ``code``, ``register``, ``text``."""
-
-    __slots__ = ("t", "code", "register", "text")
-
-    def __init__(self, t, code, register):
-        self.t, self.code, self.register = t, code, register
-        self.text = "EMCY 0x%04X %s (error register 0x%02X)" % (code, cia301.emcy_name(code), register)
 
 
 class _EcatAxis(_Axis):
@@ -71,24 +60,13 @@ class EcatTrace(Cia402Trace):
     def gap_cause(self):
         return "cycles the PC sent late or frames lost on the bus"
 
-    def more(self, d, s=None):
-        """The samples that came: the command is the target the station sent in that cycle, and the axis
-        counts as moving while the station's profile runs (a late cycle halts a CSP drive for a moment:
-        not the end of the move)."""
-        out = []
-        try:
-            item = d.samples.get(timeout=d.period * 20)
-        except queue.Empty:
-            return out
-        while True:
-            t, sw, pos, vel, _ferr, target, profiling = item
-            smp = _Sample(target, pos, vel, _EcatAxis(sw, vel, profiling))
-            self._add(t, smp)
-            out.append((t, smp))
-            try:
-                item = d.samples.get_nowait()
-            except queue.Empty:
-                return out
+    wait_periods = 20  # the cycle's own process fills the queue: allow it a hiccup
+
+    def _sample(self, item):
+        """The command is the target the station sent in that cycle, and the axis counts as moving while the
+        station's profile runs (a late cycle halts a CSP drive for a moment: not the end of the move)."""
+        t, sw, pos, vel, _ferr, target, profiling = item
+        return t, _Sample(target, pos, vel, _EcatAxis(sw, vel, profiling))
 
     def begin(self, d, s=None):
         self.drive = d

@@ -23,7 +23,7 @@ import time
 
 from motorjig.can import cia301, power402
 from motorjig.errors import JigError, PortError
-from motorjig.station.drive import SdoRefused
+from motorjig.station.drive import Emcy, SdoRefused, cia301_identity
 
 MODE_PP, MODE_HOMING, MODE_CSP = 1, 6, 8
 SW_FAULT = 0x0008
@@ -39,16 +39,6 @@ STRUCTS = {8: "b", 16: "h", 32: "i"}
 HIST_US = 10  # the period histogram's bin, µs
 HIST_BINS = 5000  # up to 50 ms; longer ones go in the last
 NICE = -15  # the cycle thread's niceness, when the system lets us (root)
-
-
-class Emcy:
-    """An emergency from the drive (CoE): ``t`` the bus's time, ``code``, ``register``, ``text``."""
-
-    __slots__ = ("t", "code", "register", "text")
-
-    def __init__(self, t, code, register):
-        self.t, self.code, self.register = t, code, register
-        self.text = "EMCY 0x%04X %s (error register 0x%02X)" % (code, cia301.emcy_name(code), register)
 
 
 def trapezoid(distance, speed, accel, decel):
@@ -345,15 +335,7 @@ class EcatMaster:
 
     # --- what the steps use --------------------------------------------------------------------------
     def identify(self):
-        ident = {"device_type": self.read(0x1000)}
-        for index, name in ((0x1008, "device_name"), (0x1009, "hardware_version"), (0x100A, "software_version")):
-            try:
-                ident[name] = self.read(index)
-            except JigError:
-                ident[name] = None  # optional objects
-        for sub, name in ((1, "vendor_id"), (2, "product_code"), (3, "revision"), (4, "serial")):
-            ident[name] = self.read(0x1018, sub)
-        return ident
+        return cia301_identity(self.read)
 
     def line(self):
         """Every slave of the line: position, name, identity, AL state and status code."""

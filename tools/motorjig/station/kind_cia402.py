@@ -29,6 +29,20 @@ def object_dictionary(path):
     return _ODS[path]
 
 
+def check_402_step(ck, step_path, kind, keys, args, plan_dir, drive, paramsets):
+    """A CiA 402 step's checks against the drive's object dictionary (on CAN or on EtherCAT): the objects
+    it writes or compares, and its parameter set."""
+    from motorjig.station.plan import check_objects
+
+    check_objects(ck, step_path, keys, args, drive)
+    if kind == "parameters":
+        from motorjig.can import paramset402
+
+        path = os.path.join(plan_dir, args["file"])
+        paramsets[path] = paramset402.load(path, drive.od, os.path.basename(drive.eds),
+                                           writable=args["mode"] == "apply")
+
+
 class PlanDrive:
     """A CiA 402 drive as a plan names it: ``node_id`` on the CAN bus at ``bitrate``; ``eds``: its
     EDS (absolute path), ``od``: the canopen ObjectDictionary read from it."""
@@ -82,15 +96,7 @@ class Cia402Kind(DriveKind):
         return PlanDrive(v["node_id"], v["bitrate"], eds, od, v["jig_id"]), eds_raw
 
     def check_step(self, ck, step_path, kind, keys, args, plan_dir, drive, wiring, paramsets):
-        from motorjig.station.plan import check_objects
-
-        check_objects(ck, step_path, keys, args, drive)
-        if kind == "parameters":
-            from motorjig.can import paramset402
-
-            path = os.path.join(plan_dir, args["file"])
-            paramsets[path] = paramset402.load(path, drive.od, os.path.basename(drive.eds),
-                                               writable=args["mode"] == "apply")
+        check_402_step(ck, step_path, kind, keys, args, plan_dir, drive, paramsets)
 
     def wiring_default(self, drive):
         return {"default_node": drive.node_id}

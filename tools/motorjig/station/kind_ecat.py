@@ -77,15 +77,9 @@ class EcatKind(DriveKind):
         return PlanDrive(v["position"], v["cycle_ms"], path, device, eds, od, v["jig_id"]), raw
 
     def check_step(self, ck, step_path, kind, keys, args, plan_dir, drive, wiring, paramsets):
-        from motorjig.station.plan import check_objects
+        from motorjig.station.kind_cia402 import check_402_step
 
-        check_objects(ck, step_path, keys, args, drive)
-        if kind == "parameters":
-            from motorjig.can import paramset402
-
-            path = os.path.join(plan_dir, args["file"])
-            paramsets[path] = paramset402.load(path, drive.od, os.path.basename(drive.eds),
-                                               writable=args["mode"] == "apply")
+        check_402_step(ck, step_path, kind, keys, args, plan_dir, drive, paramsets)
 
     # --- the records --------------------------------------------------------------------------------
     def record_code(self, drive):

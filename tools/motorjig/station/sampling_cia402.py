@@ -62,18 +62,24 @@ class Cia402Trace(_Trace):
 
         out = []
         try:
-            item = d.samples.get(timeout=d.period * 2)
+            item = d.samples.get(timeout=d.period * self.wait_periods)
         except queue.Empty:
             return out
         while True:
-            t, sw, pos, vel, ferr = item
-            smp = _Sample(pos + ferr, pos, vel, _Axis(sw, vel))
+            t, smp = self._sample(item)
             self._add(t, smp)
             out.append((t, smp))
             try:
                 item = d.samples.get_nowait()
             except queue.Empty:
                 return out
+
+    wait_periods = 2  # how many sampling periods ``more`` waits for the next sample
+
+    def _sample(self, item):
+        """(t, _Sample) of one queued sample: (t, statusword, actual, velocity, following error)."""
+        t, sw, pos, vel, ferr = item
+        return t, _Sample(pos + ferr, pos, vel, _Axis(sw, vel))
 
     def mark(self, name, ftype=None):
         pass
