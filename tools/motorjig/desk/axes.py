@@ -39,6 +39,59 @@ class DeskAxis:
         return ""
 
 
+class LinkAxis(DeskAxis):
+    """A tab's own link (a port it opens and closes) as an axis: ``lend`` closes the link (its axis made
+    safe first) and marks it lent; ``take_back`` opens it again as it was. A subclass says what it lends
+    (``port``), the sentence when it has none (``missing``), the exception a refusal is (``refusal``: the
+    Desk's ``session.UserError``) and how to open it again (``reopen_with``, ``reopen``); the link has ``is_open``, ``state``, ``read_only``, ``lent``, ``summary()``, ``close()``."""
+
+    missing = ""
+    refusal = Exception
+
+    def __init__(self, link):
+        self.link = link
+        self._reopen = None
+
+    def present(self):
+        return self.link.is_open
+
+    def status(self):
+        return self.link.summary()
+
+    def port(self):
+        raise NotImplementedError
+
+    def reopen_with(self):
+        """What ``reopen`` needs to open the link again, or None when it was not open."""
+        raise NotImplementedError
+
+    def reopen(self, how):
+        raise NotImplementedError
+
+    def lend(self, who):
+        link = self.link
+        if not self.port():
+            raise self.refusal(self.missing)
+        if link.read_only:
+            raise self.refusal("refused: this Desk is read-only (--read-only)")
+        self._reopen = self.reopen_with()
+        if link.state != "closed":
+            link.close()  # the axis is quick-stopped and disabled first
+        link.lent = who
+        return self.port()
+
+    def take_back(self):
+        how, self._reopen = self._reopen, None
+        self.link.lent = ""
+        if how is None:
+            return ""
+        try:
+            self.reopen(how)
+        except Exception as exc:
+            return "%s could not be opened again after the run: %s" % (self.title, exc)
+        return ""
+
+
 def lend_ports(axes, needed, who):
     """Borrow each port of ``needed`` ((key, option, what) of a drive kind) from the axis of
     ``axes`` that holds it: ({key: value} for the run, the axes lent, to give back). ``LookupError``

@@ -38,7 +38,7 @@ from motorjig.can.cancmd import describe_node
 from motorjig.can.dump import FrameText
 from motorjig.can.port import NOTIFIER_CYCLE_S, SLCAN_BITRATES, open_bus
 from motorjig.commands import UsageError
-from motorjig.desk.axes import DeskAxis
+from motorjig.desk.axes import LinkAxis
 from motorjig.desk.canaxis import parse_node_id
 from motorjig.desk.session import UserError
 from motorjig.errors import PortError
@@ -71,50 +71,28 @@ def _hex32(v):
     return "" if v is None else "0x%08X" % v
 
 
-class LinkAxis(DeskAxis):
+class CanLinkAxis(LinkAxis):
     """The CAN tab's SLCAN port as one of the Desk's axes (``axes.DeskAxis``): STOP reaches its
     CiA 402 axis, and a run whose drive kind needs ``can_port`` borrows it."""
 
     title = "the CAN tab's SLCAN port"
     run_port = "can_port"
+    missing = ("the jig's SLCAN port is not known: start the Desk with --can-port (or choose the SLCAN port in the "
+               "CAN tab)")
 
-    def __init__(self, link):
-        self.link = link
-        self._reopen = None
-
-    def present(self):
-        return self.link.is_open
+    refusal = UserError
 
     def stop(self, emergency):
         return self.link.axis.stop(emergency)
 
-    def status(self):
-        return self.link.summary()
+    def port(self):
+        return self.link.url
 
-    def lend(self, who):
-        link = self.link
-        if not link.url:
-            raise UserError("the jig's SLCAN port is not known: start the Desk with --can-port (or choose the "
-                            "SLCAN port in the CAN tab)")
-        if link.read_only:
-            raise UserError("refused: this Desk is read-only (--read-only)")
-        self._reopen = None
-        if link.state != "closed":
-            self._reopen = link.bitrate if link.is_open else None
-            link.close()  # the axis is quick-stopped and disabled first
-        link.lent = who
-        return link.url
+    def reopen_with(self):
+        return self.link.bitrate if self.link.is_open else None
 
-    def take_back(self):
-        link, bitrate, self._reopen = self.link, self._reopen, None
-        link.lent = ""
-        if bitrate is None:
-            return ""
-        try:
-            link.open(link.url, bitrate)
-        except Exception as exc:
-            return "the CAN tab's SLCAN port could not be opened again after the run: %s" % exc
-        return ""
+    def reopen(self, bitrate):
+        self.link.open(self.link.url, bitrate)
 
 
 class CanLink:
@@ -151,7 +129,7 @@ class CanLink:
         from motorjig.desk.canaxis import CanAxis
 
         self.axis = CanAxis(self)  # the CAN tab's CiA 402 axis: made safe before the port closes
-        self.desk_axis = LinkAxis(self)  # what the page's STOP and the Test tab see of it
+        self.desk_axis = CanLinkAxis(self)  # what the page's STOP and the Test tab see of it
 
     # --- the frame log -------------------------------------------------------------------------------
     def _frame(self, direction, can_id, ext, rtr, data, t=None):

@@ -15,7 +15,7 @@ import os
 import threading
 
 from motorjig.can import power402
-from motorjig.desk.axes import DeskAxis
+from motorjig.desk.axes import LinkAxis
 from motorjig.desk.session import UserError
 from motorjig.errors import JigError
 
@@ -30,47 +30,27 @@ def _object(text):
         raise UserError("%r is not INDEX[:SUB] (e.g. 0x6041 or 0x1018:1)" % text) from None
 
 
-class EcatLinkAxis(DeskAxis):
+class EcatLinkAxis(LinkAxis):
     """The EtherCAT tab's line as one of the Desk's axes."""
 
     title = "the EtherCAT tab's line"
     run_port = "ecat_ifname"
+    missing = ("the EtherCAT interface is not known: start the Desk with --ecat-ifname (or open the line in the "
+               "EtherCAT tab)")
 
-    def __init__(self, link):
-        self.link = link
-        self._reopen = None
-
-    def present(self):
-        return self.link.is_open
+    refusal = UserError
 
     def stop(self, emergency):
         return self.link.stop(emergency)
 
-    def status(self):
-        return self.link.summary()
+    def port(self):
+        return self.link.ifname
 
-    def lend(self, who):
-        link = self.link
-        if not link.ifname:
-            raise UserError("the EtherCAT interface is not known: start the Desk with --ecat-ifname (or open the "
-                            "line in the EtherCAT tab)")
-        if link.read_only:
-            raise UserError("refused: this Desk is read-only (--read-only)")
-        self._reopen = link.position if link.is_open else None
-        link.close()  # the axis quick-stopped and disabled first
-        link.lent = who
-        return link.ifname
+    def reopen_with(self):
+        return self.link.position if self.link.is_open else None
 
-    def take_back(self):
-        link, position, self._reopen = self.link, self._reopen, None
-        link.lent = ""
-        if position is None:
-            return ""
-        try:
-            link.open(link.ifname, position)
-        except UserError as exc:
-            return "the EtherCAT tab's line could not be opened again after the run: %s" % exc
-        return ""
+    def reopen(self, position):
+        self.link.open(self.link.ifname, position)
 
 
 class EcatLink:
