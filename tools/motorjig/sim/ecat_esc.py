@@ -373,10 +373,6 @@ class Esc:
             struct.pack_into("<I", m, REG_DC_DIFF, diff)
         if addr < REG_RX_ERRORS + 0x14 and end > REG_RX_ERRORS:
             m[REG_RX_ERRORS:REG_RX_ERRORS + 0x14] = bytes(0x14)  # a write clears the counters
-        if addr < REG_SM + 8 * self.sms and end > REG_SM and self.app is not None:
-            self.app.sm_changed()
-        if addr < REG_DC_ACTIVATION + 1 and end > REG_DC_ACTIVATION and self.app is not None:
-            self.app.dc_changed()
 
     def _latch(self, t_ns):
         """A write to 0x0900: each port's receive time of this frame, on the local clock."""

@@ -287,15 +287,3 @@ class EcatServo(Drive402):
         self.esc.link_up = True
         self.lost_every = None
         Drive402.clear_faults(self)
-
-    def describe(self):
-        """One line for the bench's banner."""
-        return "%s at position %d (serial 0x%08X)" % (self.name, self.position, self.serial)
-
-
-def identity_words(servo):
-    """(vendor id, product code, revision, serial) as the slave's SII says them."""
-    f = sii.fields(bytes(servo.esc.sii))
-    return f["vendor_id"], f["product_code"], f["revision"], f["serial"]
-
-

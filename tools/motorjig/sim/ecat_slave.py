@@ -164,12 +164,6 @@ class EcatSlave:
             return
         self.clock.after(self.WATCH_US, self._watch, gen)
 
-    def sm_changed(self):
-        pass  # checked at the next state request, as a slave does
-
-    def dc_changed(self):
-        pass
-
     # --- process data ----------------------------------------------------------------------------
     def fill_inputs(self, sm, view):
         if self.state >= SAFEOP:

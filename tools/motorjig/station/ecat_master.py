@@ -25,7 +25,7 @@ from motorjig.can import cia301, power402
 from motorjig.errors import JigError, PortError
 from motorjig.station.drive import Emcy, SdoRefused, cia301_identity
 
-MODE_PP, MODE_HOMING, MODE_CSP = 1, 6, 8
+MODE_HOMING, MODE_CSP = 6, 8
 SW_FAULT = 0x0008
 STATE_TIMEOUT_S = 1.0
 OP_TIMEOUT_S = 3.0
