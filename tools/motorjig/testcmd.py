@@ -1,7 +1,12 @@
 """jigctl test: run a test plan with MotorJig Station, or check one (``--check``).
 
     jigctl test PLAN --port URL [--can-port URL] [--serial SN] [--operator NAME] [--out DIR] [--yes] [--json]
-    jigctl test --check PLAN [--port URL]
+    jigctl test PLAN --port URL --slots 2,3,4,5 | --slots SLOTS.toml [...]
+    jigctl test --check PLAN [--port URL] [--slots ...]
+
+``--slots`` tests several drives at once (multi-up, ``station.slots``): each slot runs the plan
+as its own run with its own records and verdict; a summary follows, and the exit status is 0
+when every slot passed, 2 when any could not be judged (ERROR, aborted), else 1.
 
 A plan whose drive kind reaches its drive on another of the jig's ports (a CiA 402 drive: the
 jig's SLCAN port, ``--can-port``; on the bench its ``slcan_url``) needs that port too, beside
@@ -36,6 +41,10 @@ def add_test_arguments(sp):
     sp.add_argument("--check", action="store_true",
                     help="only check the plan (with --port: also that the drive is the plan's variant and type)")
     sp.add_argument("--serial", help="the DUT's serial number (default: from the drive's own info)")
+    sp.add_argument("--slots", metavar="ADDRS|FILE",
+                    help="test several drives at once, each its own run and records: their addresses (2,3,4,5: "
+                         "Plus-R slaves, CAN nodes) or a slots file (docs/station.md, Multi-up); exit status "
+                         "0 all passed, 1 some failed, 2 some could not be judged")
     sp.add_argument("--operator", help="who runs the test (default: $USER, else the login name, else "
                                        "'unknown')")
     sp.add_argument("--station", help="station name in the records (default: this computer's name)")
@@ -106,6 +115,8 @@ def cmd_test(args):
     problem = _unanswerable_prompt(args, plan)
     if problem and not args.check:
         return _err("%s: %s" % (args.plan, problem), args)
+    if getattr(args, "slots", None):
+        return _cmd_slots(args)
     kind = kinds.kind_of(plan)
     extra = {key: getattr(args, key, None) for key, _option, _what in kind.ports}
     ports = dict(extra, port=args.port, baud=args.baud, timeout_ms=args.timeout)
@@ -214,3 +225,157 @@ def _report(args, plan, ctx, store):
         fail(0, "the run was not stored: %s; its files are written (jigctl results import %s stores it "
                 "later)" % (ctx.store_error, ctx.files.get("json", "RECORD.json")))
     return runner.exit_code(result["verdict"])
+
+
+def _open_store(args):
+    """(the results database or None, an error sentence or None)."""
+    if args.db is not None and args.db.strip().lower() == "none":
+        return None, None
+    try:
+        from motorjig.station.store import StoreError, open_store
+    except ImportError as exc:
+        return None, ("the results database needs the 'station' extra (%s): pip install 'motorjig[station]' "
+                      "(or --db none)" % exc)
+    try:
+        return open_store(args.db), None  # before anything moves: a wrong --db is said now
+    except StoreError as exc:
+        return None, "%s (--db none runs without the results database)" % exc
+
+
+def _ask_serials(slots, stdin=sys.stdin, out=sys.stderr):
+    """Each slot whose serial is "ask": typed or scanned now, before anything moves."""
+    for s in slots:
+        if s.serial != "ask":
+            continue
+        if not stdin.isatty():
+            raise ValueError("%s asks for its serial number, but there is no terminal to type it on: give it in "
+                             "the slots file" % s.describe())
+        out.write("%s: scan or type the serial number: " % s.describe())
+        out.flush()
+        text = stdin.readline().strip()
+        if not text:
+            raise ValueError("%s: no serial number given" % s.describe())
+        s.serial = text
+
+
+def _cmd_slots(args):
+    """jigctl test PLAN --slots ...: every slot's run at once, a summary, the exit status over them."""
+    from motorjig.station import kinds, runner, slots as SL
+
+    if args.serial:
+        return _err("--serial names one drive: with --slots give each slot's serial in a slots file", args)
+    try:
+        slots = SL.load_slots(args.slots, args.plan)
+    except SL.SlotError as exc:
+        return _err(str(exc), args)
+    ports = {"port": args.port, "baud": args.baud, "timeout_ms": args.timeout}
+    for name in {s.kind.name for s in slots}:
+        for key, _option, _what in kinds.get(name).ports:
+            ports[key] = getattr(args, key, None)
+    if args.check:
+        if args.port:
+            for s in slots:
+                if s.kind.checks_on_port:
+                    try:
+                        refused = s.kind.check_on_port(ports, s.plan)
+                    except JigError as exc:
+                        return _err(str(exc), args)
+                    if refused:
+                        return _err("%s: %s" % (s.describe(), refused), args)
+        if args.json:
+            print(json.dumps({"ok": True, "slots": [{"slot": s.name, "drive": s.describe(), "plan": s.plan.name}
+                                                   for s in slots]}))
+        else:
+            print("%d slots are valid: %s" % (len(slots), "; ".join("%s, plan %s" % (s.describe(), s.plan.name)
+                                                                     for s in slots)), flush=True)
+        return EXIT_PASS
+    if not args.port:
+        return _err("no port: give --port (or set JIGCTL_PORT)", args)
+    for s in slots:
+        problem = _unanswerable_prompt(args, s.plan)
+        if problem:
+            return _err("%s: %s" % (s.describe(), problem), args)
+        for key, option, what in s.kind.ports:
+            if not ports.get(key):
+                return _err("%s is for a %s drive: give %s with %s" % (s.describe(), s.kind.title, what, option), args)
+    try:
+        _ask_serials(slots)
+    except ValueError as exc:
+        return _err(str(exc), args)
+    from motorjig import safetynotice
+    from motorjig.commands import note
+    from motorjig.master import Master
+
+    try:
+        m = Master(args.port, baud=args.baud)
+    except PortError as exc:
+        return _err(str(exc), args)
+    try:
+        notice = safetynotice.take(m, slots[0].plan.drive.jig_id)
+    finally:
+        m.close()
+    if notice:
+        note(notice)
+    store, problem = _open_store(args)
+    if problem:
+        return _err(problem, args)
+    problem = runner.check_out_dir(args.out)
+    for s in slots if not problem else ():
+        problem = s.kind.before_run(ports)
+        if problem:
+            break
+    if problem:
+        if store is not None:
+            store.close()
+        return _err(problem, args)
+    confirm = (lambda message: True) if args.yes else (runner.console_confirm if sys.stdin.isatty() else None)
+    for s in slots:
+        _say(args, "%s: plan %s %s (%s), %s" % (s.describe(), s.plan.name, s.plan.version, s.plan.hash[:12],
+                                                 s.kind.describe_run(s.plan, ports)))
+    extra = {k: v for k, v in ports.items() if k not in ("port", "baud", "timeout_ms")}
+    run = SL.SlotRun(slots, args.port, baud=args.baud, operator=args.operator or default_operator(),
+                     station=args.station, out_dir=args.out, out=None if args.json else print, confirm=confirm,
+                     timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window, **extra)
+    try:
+        ctxs = run.run()
+    finally:
+        if store is not None:
+            store.close()
+    results = [SL.summary(s, ctxs.get(s.name), run.errors.get(s.name)) for s in slots]
+    for s, r in zip(slots, results):
+        ctx = ctxs.get(s.name)
+        if store is not None and ctx is not None:
+            r["db"] = {"db": store.name, "run_id": ctx.run_id, "error": ctx.store_error}
+    verdicts = [r["verdict"] for r in results]
+    try:
+        _report_slots(args, results, SL.overall(verdicts))
+    except OSError:  # the terminal went away after the run (SIGHUP): the records say it all
+        pass
+    return SL.exit_code(verdicts)
+
+
+def _report_slots(args, results, verdict):
+    from motorjig.commands import fail
+
+    if args.json:
+        print(json.dumps({"verdict": verdict, "slots": results}, indent=2))
+        return
+    print("")
+    for r in results:
+        print("%-5s %s  %s  dut %s" % (r["verdict"], r["drive"], r["plan"], r["dut_id"]))
+        for d in r["details"]:
+            if d:
+                print("      " + d)
+        if r["files"].get("html"):
+            print("      html %s" % r["files"]["html"])
+        db = r.get("db")
+        if db and db.get("run_id") is not None:
+            print("      db   run %d in %s" % (db["run_id"], db["db"]))
+    passed = sum(1 for r in results if r["verdict"] == "PASS")
+    print("%s: %d of %d slots passed" % (verdict, passed, len(results)))
+    for r in results:
+        for problem in r.get("write_errors", ()):
+            fail(0, "slot %s: a run file was not written: %s" % (r["slot"], problem))
+        db = r.get("db")
+        if db and db.get("error"):
+            fail(0, "slot %s: the run was not stored: %s" % (r["slot"], db["error"]))

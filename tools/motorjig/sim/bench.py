@@ -268,8 +268,9 @@ class SimBench:
             self.drivers[i] = SimDriver(self.clock, self.down_bus, i, turnaround_us, i in ver8_drivers,
                                         servo_on=servo_on)
         self._sync = 0
-        self.wiring = None
+        self.wiring = None  # the first wiring (the bench's only one unless a multi-up fixture)
         self.wired_slave = None
+        self._input_sources = []
         self.wired_node = None
         self._make_can(can_nodes, can_bitrate, can_node_factory, bool(can) or direct_can, direct or direct_can)
         if direct:
@@ -318,7 +319,13 @@ class SimBench:
             self.can_adapter = DirectSlcanAdapter(self.clock, self.can_bus)
 
     def _connect(self, wiring):
-        """Wire the jig's relays to the drive's inputs and its outputs to the jig's inputs."""
+        """Wire the jig's relays to the drive's inputs and its outputs to the jig's inputs; a list
+        of wirings wires each slot of a multi-up fixture to its own drive (their relays and inputs
+        apart: ``station.slots`` refuses slots that share one)."""
+        if isinstance(wiring, (list, tuple)):
+            for w in wiring:
+                self._connect(w)
+            return
         if not isinstance(wiring, Wiring):
             wiring = load_wiring(wiring)
         if wiring.node is not None:
@@ -331,10 +338,20 @@ class SimBench:
         drive = self.drivers[slave]
         hal = self.hal
         drive.connect_inputs(lambda: wiring.drive_inputs(hal.outputs), wiring.drive_input_mask)
-        hal.input_source = lambda: wiring.jig_inputs(drive.out_bits())
+        self._add_input_source(lambda: wiring.jig_inputs(drive.out_bits()))
         hal.output_hooks.append(drive.update)  # the drive's past ran with the relays as they were
-        self.wiring = wiring
-        self.wired_slave = slave
+        if self.wiring is None:
+            self.wiring = wiring
+            self.wired_slave = slave
+
+    def _add_input_source(self, source):
+        """The jig's inputs: what every wired drive's outputs set on them."""
+        self._input_sources.append(source)
+        sources = self._input_sources
+        if len(sources) == 1:
+            self.hal.input_source = source
+        else:
+            self.hal.input_source = lambda: _or_all(sources)
 
     def _connect_node(self, wiring):
         """The same wiring to CAN node ``wiring.node``: relays -> its digital inputs 0x60FD,
@@ -345,15 +362,16 @@ class SimBench:
                              % (wiring.source, wiring.node, ", ".join(str(i) for i in self.can_nodes) or "none"))
         hal = self.hal
         node.connect_inputs(lambda: wiring.drive_inputs(hal.outputs), wiring.drive_input_mask)
-        hal.input_source = lambda: wiring.jig_inputs(node.out_bits())
+        self._add_input_source(lambda: wiring.jig_inputs(node.out_bits()))
 
         def relays_change():
             node.update()  # the node's past ran with the relays as they were
             self.clock.after(0.0, node.inputs_changed)  # once they have changed: limits, TPDOs
 
         hal.output_hooks.append(relays_change)
-        self.wiring = wiring
-        self.wired_node = wiring.node
+        if self.wiring is None:
+            self.wiring = wiring
+            self.wired_node = wiring.node
 
     def write_params(self, settings):
         """Store a parameter file (as SaveAllParameters would) for the next boot."""
@@ -971,3 +989,10 @@ class Bench:
             self._stop.set()
         finally:
             self._fd_user_ends()
+
+
+def _or_all(sources):
+    mask = 0
+    for source in sources:
+        mask |= source()
+    return mask

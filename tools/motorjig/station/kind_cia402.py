@@ -131,6 +131,9 @@ class Cia402Kind(DriveKind):
 
     # --- the run ----------------------------------------------------------------------------------
     ports = (("can_port", "--can-port", "the jig's SLCAN port"),)
+    address_key = "node_id"
+    one_slot_per_port = ("a CiA 402 run opens the jig's SLCAN port for its own node: two CiA 402 slots on one "
+                         "CAN port are not supported yet")
 
     def before_run(self, ports):
         import logging
@@ -156,17 +159,15 @@ class Cia402Kind(DriveKind):
                 "motorjig_lss": bool(plan.steps) and plan.steps[0].kind == "lss"}
 
     def open_drive(self, plug):
-        from openhtf.util import configuration
-
         from motorjig.errors import JigError
         from motorjig.station.drive_cia402 import Cia402Drive
-        conf = configuration.CONF
-        if not conf.motorjig_can_port:
+        conf = plug.conf
+        if not conf("motorjig_can_port"):
             raise JigError("no CAN port: set motorjig_can_port (jigctl test --can-port ...)")
-        d = Cia402Drive(conf.motorjig_can_port, conf.motorjig_node_id, conf.motorjig_bitrate,
-                        object_dictionary(conf.motorjig_eds), plug.master, conf.motorjig_jig_id)
+        d = Cia402Drive(conf("motorjig_can_port"), conf("motorjig_node_id"), conf("motorjig_bitrate"),
+                        object_dictionary(conf("motorjig_eds")), plug.master, conf("motorjig_jig_id"))
         try:
-            d.open(require_node=not conf.motorjig_lss)  # an lss step first: the node has no id yet
+            d.open(require_node=not conf("motorjig_lss"))  # an lss step first: the node has no id yet
         except BaseException:
             d.close()
             raise

@@ -96,6 +96,9 @@ class EcatKind(DriveKind):
 
     # --- the run ----------------------------------------------------------------------------------
     ports = (("ecat_ifname", "--ecat-ifname", "this PC's network interface on the EtherCAT line"),)
+    address_key = "position"
+    one_slot_per_port = ("an EtherCAT run is the line's one master: two EtherCAT slots on one interface are not "
+                         "supported yet")
 
     def before_run(self, ports):
         ifname = ports["ecat_ifname"]
@@ -117,13 +120,11 @@ class EcatKind(DriveKind):
                 "motorjig_ecat_cycle_ms": plan.drive.cycle_ms, "motorjig_eds": plan.drive.eds}
 
     def open_drive(self, plug):
-        from openhtf.util import configuration
-
         from motorjig.station.drive_ecat import EcatDrive
 
-        conf = configuration.CONF
-        d = EcatDrive(conf.motorjig_ecat_ifname, conf.motorjig_ecat_position, conf.motorjig_eds,
-                      conf.motorjig_ecat_cycle_ms / 1000.0)
+        conf = plug.conf
+        d = EcatDrive(conf("motorjig_ecat_ifname"), conf("motorjig_ecat_position"), conf("motorjig_eds"),
+                      conf("motorjig_ecat_cycle_ms") / 1000.0)
         try:
             d.open()
         except BaseException:

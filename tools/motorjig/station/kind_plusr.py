@@ -37,6 +37,7 @@ class PlusRKind(DriveKind):
     step_kinds = S.STEP_KINDS
     emergency_words = "EmergencyStop, servo off"
     limit_inputs = "0 limit +, 1 limit -"
+    address_key = "slave"
 
     # --- the plan ---------------------------------------------------------------------------------
     def plan_drive(self, ck, v, plan_dir):
@@ -108,12 +109,9 @@ class PlusRKind(DriveKind):
         return {"motorjig_slave": plan.drive.slave, "motorjig_lss": False}
 
     def open_drive(self, plug):
-        from openhtf.util import configuration
-
         from motorjig.station.drive_plusr import PlusRDrive
 
-        conf = configuration.CONF
-        return PlusRDrive(plug.master, conf.motorjig_slave, conf.motorjig_jig_id)
+        return PlusRDrive(plug.master, plug.conf("motorjig_slave"), plug.conf("motorjig_jig_id"))
 
     def step_functions(self, step, plan):
         from motorjig.station import phases
@@ -135,6 +133,11 @@ class PlusRKind(DriveKind):
     def after_abort(self, plan, ports):
         from motorjig.station import runner
 
+        if ports.get("master") is not None:  # a slot's run: through the slots' connection, which stays open
+            from motorjig.station.plug import make_safe
+
+            make_safe(ports["master"], plan.drive.slave, emergency=True)
+            return
         runner.emergency_stop(ports["port"], ports["baud"], plan.drive.slave, ports["timeout_ms"])
 
 

@@ -88,6 +88,11 @@ class DriveKind:
         """The drive's identity in words for the database's drive_name, or None (its name says it)."""
         return None
 
+    # --- slots (several drives at once, station.slots) -------------------------------------------
+    address_key = ""  # the [drive] key a slot sets to name its drive (jigctl test --slots 2,3)
+    # a sentence when two slots of this kind cannot run at once on one port (None: they can)
+    one_slot_per_port = None
+
     # --- the run -------------------------------------------------------------------------------
     ports = ()  # (key, option, what: "the jig's SLCAN port") of each port a run needs beside the jig's PC port
     checks_on_port = False  # check_on_port reads the drive (jigctl test --check --port)

@@ -146,11 +146,17 @@ def bounds_text(lo, hi):
     return "≥ %s" % lo if lo is not None else "≤ %s" % hi
 
 
-def _wiring(ck, data, drive):
-    if "wiring" not in data:
-        return None
+def _wiring(ck, data, drive, own=None):
     from motorjig.wiring import WiringError, parse_wiring
 
+    if own is not None:  # a slot's own fixture: (its [wiring] table, the file it came from)
+        table, source = own
+        try:
+            return parse_wiring(table, source=source, **K.get(drive.protocol).wiring_default(drive))
+        except WiringError as exc:
+            raise PlanError(source, None, exc.key or "", exc.reason) from None
+    if "wiring" not in data:
+        return None
     try:
         return parse_wiring(data["wiring"], source=ck.path, **K.get(drive.protocol).wiring_default(drive))
     except WiringError as exc:
@@ -348,9 +354,13 @@ def _check_wired_drive(ck, wiring, drive):
     K.get(drive.protocol).check_wired_drive(ck, wiring, drive)
 
 
-def load_plan(path):
-    """Read, check and expand one plan file."""
+def load_plan(path, address=None, wiring=None):
+    """Read, check and expand one plan file. A slot's run (``station.slots``) gives its own address
+    as ``address`` ({[drive] key: value} replacing the plan's) and its own fixture as ``wiring`` ((a
+    [wiring] table, its file) in place of the plan's); the plan's hash stays the file's."""
     data, lines, raw = read_toml(path)
+    if address:
+        data["drive"] = dict(data.get("drive", {}), **address)
     ck = _Checker(path, lines)
     known = ("plan", "drive", "wiring", "steps")
     for name in data:
@@ -363,7 +373,7 @@ def load_plan(path):
     settings = ck.table(data["plan"], ("plan",), S.PLAN_KEYS, "[plan]")
     plan_dir = os.path.dirname(os.path.abspath(path))
     drive, eds_raw = _drive(ck, data.get("drive", {}), plan_dir)
-    wiring = _wiring(ck, data, drive)
+    wiring = _wiring(ck, data, drive, wiring)
     if wiring is not None:
         _check_wired_drive(ck, wiring, drive)
     steps_data = data.get("steps")

@@ -67,7 +67,12 @@ for _name, _doc, _default in (
         ("motorjig_bitrate", "the CAN bitrate, bit/s", 500000),
         ("motorjig_eds", "the CiA 402 drive's EDS (default: the one the project ships)", None),
         ("motorjig_lss", "the plan gives the CiA 402 drive its node id (an lss step): do not ask for it at start",
-         False)):
+         False),
+        ("motorjig_slot", "a slot's run: the slot's name (station.slots; None: not a slot)", None),
+        ("motorjig_master", "a slot's run: the jig's connection the slots share (a TimedMaster; None: the run's own)",
+         None),
+        ("motorjig_safety_shared", "a slot's run: the slots' one SharedSafetyNet (None: the run's own SafetyNet)",
+         None)):
     if _name not in CONF._declarations:  # a re-import (tests) must not declare twice
         CONF.declare(_name, _doc, default_value=_default)
 
@@ -78,7 +83,7 @@ class TimedMaster(Master):
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
-        self.roundtrips = []
+        self._roundtrips = threading.local()
         self.lock = threading.RLock()
         self.last_request = time.monotonic()  # when the PC last spoke, for the heartbeat
 
@@ -91,6 +96,14 @@ class TimedMaster(Master):
                 self.last_request = time.monotonic()
             self.roundtrips.append(time.monotonic() - t0)
             return fr
+
+    @property
+    def roundtrips(self):
+        """This thread's round trips: the runs of several slots share one master, each keeps its own."""
+        rts = getattr(self._roundtrips, "list", None)
+        if rts is None:
+            rts = self._roundtrips.list = []
+        return rts
 
     def detect_variant(self, *a, **kw):
         with self.lock:
@@ -108,11 +121,13 @@ class SafetyNet:
 
     ``arm()`` remembers the jig's parameters 9 and 10, sets the window and the action and
     starts the heartbeat; ``disarm()`` stops it and restores them. Either raises JigError
-    when the jig does not answer (the caller decides what that means for the run)."""
+    when the jig does not answer (the caller decides what that means for the run). Each CiA 402
+    drive of the run (``can_drive``, ``add_can_drive``) arms the jig's CAN safety stop too
+    (parameter 18) and has its port's silence window kept open by the heartbeat."""
 
     def __init__(self, master, jig_id, window_ms, servo_off, can_drive=None):
         self.m = master
-        self.can_drive = can_drive  # a CiA 402 drive: the jig's CAN safety stop too (parameter 18)
+        self.can_drives = [can_drive] if can_drive is not None else []
         self.jig_id = jig_id
         self.window_ms = int(window_ms)
         self.action = ACTION_EMERGENCY_STOP_SERVO_OFF if servo_off else ACTION_EMERGENCY_STOP
@@ -129,25 +144,39 @@ class SafetyNet:
             # A jig from before "servo off" (action 2): EmergencyStop alone still stops the axis.
             self.action = ACTION_EMERGENCY_STOP
             m.set_parameter(j, P_SAFETY_ACTION, self.action)
-        if self.can_drive is not None:
-            saved += (m.get_parameter(j, P_CAN_SAFETY),)
-            m.set_parameter(j, P_CAN_SAFETY, CAN_SAFETY_QUICK_STOP)
         self.saved = saved  # from here on disarm() has something to put back
+        if self.can_drives:
+            self._arm_can()
         self.stops_before = self.stops()
         m.set_parameter(j, P_SAFETY_TIMEOUT_MS, self.window_ms)
         self._stop.clear()
         self._thread = threading.Thread(target=self._beat, name="motorjig-heartbeat", daemon=True)
         self._thread.start()
 
+    def _arm_can(self):
+        if self.saved is not None and len(self.saved) == 2:
+            m, j = self.m, self.jig_id
+            self.saved += (m.get_parameter(j, P_CAN_SAFETY),)
+            m.set_parameter(j, P_CAN_SAFETY, CAN_SAFETY_QUICK_STOP)
+
+    def add_can_drive(self, drive):
+        """A CiA 402 drive joins an armed net (a slot's run that starts after another's)."""
+        self.can_drives.append(drive)
+        self._arm_can()
+
+    def remove_can_drive(self, drive):
+        if drive in self.can_drives:
+            self.can_drives.remove(drive)
+
     def _beat(self):
         period = self.window_ms / 4000.0
         while not self._stop.wait(period / 2):
-            d = self.can_drive
-            if d is not None and time.monotonic() - d.last_sent >= period:
-                try:
-                    d.keep_alive()  # the CAN port's own silence window
-                except Exception:  # a lost connection: the jig's stop will act, which is the point
-                    pass
+            for d in list(self.can_drives):
+                if time.monotonic() - d.last_sent >= period:
+                    try:
+                        d.keep_alive()  # the CAN port's own silence window
+                    except Exception:  # a lost connection: the jig's stop will act, which is the point
+                        pass
             if time.monotonic() - self.m.last_request < period:
                 continue  # the phases keep the jig's window open themselves
             try:
@@ -185,30 +214,85 @@ class SafetyNet:
         self.saved = None
 
 
+class SharedSafetyNet:
+    """One SafetyNet for the runs of several slots on one jig (multi-up): the first run to join arms
+    the jig, the last to leave disarms it, so a slot that ends early never leaves the others'
+    axes unguarded. ``join``/``leave`` are what a run's plug calls in place of arm/disarm."""
+
+    def __init__(self, master, jig_id, window_ms, servo_off):
+        self.net = SafetyNet(master, jig_id, window_ms, servo_off)
+        self.window_ms = self.net.window_ms
+        self._users = 0
+        self._lock = threading.Lock()
+
+    def join(self, can_drive=None):
+        with self._lock:
+            if self._users == 0:
+                if can_drive is not None:
+                    self.net.can_drives.append(can_drive)
+                self.net.arm()
+            elif can_drive is not None:
+                self.net.add_can_drive(can_drive)
+            self._users += 1
+            return self.net
+
+    def leave(self, can_drive=None):
+        with self._lock:
+            if can_drive is not None:
+                self.net.remove_can_drive(can_drive)
+            self._users -= 1
+            if self._users == 0:
+                self.net.disarm()
+
+
 class MotorJigPlug(plugs.BasePlug):
     """The bus, the drive under test (``slave``; ``drive``: the station.drive interface to it) and
     the jig (``jig_id``). ``kind``: the drive's kind (``motorjig_protocol``), which opens the drive
     (on the jig's PC port, or another of the jig's ports), the jig itself always on ``motorjig_port``."""
 
+    auto_placeholder = True  # each run may substitute its own subclass (for_run)
+
+    # A run's own settings (``for_run``): what it sets here wins over CONF, so the runs of several
+    # slots in one process each have their own drive, and share the jig's connection and safety net.
+    settings = {}
+
     def __init__(self):
-        if not CONF.motorjig_port:
+        shared = self.conf("motorjig_master")  # a slot's run: the jig's connection is the slots' (not closed here)
+        if shared is None and not self.conf("motorjig_port"):
             raise JigError("no port: set motorjig_port (jigctl test --port ...)")
-        self.master = TimedMaster(CONF.motorjig_port, baud=CONF.motorjig_baud,
-                                  timeout=CONF.motorjig_timeout_ms / 1000.0)
-        self.protocol = CONF.motorjig_protocol
+        self._own_master = shared is None
+        self.master = shared or TimedMaster(self.conf("motorjig_port"), baud=self.conf("motorjig_baud"),
+                                            timeout=self.conf("motorjig_timeout_ms") / 1000.0)
+        self.protocol = self.conf("motorjig_protocol")
         self.kind = kinds.get(self.protocol)
         try:
             self.drive = self.kind.open_drive(self)
         except BaseException:
-            self.master.close()
+            self._close_master()
             raise
-        self.slave = CONF.motorjig_slave
-        self.jig_id = CONF.motorjig_jig_id
-        self.on_end = CONF.motorjig_on_end
+        self.slave = self.conf("motorjig_slave")
+        self.jig_id = self.conf("motorjig_jig_id")
+        self.on_end = self.conf("motorjig_on_end")
         self.failed = False
         self.aborted = False
         self.safety = None  # the SafetyNet while armed (arm_safety_net)
         self.trace_period_us = None  # the jig samples the moving steps at this period (None: this PC does)
+
+    @classmethod
+    def for_run(cls, settings, name="run"):
+        """A subclass of this plug with ``settings`` ({CONF key: value}) of its own (OpenHTF keys
+        plugs by class: each run's phases get theirs with ``with_plugs(bus=...)``)."""
+        return type("MotorJigPlug_%s" % name, (cls,), {"settings": dict(settings)})
+
+    def conf(self, name):
+        """A setting of this run: its own (``for_run``), else OpenHTF's CONF."""
+        if name in self.settings:
+            return self.settings[name]
+        return getattr(CONF, name)
+
+    def _close_master(self):
+        if self._own_master:
+            self.master.close()
 
     def note_failure(self):
         self.failed = True
@@ -220,7 +304,13 @@ class MotorJigPlug(plugs.BasePlug):
         """Arm the jig's master-silence safety stop for this run (see the module's doc); returns the
         SafetyNet, or None when ``window_ms`` (default: CONF) is 0. Raises JigError if the jig
         does not take it."""
-        window_ms = CONF.motorjig_safety_window_ms if window_ms is None else window_ms
+        shared = self.conf("motorjig_safety_shared") if window_ms is None else None
+        if shared is not None:  # the slots' one net: joined here, left in tearDown
+            self._can_drive = self.kind.safety_net_kw(self).get("can_drive")
+            self.safety = shared.join(self._can_drive)
+            self._shared_safety = shared
+            return self.safety
+        window_ms = self.conf("motorjig_safety_window_ms") if window_ms is None else window_ms
         if not window_ms:
             return None
         net = SafetyNet(self.master, self.jig_id, window_ms, servo_off=self.on_end != "none",
@@ -228,6 +318,14 @@ class MotorJigPlug(plugs.BasePlug):
         self.safety = net
         net.arm()
         return net
+
+    def _disarm(self):
+        shared = getattr(self, "_shared_safety", None)
+        if shared is not None:
+            self._shared_safety = None
+            shared.leave(self._can_drive)
+        elif self.safety is not None:
+            self.safety.disarm()
 
     def tearDown(self):
         try:
@@ -241,13 +339,12 @@ class MotorJigPlug(plugs.BasePlug):
             except Exception as exc:
                 _LOG.error("closing the drive's connection failed: %s", exc)
             try:
-                if self.safety is not None:
-                    try:
-                        self.safety.disarm()
-                    except Exception as exc:  # the jig's window stays: it stops the axis when we are gone
-                        _LOG.error("disarming the jig's safety stop failed: %s", exc)
+                try:
+                    self._disarm()
+                except Exception as exc:  # the jig's window stays: it stops the axis when we are gone
+                    _LOG.error("disarming the jig's safety stop failed: %s", exc)
             finally:
-                self.master.close()
+                self._close_master()
 
     def _disable(self):
         try:

@@ -66,6 +66,7 @@ class RunContext:
         self.write_errors = []  # run files that could not be written (the record may still be stored)
         self._abort_sent = False
         self.end_cause = None  # why the run was cut short ("terminated by SIGTERM"), for the records
+        self.slot = None  # the slot's name when the run is one of several at once (station.slots)
 
     def say(self, text):
         """A line of progress that is not a step's."""
@@ -200,14 +201,27 @@ def _preflight(plan, serial, ctx):
             test.dut_id = serial  # first: a refused drive's record still names it
         if ctx.aborted:
             raise PreflightError("aborted before the first step")
+        if ctx.slot is not None:
+            _name_the_slot(test, bus)
         bus.kind.preflight(test, bus, plan, serial, ctx)
-        # every kind's: the jig's counters from here, its safety net for the run, bus time from here
-        if plan.reset_jig_counters:
+        # every kind's: the jig's counters from here (a slot's: from the slots' start, reset once for
+        # all of them), its safety net for the run, bus time from here
+        if plan.reset_jig_counters and ctx.slot is None:
             bus.master.reset_counters(bus.jig_id)
         arm_safety_net(test, bus, ctx)
         bus.master.roundtrips.clear()
 
     return preflight
+
+
+def _name_the_slot(test, bus):
+    """A slot's record says its slot, and its plug's own settings where OpenHTF's copy of CONF
+    (``metadata["config"]``, shared by the slots' runs) would show another run's."""
+    md = test.test_record.metadata
+    md["slot"] = bus.conf("motorjig_slot")
+    config = md.get("config")
+    if isinstance(config, dict):
+        config.update({k: v for k, v in bus.settings.items() if isinstance(v, (str, int, float, bool, type(None)))})
 
 
 def choose_sampling(test, bus, plan):
@@ -247,8 +261,11 @@ def arm_safety_net(test, bus, ctx):
                                                    "action": net.action}
 
 
-def build_test(plan, ctx, operator=None):
+def build_test(plan, ctx, operator=None, plug=None):
+    """The plan's OpenHTF test; ``plug``: the run's own subclass of MotorJigPlug (``for_run``)."""
     phases = [build_phase(step, plan, ctx) for step in plan.steps]
+    if plug is not None:
+        phases = [ph.with_plugs(bus=plug) for ph in phases]
     # OpenHTF reads its own flags from sys.argv here (-v, --config-file, ...): jigctl's are not for it
     argv, sys.argv = sys.argv, sys.argv[:1]
     try:
@@ -265,10 +282,12 @@ def _base_name(record, plan):
     # milliseconds too: two runs of one DUT within a second must not overwrite each other's files
     when = time.strftime("%Y%m%d-%H%M%S", time.localtime(ms / 1000.0)) + "-%03d" % (ms % 1000)
     safe = lambda t: re.sub(r"[^A-Za-z0-9._-]+", "-", str(t)).strip("-") or "x"  # noqa: E731
-    return "%s_%s_%s" % (safe(plan.name), safe(record.get("dut_id") or "unknown"), when)
+    slot = record.get("metadata", {}).get("slot")
+    dut = safe(record.get("dut_id") or "unknown") + ("_slot" + safe(slot) if slot is not None else "")
+    return "%s_%s_%s" % (safe(plan.name), dut, when)
 
 
-def _writer(ctx, out_dir, db=None):
+def _writer(ctx, out_dir, db=None, db_lock=None):
     ctx.run_id = ctx.store_error = None
     ctx.write_errors = []
 
@@ -292,7 +311,11 @@ def _writer(ctx, out_dir, db=None):
             except Exception as exc:  # OpenHTF would only log it: the caller must see it
                 ctx.write_errors.append("%s: %s" % (path, exc))
         if db is not None:
-            _store(ctx, db, record)
+            if db_lock is None:
+                _store(ctx, db, record)
+            else:  # the slots' runs share one database connection
+                with db_lock:
+                    _store(ctx, db, record)
 
     return write
 
@@ -336,14 +359,19 @@ def _store(ctx, db, record):
 
 def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, out_dir=".", out=print,
              confirm=None, timeout_ms=100, on_event=None, on_start=None, db=None, safety_window_ms=1000,
-             can_port=None, **more_ports):
+             can_port=None, slot=None, **more_ports):
     """Run ``plan`` on the drive behind ``port`` (the jig's PC port); a kind whose drive is on another
     port gets it by its key in ``DriveKind.ports`` (``can_port``: the jig's SLCAN port, and the other
     kinds' keys in ``more_ports``); returns the RunContext (``record``, ``files``).
-    ``db``: the results database to store the run in (None: none), see ``station.store``."""
+    ``db``: the results database to store the run in (None: none), see ``station.store``.
+    ``slot``: this run is one slot's of several at once (a ``station.slots.Shared``: its name, the
+    jig's connection, safety net and database lock the slots share); the caller handles signals."""
     ctx = RunContext(plan, out, confirm, on_event)
+    ctx.slot = slot.name if slot is not None else None
     kind = kinds.kind_of(plan)
     ports = dict(more_ports, port=port, baud=baud, timeout_ms=timeout_ms, can_port=can_port)
+    if slot is not None:
+        ports["master"] = slot.master  # what after_abort stops the axis through
     load = {"motorjig_port": port, "motorjig_baud": baud, "motorjig_slave": getattr(plan.drive, "slave", 2),
             "motorjig_jig_id": plan.drive.jig_id, "motorjig_timeout_ms": timeout_ms,
             "motorjig_on_end": plan.on_end, "motorjig_safety_window_ms": safety_window_ms,
@@ -353,19 +381,23 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
         if name not in CONF._declarations:
             CONF.declare(name, "a setting of %s drives (station.kinds: %s)" % (kind.title, kind.name))
     load.update(own)
-    if station:
+    if slot is not None:
+        load.update(motorjig_slot=slot.name, motorjig_master=slot.master, motorjig_safety_shared=slot.safety)
+    elif station:
         load["station_id"] = station
-    CONF.load(**load)
+    if slot is None:
+        CONF.load(**load)  # (the slots' runs leave CONF alone: each has its own plug settings)
     console_output.CLI_QUIET = True  # our own progress lines instead of OpenHTF's banner
-    test = build_test(plan, ctx, operator)
-    test.add_output_callbacks(_writer(ctx, out_dir, db))
+    plug = MotorJigPlug.for_run(load, ctx.slot or "run")
+    test = build_test(plan, ctx, operator, plug)
+    test.add_output_callbacks(_writer(ctx, out_dir, db, slot.db_lock if slot is not None else None))
     ctx.test = test
     if on_start is not None:  # the caller may abort from here on (ctx.abort)
         on_start(ctx)
     hook, threading.excepthook = threading.excepthook, _quiet_abort(threading.excepthook)
     handlers = _catch_signals(ctx)
     try:
-        test.execute(test_start=_preflight(plan, serial, ctx))
+        test.execute(test_start=_preflight(plan, serial, ctx).with_plugs(bus=plug))
     except KeyboardInterrupt:
         pass  # OpenHTF has aborted the run, torn the plug down and written the record
     except BaseException as exc:  # the engine itself failed: the axis is made safe all the same
