@@ -15,6 +15,7 @@ simulated kinds (``sim.kinds.EXTRA_BUSES``) add their own options and run beside
 """
 
 import argparse
+import os
 import signal
 import subprocess
 import sys
@@ -162,6 +163,9 @@ def parse_args(argv):
     ap.add_argument("--wiring", metavar="FILE",
                     help="wire the jig's relays and inputs to a drive's I/O: a TOML file with a [wiring] table"
                          " (slave = N: a Plus-R drive of --drivers; node = N: a CiA 402 node of --can-nodes)")
+    ap.add_argument("--slots", metavar="FILE",
+                    help="wire a multi-up fixture: a slots file (jigctl test --slots), each slot's wiring to its "
+                         "drive (its drives are added to --drivers / --can-nodes); not with --wiring")
     ap.add_argument("--fault", action="append", default=[], metavar="SPEC",
                     help="make a drive fail: [ID:]NAME[=VALUE], repeatable (the list below)")
     return ap.parse_args(argv)
@@ -171,6 +175,10 @@ def check_setup(args):
     """The wiring and the faults of the command line: (wiring or None, [(id, name, value)]).
     ValueError with a one-line message for the user."""
     wiring = None
+    if getattr(args, "slots", None):
+        if args.wiring:
+            raise ValueError("--slots wires every slot's position: give it or --wiring, not both")
+        wiring = slot_wirings(args)
     if args.wiring:
         try:
             wiring = load_wiring(args.wiring)
@@ -211,9 +219,50 @@ def check_setup(args):
     return wiring, faults
 
 
+def slot_wirings(args):
+    """The wirings of a slots file's slots, each to its slot's drive (added to --drivers or
+    --can-nodes); ValueError with one sentence."""
+    from ..tomlsource import SourceError, read_toml
+    from ..wiring import parse_wiring
+
+    try:
+        data, _lines, _raw = read_toml(args.slots)
+    except SourceError as exc:
+        raise ValueError("--slots: %s" % exc) from None
+    here = os.path.dirname(os.path.abspath(args.slots))
+    wirings = []
+    for i, slot in enumerate(data.get("slot") or ()):
+        slave, node = slot.get("slave"), slot.get("node_id")
+        if isinstance(slave, int) and slave not in args.drivers:
+            ver8 = args.drivers.ver8
+            args.drivers = DriverSpec(tuple(args.drivers) + (slave,))
+            args.drivers.ver8 = ver8
+        if isinstance(node, int) and node not in args.can_nodes:
+            args.can_nodes = tuple(args.can_nodes) + (node,)
+        if "wiring" not in slot:
+            continue
+        path = os.path.join(here, str(slot["wiring"]))
+        try:
+            table = read_toml(path)[0].get("wiring")
+            if table is None:
+                raise ValueError("%s has no [wiring] table" % path)
+            wirings.append(parse_wiring(table, path, default_slave=slave if isinstance(slave, int) else None,
+                                        default_node=node if isinstance(node, int) else None))
+        except (SourceError, ValueError) as exc:
+            raise ValueError("--slots: slot[%d]: %s" % (i, exc)) from None
+    if not wirings and not data.get("slot"):
+        raise ValueError("--slots: %s has no [[slot]] tables" % args.slots)
+    return wirings or None
+
+
 def describe_setup(sim, out=print):
     """Print the bench's wiring and the faults that are on."""
-    if sim.wiring is None:
+    if len(sim.wirings) > 1:
+        for w in sim.wirings:
+            out("  wiring (%s): %s" % (w.source, w.drive))
+            for line in w.describe() or ["(no wires)"]:
+                out("    " + line)
+    elif sim.wiring is None:
         out("  wiring: none")
     else:
         if sim.wired_node is not None:

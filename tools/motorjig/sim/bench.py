@@ -271,6 +271,7 @@ class SimBench:
         self.wiring = None  # the first wiring (the bench's only one unless a multi-up fixture)
         self.wired_slave = None
         self._input_sources = []
+        self.wirings = []  # every fixture position's wiring
         self.wired_node = None
         self._make_can(can_nodes, can_bitrate, can_node_factory, bool(can) or direct_can, direct or direct_can)
         if direct:
@@ -328,6 +329,7 @@ class SimBench:
             return
         if not isinstance(wiring, Wiring):
             wiring = load_wiring(wiring)
+        self.wirings.append(wiring)
         if wiring.node is not None:
             self._connect_node(wiring)
             return

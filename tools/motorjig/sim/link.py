@@ -191,6 +191,7 @@ class Bus:
         self.lost = 0  # bytes sent with DE low
         self.corrupted = 0  # transmissions changed by Node.corrupt
         self.unheard = 0  # bytes a receiver missed because its own DE was up (/RE tied to DE)
+        self.busy_us = 0.0  # wire time of every byte sent (the bus load over a span: its growth / the span)
         self.monitor = None  # optional fn(segment, delivered bytes) for tests
 
     def set_baud(self, baud):
@@ -229,6 +230,7 @@ class Bus:
         if data:
             node.last_byte = data[-1]
         seg = Segment(node, t0, self.bt, data)
+        self.busy_us += len(data) * self.bt
         node.tx_until = seg.end
         self.in_flight.append(seg)
         if node.auto_de:

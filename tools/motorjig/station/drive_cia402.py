@@ -151,8 +151,9 @@ class Cia402Drive(Drive):
     protocol = "cia402"
     emergency_words = "quick stop, disable voltage"
 
-    def __init__(self, url, node_id, bitrate, od, master=None, jig_id=1, period=None, on_sync=False):
+    def __init__(self, url, node_id, bitrate, od, master=None, jig_id=1, period=None, on_sync=False, links=None):
         self.url, self.node_id, self.bitrate, self.od = url, node_id, bitrate, od
+        self.links = links  # the slots' shared connections (station.slots.Links): one CAN network per port
         self.master, self.jig_id = master, jig_id
         self.label = "node %d" % node_id
         self.network = self.node = None
@@ -180,14 +181,10 @@ class Cia402Drive(Drive):
     def open(self, require_node=True):
         """Open the port and prepare the node (see the module's doc); PortError / JigError if the
         port is not the jig's SLCAN port or the node does not answer."""
-        canport.probe(self.url)
-        try:
-            bus = StampedSlcanBus(channel=self.url, bitrate=self.bitrate, sleep_after_open=canport.SLEEP_AFTER_OPEN_S)
-        except (can.CanError, OSError, ValueError) as exc:
-            raise PortError("cannot open %s as an SLCAN port: %s" % (self.url, exc)) from None
-        self.network = canopen.Network(bus)
-        self.network.NOTIFIER_CYCLE = canport.NOTIFIER_CYCLE_S
-        self.network.connect()
+        if self.links is not None:  # several slots' nodes on one port: one network, opened by the first
+            self.network = self.links.take(("can", self.url), self._open_network)
+        else:
+            self.network = self._open_network()
         n = self.node_id
         node = self.node = canopen.BaseNode402(n, self.od)
         self.network.add_node(node)
@@ -200,6 +197,17 @@ class Cia402Drive(Drive):
         self.network.subscribe(0x380 + n, self._on_tpdo3)
         if require_node:
             self.connect_node()
+
+    def _open_network(self):
+        canport.probe(self.url)
+        try:
+            bus = StampedSlcanBus(channel=self.url, bitrate=self.bitrate, sleep_after_open=canport.SLEEP_AFTER_OPEN_S)
+        except (can.CanError, OSError, ValueError) as exc:
+            raise PortError("cannot open %s as an SLCAN port: %s" % (self.url, exc)) from None
+        network = canopen.Network(bus)
+        network.NOTIFIER_CYCLE = canport.NOTIFIER_CYCLE_S
+        network.connect()
+        return network
 
     def connect_node(self, wait_s=0.0):
         """The node answers at its id (asked again for up to ``wait_s``: a node just given its id
@@ -263,11 +271,22 @@ class Cia402Drive(Drive):
             except (can.CanError, OSError, ValueError) as exc:
                 _LOG.error("resetting node %d's communication failed: %s", self.node_id, exc)
         net, self.network = self.network, None
-        if net is not None:
+        if net is None:
+            return
+        if self.links is None:
+            _disconnect(net)
+            return
+        n = self.node_id  # the network stays the other slots': only this node's callbacks leave it
+        for can_id, callback in ((0x700 + n, self._on_heartbeat), (0x580 + n, self._on_sdo_reply),
+                                 (0x180 + n, self._on_tpdo1), (0x280 + n, self._on_tpdo2),
+                                 (0x380 + n, self._on_tpdo3)):
             try:
-                net.disconnect()
-            except (can.CanError, OSError, ValueError):
+                net.unsubscribe(can_id, callback)
+            except (KeyError, ValueError):
                 pass
+        if n in net:
+            del net[n]
+        self.links.give_back(("can", self.url), _disconnect)
 
     # --- frames in (python-canopen's notifier thread) ----------------------------------------
     def _on_emcy(self, entry):
@@ -572,6 +591,13 @@ class Cia402Drive(Drive):
             except Exception as exc:  # a dead node or a closed port: try the next action anyway
                 problems.append("%s: %s" % (what, exc))
         return problems
+
+
+def _disconnect(network):
+    try:
+        network.disconnect()
+    except (can.CanError, OSError, ValueError):
+        pass
 
 
 def make_safe_on(url, node_id, bitrate, od):

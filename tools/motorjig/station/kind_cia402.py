@@ -132,8 +132,6 @@ class Cia402Kind(DriveKind):
     # --- the run ----------------------------------------------------------------------------------
     ports = (("can_port", "--can-port", "the jig's SLCAN port"),)
     address_key = "node_id"
-    one_slot_per_port = ("a CiA 402 run opens the jig's SLCAN port for its own node: two CiA 402 slots on one "
-                         "CAN port are not supported yet")
 
     def before_run(self, ports):
         import logging
@@ -165,7 +163,8 @@ class Cia402Kind(DriveKind):
         if not conf("motorjig_can_port"):
             raise JigError("no CAN port: set motorjig_can_port (jigctl test --can-port ...)")
         d = Cia402Drive(conf("motorjig_can_port"), conf("motorjig_node_id"), conf("motorjig_bitrate"),
-                        object_dictionary(conf("motorjig_eds")), plug.master, conf("motorjig_jig_id"))
+                        object_dictionary(conf("motorjig_eds")), plug.master, conf("motorjig_jig_id"),
+                        links=conf("motorjig_links"))
         try:
             d.open(require_node=not conf("motorjig_lss"))  # an lss step first: the node has no id yet
         except BaseException:
@@ -213,9 +212,11 @@ class Cia402Kind(DriveKind):
                                                  "dated_by": "jig"}
 
     def after_abort(self, plan, ports):
-        """Quick stop and disable voltage once more, on a CAN connection of its own."""
+        """Quick stop and disable voltage once more, on a CAN connection of its own (not for a slot's
+        run: the plug's tearDown did it through the slots' network, and a connection of its own would
+        take the jig's one SLCAN session from the other slots)."""
         from motorjig.station.drive_cia402 import make_safe_on
-        if ports.get("can_port"):
+        if ports.get("can_port") and ports.get("master") is None:
             make_safe_on(ports["can_port"], plan.drive.node_id, plan.drive.bitrate,
                          getattr(plan.drive, "od", None) or object_dictionary(getattr(plan.drive, "eds", None)))
 

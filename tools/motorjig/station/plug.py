@@ -71,6 +71,8 @@ for _name, _doc, _default in (
         ("motorjig_slot", "a slot's run: the slot's name (station.slots; None: not a slot)", None),
         ("motorjig_master", "a slot's run: the jig's connection the slots share (a TimedMaster; None: the run's own)",
          None),
+        ("motorjig_links", "a slot's run: the connections the slots share on a kind's own port (station.slots.Links)",
+         None),
         ("motorjig_safety_shared", "a slot's run: the slots' one SharedSafetyNet (None: the run's own SafetyNet)",
          None)):
     if _name not in CONF._declarations:  # a re-import (tests) must not declare twice

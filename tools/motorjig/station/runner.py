@@ -382,7 +382,8 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
             CONF.declare(name, "a setting of %s drives (station.kinds: %s)" % (kind.title, kind.name))
     load.update(own)
     if slot is not None:
-        load.update(motorjig_slot=slot.name, motorjig_master=slot.master, motorjig_safety_shared=slot.safety)
+        load.update(motorjig_slot=slot.name, motorjig_master=slot.master, motorjig_safety_shared=slot.safety,
+                    motorjig_links=slot.links)
     elif station:
         load["station_id"] = station
     if slot is None:

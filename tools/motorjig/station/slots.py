@@ -191,12 +191,42 @@ def overall(verdicts):
     return {runner.EXIT_PASS: "PASS", runner.EXIT_FAIL: "FAIL"}.get(exit_code(verdicts), "ERROR")
 
 
+class Links:
+    """Connections the slots' runs share on a kind's own port (one CAN network for every CiA 402
+    slot on the jig's SLCAN port): the first run to ``take`` a key opens it, the last to
+    ``give_back`` closes it."""
+
+    def __init__(self):
+        self._open = {}
+        self._lock = threading.Lock()
+
+    def take(self, key, opener):
+        with self._lock:
+            entry = self._open.get(key)
+            if entry is None:
+                entry = self._open[key] = [opener(), 0]
+            entry[1] += 1
+            return entry[0]
+
+    def give_back(self, key, closer):
+        with self._lock:
+            entry = self._open.get(key)
+            if entry is None:
+                return
+            entry[1] -= 1
+            if entry[1] > 0:
+                return
+            del self._open[key]
+        closer(entry[0])
+
+
 class Shared:
     """What the runs of the slots share (``run_plan(..., slot=...)``): the slot's ``name``, the
-    jig's connection ``master``, its safety net ``safety`` (None: not armed) and ``db_lock``."""
+    jig's connection ``master``, its safety net ``safety`` (None: not armed), the kinds' port
+    connections ``links`` and ``db_lock``."""
 
-    def __init__(self, name, master, safety, db_lock):
-        self.name, self.master, self.safety, self.db_lock = name, master, safety, db_lock
+    def __init__(self, name, master, safety, db_lock, links):
+        self.name, self.master, self.safety, self.db_lock, self.links = name, master, safety, db_lock, links
 
 
 class SlotRun:
@@ -251,8 +281,8 @@ class SlotRun:
                                          servo_off=any(s.plan.on_end != "none" for s in self.slots))
             if self.station:
                 configuration.CONF.load(station_id=self.station)
-            db_lock = threading.Lock()
-            workers = [threading.Thread(target=self._run_slot, args=(s, Shared(s.name, master, safety, db_lock)),
+            db_lock, links = threading.Lock(), Links()
+            workers = [threading.Thread(target=self._run_slot, args=(s, Shared(s.name, master, safety, db_lock, links)),
                                         name="motorjig-slot-%s" % s.name, daemon=True) for s in self.slots]
             handlers = runner._catch_signals(self)
             try:

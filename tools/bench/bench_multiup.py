@@ -1,0 +1,158 @@
+"""Multi-up benchmark (part of `make bench`): drives tested per hour with 1, 2 and 4 slots.
+
+Each line runs its plan in 1, 2 and 4 slots at once on the real-time virtual bench (the
+jig's firmware modules on CPython, simulated healthy drives wired as the slots files in
+plans/multiup/ say), through ``station.slots.SlotRun`` as ``jigctl test --slots`` does:
+
+* ``ezi-step-eol`` on Plus-R drives (slaves 2-5) at 115 200 and 921 600 baud,
+* ``cia402-eol`` on CiA 402 drives (nodes 5-8) at 500 kbit/s and 1 Mbit/s,
+* the mixed set: 2 Plus-R + 2 CiA 402 (ezi-step-eol and cia402-eol) at 115 200 baud and
+  500 kbit/s.
+
+For each: the wall time of the group, drives per hour (slots x 3600 / wall), the speed-up
+over one slot (goal: >= 3.5x with 4 slots where the plan is motion-bound), the verdicts, the
+load of the driver bus (RS-485) and of the CAN bus over the group (their wire time / the
+wall time), the trace rate each slot's moves got (the lowest and the mean of the
+``sample_rate`` measurements), and the engine's time per step (a slot's run time less its
+steps' time, over its steps). Prints figures, asserts nothing.
+"""
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+for sub in ("firmware", "tools"):
+    p = os.path.join(ROOT, sub)
+    if p not in sys.path:
+        sys.path.insert(0, p)
+
+from motorjig.sim import Bench  # noqa: E402
+from motorjig.station import slots as SL  # noqa: E402
+from motorjig.station.plan import load_plan  # noqa: E402
+from motorjig.tomlsource import read_toml  # noqa: E402
+
+PLANS = os.path.join(ROOT, "plans")
+MULTIUP = os.path.join(PLANS, "multiup")
+EOL = os.path.join(PLANS, "ezi-step-eol.toml")
+EOL402 = os.path.join(PLANS, "cia402-eol.toml")
+SMOKE = os.path.join(PLANS, "smoke.toml")
+
+
+def fixture(name):
+    path = os.path.join(MULTIUP, name)
+    return read_toml(path)[0]["wiring"], path
+
+
+def plusr_slot(i, plan=EOL):
+    """Slot i (0..3) of the 4-up Plus-R fixture: slave 2 + i, fixture position i + 1."""
+    wiring = fixture("fixture-%d.toml" % (i + 1)) if load_plan(plan).wiring is not None else None
+    return SL.Slot(i + 1, load_plan(plan, address={"slave": 2 + i}, wiring=wiring))
+
+
+def cia402_slot(i, bitrate, position=None):
+    """Slot i of the CiA 402 fixture: node 5 + i at ``bitrate``, fixture position ``position`` (i + 1)."""
+    position = i + 1 if position is None else position
+    plan = load_plan(EOL402, address={"node_id": 5 + i, "bitrate": bitrate},
+                     wiring=fixture("fixture-402-%d.toml" % position))
+    return SL.Slot(position, plan)
+
+
+def run_group(slots, baud=115200, bitrate=500000):
+    """The slots at once on a fresh bench: (wall s, {slot: RunContext}, {slot: error}, RS-485 load, CAN load)."""
+    drivers = tuple(s.plan.drive.slave for s in slots if hasattr(s.plan.drive, "slave")) or (2,)
+    nodes = tuple(s.plan.drive.node_id for s in slots if hasattr(s.plan.drive, "node_id"))
+    wirings = [s.plan.wiring for s in slots if s.plan.wiring is not None] or None
+    with tempfile.TemporaryDirectory() as out, \
+            Bench(driver_ids=drivers, baud=baud, pty=False, can_nodes=nodes, can_bitrate=bitrate,
+                  wiring=wirings) as b:
+        run = SL.SlotRun(slots, b.tcp_url, baud=baud, out_dir=out, out=None, confirm=lambda m: True,
+                         timeout_ms=300, db=None, can_port=b.slcan_url if nodes else None)
+        rs485_0 = b.sim.down_bus.busy_us
+        can_0 = b.sim.can_bus.busy_us if nodes else 0.0
+        t0, sim0 = time.monotonic(), b.sim.clock.now
+        ctxs = run.run()
+        wall, span_us = time.monotonic() - t0, b.sim.clock.now - sim0
+        rs485 = (b.sim.down_bus.busy_us - rs485_0) / span_us
+        can = (b.sim.can_bus.busy_us - can_0) / span_us if nodes else None
+    return wall, ctxs, run.errors, rs485, can
+
+
+def verdicts(slots, ctxs, errors):
+    return [SL.summary(s, ctxs.get(s.name), errors.get(s.name))["verdict"] for s in slots]
+
+
+def trace_rates(ctxs):
+    """The sample_rate of every move step of every slot (Hz)."""
+    rates = []
+    for ctx in ctxs.values():
+        for ph in (ctx.record or {}).get("phases", []):
+            m = ph.get("measurements", {}).get("sample_rate")
+            if m and isinstance(m.get("measured_value"), (int, float)):
+                rates.append(m["measured_value"])
+    return rates
+
+
+def engine_per_step_ms(ctxs):
+    """A slot's run time less its steps' own time, over its steps (ms), the mean over the slots."""
+    out = []
+    for ctx in ctxs.values():
+        r = ctx.record or {}
+        if not ctx.timings or "end_time_millis" not in r:
+            continue
+        span = (r["end_time_millis"] - r["start_time_millis"]) / 1000.0
+        out.append((span - sum(dt for _n, dt, _b in ctx.timings)) / len(ctx.timings) * 1000.0)
+    return statistics.mean(out) if out else float("nan")
+
+
+ALONE = {}  # plan name -> wall s of one slot (the mixed set's speed-up is over running its plans one by one)
+
+
+def line(title, make_slots, counts, baud=115200, bitrate=500000):
+    print("\n%s" % title)
+    print("  %5s %7s %9s %8s %-24s %7s %7s %14s %10s" % ("slots", "wall s", "drives/h", "speed-up", "verdicts",
+                                                       "RS-485", "CAN", "trace Hz min/mean", "engine/step"))
+    base = None
+    for n in counts:
+        slots = make_slots(n)
+        wall, ctxs, errors, rs485, can = run_group(slots, baud, bitrate)
+        per_hour = n * 3600.0 / wall
+        if n == 1:
+            ALONE.setdefault(slots[0].plan.name, wall)
+        one_by_one = sum(ALONE.get(s.plan.name, float("nan")) for s in slots)
+        base = base or (per_hour / n if n == 1 else n * 3600.0 / one_by_one)
+        rates = trace_rates(ctxs)
+        vs = verdicts(slots, ctxs, errors)
+        print("  %5d %7.1f %9.0f %7.2fx %-24s %6.0f%% %7s %14s %8.0f ms" % (
+            n, wall, per_hour, per_hour / base, " ".join(vs), rs485 * 100,
+            "%.0f%%" % (can * 100) if can is not None else "-",
+            "%.0f / %.0f" % (min(rates), statistics.mean(rates)) if rates else "-", engine_per_step_ms(ctxs)))
+        for s in slots:
+            if s.name in errors:
+                print("        slot %s: %s" % (s.name, errors[s.name]))
+            elif ctxs.get(s.name) is not None and SL.summary(s, ctxs[s.name])["verdict"] not in ("PASS",):
+                print("        %s: %s" % (s.describe(), "; ".join(SL.summary(s, ctxs[s.name])["details"])[:160]))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smoke.toml in 1 and 2 slots at 115 200 baud only")
+    args = ap.parse_args(argv)
+    if args.quick:
+        line("smoke (quick mode), Plus-R, 115 200 baud", lambda n: [plusr_slot(i, SMOKE) for i in range(n)], (1, 2))
+        return 0
+    for baud in (115200, 921600):
+        line("ezi-step-eol, Plus-R, %d baud" % baud, lambda n: [plusr_slot(i) for i in range(n)], (1, 2, 4), baud=baud)
+    for bitrate in (500000, 1000000):
+        line("cia402-eol, CiA 402, %d kbit/s" % (bitrate // 1000), lambda n, br=bitrate: [
+            cia402_slot(i, br) for i in range(n)], (1, 2, 4), bitrate=bitrate)
+    line("mixed: 2 ezi-step-eol (Plus-R) + 2 cia402-eol (CiA 402), 115 200 baud, 500 kbit/s",
+         lambda n: [plusr_slot(0), plusr_slot(1), cia402_slot(0, 500000, 3), cia402_slot(1, 500000, 4)], (4,))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
