@@ -6,7 +6,9 @@ the same answers from both. Yield and Cpk are checked against numbers worked out
 hand below; two stations writing 200 runs each at the same moment lose nothing and
 mix nothing; a database of an older schema version is upgraded (or refused when no
 upgrade is known), a newer one is refused and left as it was; ``jigctl test`` stores
-each run, and a run whose storing fails still has its files and says so.
+each run, and a run whose storing fails still has its files and says so. A multi-up
+station's runs keep their slot, and yield and Cpk per slot are checked against numbers
+worked out by hand too; a database of schema version 1 (before slots) is upgraded in place.
 """
 
 import datetime
@@ -399,6 +401,209 @@ def test_jigctl_results_import_stores_records_once(tmp_path, capsys):
         assert st.run(2)["files"] == {"html": str(tmp_path / "rec1.html"), "json": paths[1]}
 
 
+# --- multi-up: the runs of a fixture's slots ---------------------------------------------------------
+#
+# Plan "multi" on station "mu1", four cycles of a two-slot fixture (both slots start in the same
+# millisecond) and one run from before multi-up (no slot). Slot 2 has a bad contact: worse yield,
+# a wider torque spread.
+#
+#   slot  runs (cycle 0..3)            torque          runs pass fail error  yield
+#   1     PASS  PASS  PASS  FAIL       10 11  9 10     4    3    1    0      0.75
+#   2     PASS  FAIL  ERROR FAIL        8 12  6 14     4    1    2    1      0.25
+#   -     PASS (the earlier run)       10              1    1    0    0      1.0
+#
+# torque, limits 5 <= x <= 15 (Cpk = 5 / 3 sigma, every mean is 10):
+#   slot 1: squares 0+1+1+0 = 2, variance 2/3, sigma 0.816496580927726, Cpk 2.041241452319315
+#   slot 2: squares 4+4+16+16 = 40, variance 40/3, sigma 3.6514837167011076, Cpk 0.45643546458763845
+#   no slot: n 1, no sigma, no Cpk; all 9: squares 42, variance 42/8, sigma 2.29128784747792,
+#   Cpk 0.727392967453308. Each run is its own DUT: first-pass yield 5/9, runs of slot 2's DUTs 1/4.
+MULTI = [  # cycle, slot, dut, verdict, torque
+    (0, "1", "S1-0", "PASS", 10), (0, "2", "S2-0", "PASS", 8),
+    (1, "1", "S1-1", "PASS", 11), (1, "2", "S2-1", "FAIL", 12),
+    (2, "1", "S1-2", "PASS", 9), (2, "2", "S2-2", "ERROR", 6),
+    (3, "1", "S1-3", "FAIL", 10), (3, "2", "S2-3", "FAIL", 14),
+]
+SLOT_YIELD = [{"slot": "1", "runs": 4, "pass": 3, "fail": 1, "error": 0, "yield": 0.75},
+              {"slot": "2", "runs": 4, "pass": 1, "fail": 2, "error": 1, "yield": 0.25},
+              {"slot": None, "runs": 1, "pass": 1, "fail": 0, "error": 0, "yield": 1.0}]
+SLOT_TORQUE = {"1": (4, 10.0, 0.816496580927726, 2.041241452319315),  # n, mean, sigma, Cpk
+               "2": (4, 10.0, 3.6514837167011076, 0.45643546458763845),
+               None: (1, 10.0, None, None)}
+
+
+def multi_records():
+    out = []
+    for cycle, slot, dut, verdict, torque in MULTI:
+        rec = record(dut, verdict, T0_MS + cycle * 60000, [
+            ("identify", [meas("slave_name", "Ezi-STEP Plus-R")]),
+            ("move", [meas("torque", torque, ["5 <= x <= 15"], "N·cm")])], plan="multi", station="mu1")
+        rec["metadata"]["slot"] = slot
+        out.append(rec)
+    out.append(record("U1", "PASS", T0_MS - 3600000, [("move", [meas("torque", 10, ["5 <= x <= 15"], "N·cm")])],
+                      plan="multi", station="mu1"))  # the station before it was multi-up: no "slot"
+    return out
+
+
+def test_a_run_keeps_its_slot(db):
+    recs = multi_records()
+    with S.open_store(db) as st:
+        one = st.add_run(recs[3])  # S2-1, slot "2"
+        ids = st.add_runs(recs)    # the same run again keeps its id
+        assert ids[3] == one and len(set(ids)) == 9
+        assert st.run(one)["slot"] == "2" and st.run(ids[-1])["slot"] is None
+        assert {r["dut"]: r["slot"] for r in st.runs(limit=0)} == dict(
+            [(dut, slot) for _, slot, dut, _, _ in MULTI] + [("U1", None)])
+        # both slots of a cycle started in the same millisecond: two runs, not one
+        assert [r["dut"] for r in st.runs(slot="2", limit=0)] == ["S2-3", "S2-2", "S2-1", "S2-0"]
+        assert [r["dut"] for r in st.runs(slot="1", verdict="FAIL")] == ["S1-3"]
+        assert st.slots() == {"1": 4, "2": 4} and st.slots(plan="eol") == {}
+        # what a record may carry as its slot: text as it is (trimmed), a number as text, nothing as no slot
+        for value, kept in ((" A3 ", "A3"), (10, "10"), ("", None), (None, None)):
+            rec = record("X-%r" % (value,), "PASS", T0_MS + 7, [("move", [])], plan="odd")
+            rec["metadata"]["slot"] = value
+            assert st.run(st.add_run(rec))["slot"] == kept, value
+        assert list(st.slots()) == ["1", "2", "10", "A3"]  # by number, then by name
+    assert sorted(["A10", "B1", "10", "2", "A3", None, "1"], key=S.slot_key) == ["1", "2", "10", "A3", "A10", "B1",
+                                                                                  None]
+
+
+def test_yield_and_cpk_per_slot_against_the_numbers_worked_out_by_hand(db):
+    with S.open_store(db) as st:
+        for rec in multi_records():
+            st.add_run(rec)
+        assert st.yield_by_slot("multi") == SLOT_YIELD
+        assert st.yield_by_slot("multi", slot="2") == SLOT_YIELD[1:2]
+        # the whole as before; one slot's DUTs alone
+        y = st.yield_("multi")
+        assert (y["runs"], y["duts"], y["first_pass"], y["final_pass"]) == (9, 9, 5, 5) and "slot" not in y
+        assert st.yield_("multi", slot="2") == {"plan": "multi", "slot": "2", "runs": 4, "duts": 4, "first_pass": 1,
+                                                "final_pass": 1, "first_pass_yield": 0.25, "final_yield": 0.25}
+        (whole,) = st.stats("multi")
+        assert (whole["n"], whole["sigma"], whole["cpk"]) == (9, pytest.approx(2.29128784747792),
+                                                              pytest.approx(0.727392967453308))
+        per = st.stats_by_slot("multi")
+        assert [p["slot"] for p in per] == ["1", "2", None]
+        for p in per:
+            n, mean, sigma, cpk_ = SLOT_TORQUE[p["slot"]]
+            assert (p["step"], p["measurement"], p["unit"], p["low"], p["high"]) == ("move", "torque", "N·cm", 5, 15)
+            assert p["n"] == n and p["mean"] == pytest.approx(mean)
+            assert p["sigma"] == (None if sigma is None else pytest.approx(sigma, rel=1e-12))
+            assert p["cpk"] == (None if cpk_ is None else pytest.approx(cpk_, rel=1e-12))
+        assert (per[1]["min"], per[1]["max"]) == (6, 14)
+        (two,) = st.stats("multi", slot="2")
+        assert two == {k: v for k, v in per[1].items() if k != "slot"}
+        assert st.stats_by_slot("multi", slot="1") == per[:1]
+        assert st.stats_by_slot("eol") == [] and st.yield_by_slot("eol") == []
+
+
+def test_jigctl_results_by_slot_answers_the_same_from_sqlite_and_postgresql(pg, tmp_path, capsys):
+    paths = []
+    for k, rec in enumerate(multi_records()):
+        paths.append(str(tmp_path / ("m%d.json" % k)))
+        with open(paths[-1], "w") as f:
+            json.dump(rec, f)
+    answers = []
+    for d in (str(tmp_path / "mu.sqlite"), pg.create_database("mu")):
+        code, out, err = jigctl(capsys, "results", "--db", d, "import", *paths)  # add_runs carries the slot
+        assert code == 0, err
+        got = {}
+        for name, argv in [("yield", ["yield", "--plan", "multi", "--by", "slot"]),
+                           ("stats", ["stats", "--plan", "multi", "--by", "slot"]),
+                           ("yield2", ["yield", "--plan", "multi", "--slot", "2"]),
+                           ("stats2", ["stats", "--plan", "multi", "--slot", "2"]),
+                           ("list2", ["list", "--slot", "2"]), ("list_u", ["list", "--dut", "U1"]),
+                           ("show", ["show", "4"])]:
+            code, out, err = jigctl(capsys, "results", "--db", d, *argv, "--json")
+            assert code == 0 and err == "", (name, err)
+            doc = json.loads(out)
+            doc.pop("db", None)
+            doc.pop("stored", None)
+            code, text_out, err = jigctl(capsys, "results", "--db", d, *argv)
+            assert code == 0 and err == "", (name, err)
+            got[name] = (doc, text_out)
+        csv_path = str(tmp_path / ("mu%d.csv" % len(answers)))
+        code, out, err = jigctl(capsys, "results", "--db", d, "export", "--csv", csv_path, "--slot", "2")
+        assert code == 0, err
+        with open(csv_path, encoding="utf-8") as f:
+            got["csv"] = f.read()
+        code, out, err = jigctl(capsys, "results", "--db", d, "export", "--csv", "-", "--plan", "multi")
+        got["csv_all"] = out
+        answers.append(got)
+    sq, pq = answers
+    for name in sq:
+        if name.startswith("csv"):
+            assert sq[name] == pq[name], name
+        else:
+            same(sq[name][0], pq[name][0], name)
+            assert sq[name][1] == pq[name][1], name
+
+    y, text_y = sq["yield"]
+    assert y["by_slot"] == SLOT_YIELD and (y["runs"], y["duts"], y["first_pass"]) == (9, 9, 5)
+    rows = {line.split()[0]: line.split()[1:] for line in text_y.splitlines()[5:]}
+    assert rows["slot"] == ["runs", "pass", "fail", "error", "yield"]
+    assert rows["1"] == ["4", "3", "1", "0", "75.0", "%"] and rows["2"] == ["4", "1", "2", "1", "25.0", "%"]
+    assert rows["-"] == ["1", "1", "0", "0", "100.0", "%"] and rows["all"] == ["9", "5", "3", "1", "55.6", "%"]
+    assert "first-pass yield 55.6 % (5 of 9 DUTs passed the first run)" in " ".join(text_y.split())
+
+    stats, text_s = sq["stats"]
+    assert [(p["slot"], p["n"]) for p in stats["by_slot"]] == [("1", 4), ("2", 4), (None, 1)]
+    assert stats["by_slot"][1]["cpk"] == pytest.approx(0.45643546458763845)
+    lines = [ln.split() for ln in text_s.splitlines()]
+    assert lines[0] == ["step", "measurement", "slot", "n", "min", "mean", "max", "sigma", "LSL", "USL", "Cpk",
+                        "unit"]
+    assert lines[1:] == [["move", "torque", "all", "9", "6", "10", "14", "2.291", "5", "15", "0.727", "N·cm"],
+                         ["move", "torque", "1", "4", "9", "10", "11", "0.8165", "5", "15", "2.04", "N·cm"],
+                         ["move", "torque", "2", "4", "6", "10", "14", "3.651", "5", "15", "0.456", "N·cm"],
+                         ["move", "torque", "-", "1", "10", "10", "10", "-", "5", "15", "-", "N·cm"]]
+
+    assert sq["yield2"][0]["slot"] == "2" and sq["yield2"][0]["first_pass_yield"] == 0.25
+    assert "plan multi, slot 2: 4 DUTs, 4 runs" in sq["yield2"][1]
+    assert sq["stats2"][0]["slot"] == "2" and sq["stats2"][0]["stats"][0]["n"] == 4
+    assert sq["stats2"][1].splitlines()[1].split()[:3] == ["move", "torque", "4"]
+
+    # list: a slot column where a listed run has a slot, none where none has
+    assert [r["slot"] for r in sq["list2"][0]["runs"]] == ["2"] * 4
+    head = sq["list2"][1].splitlines()[0].split()
+    # (the start time is two words)
+    assert head[5:7] == ["station", "slot"] and all(ln.split()[7] == "2" for ln in sq["list2"][1].splitlines()[1:])
+    assert sq["list_u"][0]["runs"][0]["slot"] is None and "slot" not in sq["list_u"][1].splitlines()[0].split()
+    assert sq["show"][0]["slot"] == "2" and "dut S2-1, station mu1, slot 2, operator anna" in sq["show"][1]
+
+    # the CSV: the slot is the last column, empty for the run that was no slot
+    rows = [ln.split(",") for ln in sq["csv"].splitlines()]
+    assert rows[0][-1] == "slot" and len(rows) == 1 + 4 * 2 and {r[-1] for r in rows[1:]} == {"2"}
+    assert {r[5] for r in rows[1:]} == {"S2-0", "S2-1", "S2-2", "S2-3"}
+    by_dut = {r[5]: r[-1] for r in (ln.split(",") for ln in sq["csv_all"].splitlines()[1:])}
+    assert by_dut["U1"] == "" and by_dut["S1-0"] == "1"
+
+
+def test_jigctl_results_slot_errors_are_one_sentence(tmp_path, capsys):
+    d = str(tmp_path / "s.sqlite")
+    with S.open_store(d) as st:
+        st.add_runs(multi_records())
+    for argv, words in [(["list", "--slot", "9"], "no runs in slot '9' in %s (slots there: 1, 2)" % d),
+                        (["yield", "--plan", "multi", "--slot", "3"], "no runs in slot '3'"),
+                        (["stats", "--plan", "multi", "--by", "dut"], "argument --by: invalid choice: 'dut'"),
+                        (["yield", "--plan", "multi", "--slot", ""], "a slot is a fixture position's name"),
+                        (["export", "--csv", "-", "--slot", "a b"], "a slot is a fixture position's name")]:
+        code, out, err = jigctl(capsys, "results", "--db", d, *argv)
+        assert code == 2 and out == "" and words in err and "Traceback" not in err, (argv, err)
+        assert err.strip().splitlines()[-1].count(".") <= 2  # one sentence (argparse adds its usage above)
+    # a database that was never multi-up: every slot is unknown, and it says so
+    d2 = str(tmp_path / "k.sqlite")
+    store_known(d2)
+    code, out, err = jigctl(capsys, "results", "--db", d2, "list", "--slot", "1")
+    assert code == 2 and "(slots there: none, no run was a slot)" in err
+    # a known slot and a known plan that never met: an empty answer
+    with S.open_store(d) as st:
+        st.add_run(record("Z", "PASS", T0_MS, [("move", [])], plan="other", station="mu1"))
+    code, out, err = jigctl(capsys, "results", "--db", d, "yield", "--plan", "other", "--slot", "1", "--by", "slot")
+    assert code == 0 and "no runs of plan other in slot 1" in out, err
+    code, out, err = jigctl(capsys, "results", "--db", d, "--json", "stats", "--plan", "other", "--slot", "1",
+                            "--by", "slot")
+    assert code == 0 and json.loads(out) == {"plan": "other", "slot": "1", "stats": [], "by_slot": []}
+
+
 # --- two stations at once ---------------------------------------------------------------------------
 
 def station_record(station, code, i):
@@ -525,6 +730,47 @@ def test_an_older_database_is_upgraded_or_refused(db, monkeypatch):
         S.open_store(db)
 
 
+def make_version_1(db):
+    """Turn a database of this version back into what version 1 was: ``runs`` without the slot
+    column and its index (the one difference of version 2), the version says 1."""
+    eng = create_engine(S.resolve(db))
+    with eng.begin() as c:
+        c.execute(text("DROP INDEX runs_slot"))
+        c.execute(text("ALTER TABLE runs DROP COLUMN slot"))
+    eng.dispose()
+    set_version(db, 1)
+
+
+def runs_columns(db):
+    eng = create_engine(S.resolve(db))
+    with eng.connect() as c:
+        from sqlalchemy import inspect
+        cols = [col["name"] for col in inspect(c).get_columns("runs")]
+        indexes = {ix["name"] for ix in inspect(c).get_indexes("runs")}
+    eng.dispose()
+    return cols, indexes
+
+
+def test_a_version_1_database_is_upgraded_in_place_its_runs_no_slot(db, capsys):
+    assert S.SCHEMA_VERSION == 2
+    store_known(db)
+    make_version_1(db)
+    cols, indexes = runs_columns(db)
+    assert "slot" not in cols and "runs_slot" not in indexes
+    code, out, err = jigctl(capsys, "results", "--db", db, "list", "--limit", "1")  # a read upgrades it too
+    assert code == 0 and "slot" not in out.splitlines()[0], err
+    cols, indexes = runs_columns(db)
+    assert cols[-1] == "slot" and "runs_slot" in indexes
+    with S.open_store(db) as st:
+        assert st.schema_version() == 2
+        assert [r["slot"] for r in st.runs(limit=0)] == [None] * 9  # the old rows: not slots
+        assert st.yield_("eol")["first_pass"] == 2 and st.run(9)["slot"] is None
+        assert st.yield_by_slot("eol") == [{"slot": None, "runs": 9, "pass": 4, "fail": 4, "error": 1,
+                                            "yield": 4 / 9}]
+        ids = st.add_runs(multi_records())  # and new runs keep theirs
+        assert st.run(ids[0])["slot"] == "1" and st.yield_by_slot("multi") == SLOT_YIELD
+
+
 def test_a_failed_upgrade_leaves_the_old_database(tmp_path, monkeypatch):
     d = str(tmp_path / "u.sqlite")
     store_known(d)
@@ -535,7 +781,8 @@ def test_a_failed_upgrade_leaves_the_old_database(tmp_path, monkeypatch):
 
     monkeypatch.setattr(S, "SCHEMA_VERSION", S.SCHEMA_VERSION + 1)
     monkeypatch.setattr(S, "MIGRATIONS", {S.SCHEMA_VERSION - 1: broken})
-    with pytest.raises(S.StoreError, match="upgrading .* from schema version 1 to 2 failed .*power cut"):
+    with pytest.raises(S.StoreError, match="upgrading .* from schema version %d to %d failed .*power cut"
+                       % (S.SCHEMA_VERSION - 1, S.SCHEMA_VERSION)):
         S.open_store(d)
     eng = create_engine(S.resolve(d))
     with eng.connect() as c:

@@ -1,11 +1,15 @@
 """jigctl results: the station's results database (``motorjig.station.store``) on the command line.
 
-    jigctl results list   [--dut SN] [--plan NAME] [--verdict V] [--since DATE] [--until DATE] [--limit N]
+    jigctl results list   [--dut SN] [--plan NAME] [--slot S] [--verdict V] [--since DATE] [--until DATE] [--limit N]
     jigctl results show   RUN_ID
-    jigctl results yield  --plan NAME
-    jigctl results stats  --plan NAME
-    jigctl results export --csv FILE [--dut ...] [--plan ...] [--verdict ...] [--since ...] [--until ...]
+    jigctl results yield  --plan NAME [--slot S] [--by slot]
+    jigctl results stats  --plan NAME [--slot S] [--by slot]
+    jigctl results export --csv FILE [--dut ...] [--plan ...] [--slot ...] [--verdict ...] [--since ...] [--until ...]
     jigctl results import RECORD.json ...
+
+A multi-up station's runs each carry their slot (the fixture position): ``--slot S`` keeps
+that slot's runs, ``--by slot`` adds one row per slot to the whole (yield: runs, pass, fail,
+error, yield; stats: n, min, mean, max, sigma, Cpk of each measurement in each slot).
 
 Every subcommand takes ``--db PATH|URL`` (default ``$JIGCTL_DB``, else the SQLite file in
 the user's data folder) and ``--json`` (one JSON document instead of the text). Exit
@@ -13,7 +17,7 @@ status 0, or 2 with one sentence on stderr (bad input, no such run, a database t
 cannot be opened or is of another schema version).
 
 One rule for what is not there: a name the database does not know (``--plan``, ``--dut``,
-a run id) and a database that does not exist are errors (exit 2) in every subcommand;
+``--slot``, a run id) and a database that does not exist are errors (exit 2) in every subcommand;
 only ``import`` (and ``jigctl test``) create the database. Filters that are each known but
 match no run together (``--verdict``, ``--since``, ``--until``) are an empty answer (exit 0).
 """
@@ -29,6 +33,7 @@ EXIT_OK, EXIT_ERROR = 0, 2
 VERDICTS = ("PASS", "FAIL", "ERROR", "ABORTED", "TIMEOUT")
 DB_HELP = ("results database: a SQLite file or postgresql://USER@HOST/DB (default: $JIGCTL_DB, else "
            "~/.local/share/motorjig/results.sqlite)")
+SLOT_HELP = "only the runs of this slot (a multi-up fixture's position: 1, 2, A3 ...)"
 
 
 class Refused(Exception):
@@ -57,6 +62,13 @@ def _run_id(text):
     return v
 
 
+def _slot(text):
+    v = text.strip()
+    if not v or any(ch.isspace() for ch in v):
+        raise argparse.ArgumentTypeError("a slot is a fixture position's name such as 1, 2 or A3, not %r" % text)
+    return v
+
+
 def add_results_arguments(sp):
     """The ``results`` subcommands, on the parser jigctl made for ``results``."""
     sp.add_argument("--db", default=default_db(), metavar="PATH|URL", help=DB_HELP)
@@ -74,6 +86,7 @@ def add_results_arguments(sp):
     def filters(p):
         p.add_argument("--dut", help="only this DUT (serial number)")
         p.add_argument("--plan", help="only this plan (its name)")
+        p.add_argument("--slot", type=_slot, help=SLOT_HELP)
         p.add_argument("--verdict", type=_verdict, help="only runs with this verdict: " + ", ".join(VERDICTS))
         p.add_argument("--since", metavar="DATE", help="runs started on or after: YYYY-MM-DD, 'YYYY-MM-DD HH:MM' "
                                                        "(local time), today, yesterday, 7d, 12h")
@@ -84,10 +97,16 @@ def add_results_arguments(sp):
     p.add_argument("--limit", type=int, default=50, help="at most this many (default 50, 0: all)")
     p = add("show", "one run: its drive, files, steps and every measurement with its limits")
     p.add_argument("run_id", type=_run_id, metavar="RUN_ID", help="the run's id (jigctl results list)")
-    p = add("yield", "first-pass yield (a DUT's first run passed) and final yield (its last run passed)")
-    p.add_argument("--plan", required=True, help="the plan's name")
-    p = add("stats", "per step and measurement: n, min, mean, max, sigma and Cpk against the limits")
-    p.add_argument("--plan", required=True, help="the plan's name")
+
+    def by_slot(p, what):
+        p.add_argument("--plan", required=True, help="the plan's name")
+        p.add_argument("--slot", type=_slot, help=SLOT_HELP)
+        p.add_argument("--by", choices=["slot"], help="also " + what + " of each slot")
+
+    by_slot(add("yield", "first-pass yield (a DUT's first run passed) and final yield (its last run passed)"),
+            "runs, pass, fail, error and yield")
+    by_slot(add("stats", "per step and measurement: n, min, mean, max, sigma and Cpk against the limits"),
+            "the figures")
     p = add("export", "every measurement of the matching runs as CSV, one row each")
     p.add_argument("--csv", required=True, metavar="FILE", help="the CSV file to write ('-': standard output)")
     filters(p)
@@ -157,20 +176,31 @@ def _known_names(args, st):
     dut = getattr(args, "dut", None)
     if dut is not None and not st.runs(dut=dut, limit=1):
         raise Refused("no runs of DUT %r in %s" % (dut, st.name))
+    slot = getattr(args, "slot", None)
+    if slot is not None and not st.runs(slot=slot, limit=1):
+        raise Refused("no runs in slot %r in %s (slots there: %s)"
+                      % (slot, st.name, ", ".join(st.slots()) or "none, no run was a slot"))
 
 
 # --- the subcommands ---------------------------------------------------------------------------------
 
 def _filter_args(args):
-    return {"dut": args.dut, "plan": args.plan, "verdict": args.verdict, "since": args.since, "until": args.until}
+    return {"dut": args.dut, "plan": args.plan, "verdict": args.verdict, "since": args.since, "until": args.until,
+            "slot": args.slot}
+
+
+def _slot_text(slot):
+    return "-" if slot is None else slot
 
 
 def _list(args, st):
     _known_names(args, st)
     runs = st.runs(limit=args.limit, **_filter_args(args))
-    text = _table(["id", "start", "plan", "version", "dut", "station", "verdict", "time"],
-                  [[r["id"], _local(r["start_ms"]), r["plan"], r["plan_version"], r["dut"], r["station"] or "-",
-                    r["verdict"], "-" if r["seconds"] is None else "%.1f s" % r["seconds"]] for r in runs]) \
+    slots = any(r["slot"] is not None for r in runs)  # the column only where there are slots
+    text = _table(["id", "start", "plan", "version", "dut", "station"] + ["slot"] * slots + ["verdict", "time"],
+                  [[r["id"], _local(r["start_ms"]), r["plan"], r["plan_version"], r["dut"], r["station"] or "-"]
+                   + [_slot_text(r["slot"])] * slots
+                   + [r["verdict"], "-" if r["seconds"] is None else "%.1f s" % r["seconds"]] for r in runs]) \
         if runs else "no runs in %s match" % st.name
     _emit(args, {"db": st.name, "runs": runs}, text)
     return EXIT_OK
@@ -186,9 +216,9 @@ def _show(args, st):
     d = r["drive"]
     lines = ["run %d  %s %s (%s)  %s" % (r["id"], r["plan"], r["plan_version"], (r["plan_hash"] or "-")[:12],
                                          r["verdict"]),
-             "dut %s, station %s, operator %s, %s, %s" % (r["dut"], r["station"] or "-", r["operator"],
-                                                          _local(r["start_ms"]),
-                                                          "-" if r["seconds"] is None else "%.2f s" % r["seconds"])]
+             "dut %s, station %s%s, operator %s, %s, %s" % (
+                 r["dut"], r["station"] or "-", "" if r["slot"] is None else ", slot %s" % r["slot"], r["operator"],
+                 _local(r["start_ms"]), "-" if r["seconds"] is None else "%.2f s" % r["seconds"])]
     if d["slave"] is not None:
         from motorjig.station import kinds
 
@@ -211,25 +241,59 @@ def _show(args, st):
 
 def _yield(args, st):
     _known_names(args, st)
-    y = st.yield_(args.plan)
+    y = st.yield_(args.plan, slot=args.slot)
+    if not y["runs"]:  # a known plan and a known slot, but no run of the one in the other
+        if args.by == "slot":
+            y["by_slot"] = []
+        _emit(args, y, "no runs of plan %s in slot %s in %s" % (args.plan, args.slot, st.name))
+        return EXIT_OK
     pct = lambda f: "%.1f %%" % (100.0 * f)  # noqa: E731
-    text = "\n".join(["plan %s: %s, %s" % (y["plan"], _count(y["duts"], "DUT"), _count(y["runs"], "run")),
-                      "  first-pass yield  %7s  (%d of %s passed the first run)"
-                      % (pct(y["first_pass_yield"]), y["first_pass"], _count(y["duts"], "DUT")),
-                      "  final yield       %7s  (%d of %s passed the last run)"
-                      % (pct(y["final_yield"]), y["final_pass"], _count(y["duts"], "DUT"))])
-    _emit(args, y, text)
+    lines = ["plan %s%s: %s, %s" % (y["plan"], "" if args.slot is None else ", slot %s" % args.slot,
+                                    _count(y["duts"], "DUT"), _count(y["runs"], "run")),
+             "  first-pass yield  %7s  (%d of %s passed the first run)"
+             % (pct(y["first_pass_yield"]), y["first_pass"], _count(y["duts"], "DUT")),
+             "  final yield       %7s  (%d of %s passed the last run)"
+             % (pct(y["final_yield"]), y["final_pass"], _count(y["duts"], "DUT"))]
+    if args.by == "slot":
+        y["by_slot"] = rows = st.yield_by_slot(args.plan, slot=args.slot)
+        total = {k: sum(r[k] for r in rows) for k in ("runs", "pass", "fail", "error")}
+        lines += ["", "runs per slot (yield: the share of the slot's runs that passed; error: ERROR, TIMEOUT, "
+                      "ABORTED)",
+                  _table(["slot", "runs", "pass", "fail", "error", "yield"],
+                         [[_slot_text(r["slot"]), r["runs"], r["pass"], r["fail"], r["error"], pct(r["yield"])]
+                          for r in rows]
+                         + [["all", total["runs"], total["pass"], total["fail"], total["error"],
+                             pct(total["pass"] / total["runs"])]])]
+    _emit(args, y, "\n".join(lines))
     return EXIT_OK
 
 
 def _stats(args, st):
     _known_names(args, st)
-    rows = st.stats(args.plan)
-    text = _table(["step", "measurement", "n", "min", "mean", "max", "sigma", "LSL", "USL", "Cpk", "unit"],
-                  [[s["step"], s["measurement"], s["n"], _num(s["min"]), _num(s["mean"]), _num(s["max"]),
-                    _num(s["sigma"], 4), _num(s["low"]), _num(s["high"]), _num(s["cpk"], 3), s["unit"] or ""]
-                   for s in rows]) if rows else "plan %s has no numeric measurements" % args.plan
-    _emit(args, {"plan": args.plan, "stats": rows}, text)
+    rows = st.stats(args.plan, slot=args.slot)
+    doc = {"plan": args.plan, "stats": rows}
+    if args.slot is not None:
+        doc["slot"] = args.slot
+    head = ["step", "measurement", "n", "min", "mean", "max", "sigma", "LSL", "USL", "Cpk", "unit"]
+    figures = lambda s: [s["n"], _num(s["min"]), _num(s["mean"]), _num(s["max"]), _num(s["sigma"], 4),  # noqa: E731
+                         _num(s["low"]), _num(s["high"]), _num(s["cpk"], 3), s["unit"] or ""]
+    if args.by == "slot":
+        doc["by_slot"] = per_slot = st.stats_by_slot(args.plan, slot=args.slot) if rows else []
+    if not rows:
+        text = "plan %s has no numeric measurements%s" % (args.plan, "" if args.slot is None
+                                                          else " in slot %s" % args.slot)
+    elif args.by == "slot":
+        # each measurement's whole ("all"), then its slots, so that a slot off the others stands out
+        table = []
+        for s in rows:
+            key = (s["step"], s["measurement"], s["unit"], s["limits"])
+            table.append([s["step"], s["measurement"], "all"] + figures(s))
+            table += [[s["step"], s["measurement"], _slot_text(p["slot"])] + figures(p) for p in per_slot
+                      if (p["step"], p["measurement"], p["unit"], p["limits"]) == key]
+        text = _table(head[:2] + ["slot"] + head[2:], table)
+    else:
+        text = _table(head, [[s["step"], s["measurement"]] + figures(s) for s in rows])
+    _emit(args, doc, text)
     return EXIT_OK
 
 

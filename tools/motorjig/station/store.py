@@ -6,16 +6,23 @@
     store.runs(plan="smoke", verdict="FAIL", since="2026-12-01")
     store.yield_("smoke")                    # first-pass and final yield
     store.stats("smoke")                     # n, min, mean, max, sigma, Cpk per step + measurement
+    store.yield_by_slot("smoke")             # runs, pass, fail, error, yield of each fixture slot
+    store.stats_by_slot("smoke")             # stats per step + measurement per slot
 
 One schema and one code path (SQLAlchemy Core) for SQLite, the default, one file per
 computer, and PostgreSQL, one server for a line of stations (driver: psycopg 3). The
 record is OpenHTF's JSON test record as ``jigctl test`` writes it (``station.runner``).
 
 Tables: ``meta`` (the schema version), ``runs`` (plan name, version and hash, DUT,
-station, operator, drive, times, verdict), ``phases`` (each step's outcome), ``series``
+station, slot, operator, drive, times, verdict), ``phases`` (each step's outcome), ``series``
 (a measurement of a plan: step, name, unit, the validator text and the limits parsed
 from it), ``measurements`` (one value of a series in a run: number and text, outcome)
 and ``run_files`` (the record, JUnit XML and report written for the run).
+
+A station that tests several drives at once (multi-up) runs each fixture position, a
+*slot*, as its own run: the record's ``metadata["slot"]`` (a short name, "1", "A3") is kept
+in ``runs.slot``, NULL for a run that was not a slot, so that yield and Cpk can be asked per
+slot (``yield_by_slot``, ``stats_by_slot``) and a position with a bad contact shows.
 
 The schema is created on first use and carries its version: an older database is
 upgraded in one transaction (``MIGRATIONS``) or refused when no upgrade is known, a
@@ -41,16 +48,25 @@ import re
 import time
 
 from sqlalchemy import (BigInteger, Column, Double, ForeignKey, Index, Integer, MetaData, Table, Text,
-                        UniqueConstraint, case, create_engine, event, func, inspect, select, tuple_, update)
+                        UniqueConstraint, case, create_engine, event, func, inspect, select, text, tuple_,
+                        update)
 from sqlalchemy import exc as sa_exc
 from sqlalchemy.engine import make_url
 
 from motorjig.station.report import operator_name
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 1: the first; 2: runs.slot
+
+
+def _add_slot(c):
+    """1 -> 2: multi-up stations record each run's slot; the runs stored before were not slots."""
+    c.execute(text("ALTER TABLE runs ADD COLUMN slot TEXT"))
+    c.execute(text("CREATE INDEX runs_slot ON runs (plan, slot, verdict)"))
+
+
 # {version: function(connection)} turning a database of that version into version + 1, run in
 # the opening transaction; a database older than the oldest key here is refused.
-MIGRATIONS = {}
+MIGRATIONS = {1: _add_slot}
 
 LOCK_RETRIES = 20        # attempts at a write transaction that SQLite reports locked
 BUSY_TIMEOUT_S = 30.0    # how long SQLite waits for the write lock before "database is locked"
@@ -77,11 +93,13 @@ runs_t = Table("runs", md,
                Column("verdict", Text, nullable=False),
                Column("details", Text, nullable=False),
                Column("stored_ms", BigInteger, nullable=False),
+               Column("slot", Text),  # the fixture position of a multi-up run, NULL otherwise (version 2)
                # a run's identity: storing the same record again finds it
                UniqueConstraint("plan", "dut", "start_ms", "station", name="runs_identity"),
                Index("runs_yield", "plan", "dut", "start_ms", "verdict"),  # covers the yield query
                Index("runs_start", "start_ms"),
-               Index("runs_dut", "dut", "start_ms"))
+               Index("runs_dut", "dut", "start_ms"),
+               Index("runs_slot", "plan", "slot", "verdict"))  # covers the yield per slot
 phases_t = Table("phases", md,
                  Column("run_id", Integer, ForeignKey("runs.id", ondelete="CASCADE"), primary_key=True),
                  Column("idx", Integer, primary_key=True),
@@ -308,6 +326,21 @@ def _int(v):
         return None
 
 
+def _slot(v):
+    """The slot a record names (``metadata["slot"]``) as text; None for a run that was not a slot."""
+    if v is None or isinstance(v, bool):
+        return None
+    v = str(v).strip()
+    return v or None
+
+
+def slot_key(slot):
+    """Sort key of slot names: numbers by value ("2" before "10"), "A3" before "A10", no slot last."""
+    if slot is None:
+        return (1, ())
+    return (0, tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in re.findall(r"\d+|\D+", slot)))
+
+
 def _ms(v):
     try:
         return int(v)
@@ -339,7 +372,7 @@ def _flatten(record, files):
            "drive_name": drive.get("name") or kind.identity_text(drive),
            "start_ms": start, "end_ms": _ms(record.get("end_time_millis")),
            "verdict": str(record.get("outcome") or "ERROR").upper(), "details": details,
-           "stored_ms": int(time.time() * 1000)}
+           "stored_ms": int(time.time() * 1000), "slot": _slot(md_.get("slot"))}
     phases, meas = [], []
     for idx, ph in enumerate(record.get("phases") or ()):
         phases.append({"idx": idx, "name": str(ph.get("name") or "phase%d" % idx),
@@ -614,15 +647,18 @@ class Store:
     @staticmethod
     def _run_dict(r):
         return {"id": r.id, "plan": r.plan, "plan_version": r.plan_version, "plan_hash": r.plan_hash,
-                "dut": r.dut, "station": r.station, "operator": operator_name(r.operator), "verdict": r.verdict,
-                "start_ms": r.start_ms, "end_ms": r.end_ms, "start": iso(r.start_ms), "end": iso(r.end_ms),
-                "seconds": None if r.end_ms is None else (r.end_ms - r.start_ms) / 1000.0, "details": r.details}
+                "dut": r.dut, "station": r.station, "slot": r.slot, "operator": operator_name(r.operator),
+                "verdict": r.verdict, "start_ms": r.start_ms, "end_ms": r.end_ms, "start": iso(r.start_ms),
+                "end": iso(r.end_ms), "seconds": None if r.end_ms is None else (r.end_ms - r.start_ms) / 1000.0,
+                "details": r.details}
 
     @staticmethod
-    def _filters(dut=None, plan=None, verdict=None, since=None, until=None, station=None):
+    def _filters(dut=None, plan=None, verdict=None, since=None, until=None, station=None, slot=None):
         where = []
         if station is not None:
             where.append(runs_t.c.station == str(station))
+        if slot is not None:
+            where.append(runs_t.c.slot == str(slot))
         if dut is not None:
             where.append(runs_t.c.dut == str(dut))
         if plan is not None:
@@ -636,10 +672,10 @@ class Store:
             where.append(runs_t.c.start_ms < hi)
         return where
 
-    def runs(self, dut=None, plan=None, verdict=None, since=None, until=None, limit=50, station=None):
-        """The last runs, newest first (``limit`` None or 0: all), as dicts; ``station``: of that
-        station only."""
-        q = select(runs_t).where(*self._filters(dut, plan, verdict, since, until, station)) \
+    def runs(self, dut=None, plan=None, verdict=None, since=None, until=None, limit=50, station=None, slot=None):
+        """The last runs, newest first (``limit`` None or 0: all), as dicts; ``station``, ``slot``:
+        of that station, that slot only."""
+        q = select(runs_t).where(*self._filters(dut, plan, verdict, since, until, station, slot)) \
             .order_by(runs_t.c.start_ms.desc(), runs_t.c.id.desc())
         if limit:
             q = q.limit(int(limit))
@@ -677,30 +713,78 @@ class Store:
         q = select(runs_t.c.plan, func.count()).group_by(runs_t.c.plan).order_by(runs_t.c.plan)
         return self._read(lambda c: {p: n for p, n in c.execute(q)})
 
-    def yield_(self, plan):
-        """First-pass yield (a DUT's first run of ``plan`` passed) and final yield (its last
-        run passed), over every DUT that has a run of the plan; fractions, None without runs.
-        A DUT's runs are ordered by their start time."""
+    def slots(self, plan=None):
+        """{slot name: number of runs} of the runs that were slots (of ``plan``), in slot order."""
+        q = select(runs_t.c.slot, func.count()).where(runs_t.c.slot.isnot(None), *self._filters(plan=plan)) \
+            .group_by(runs_t.c.slot)
+        return self._read(lambda c: dict(sorted(c.execute(q).all(), key=lambda row: slot_key(row[0]))))
+
+    def yield_(self, plan, slot=None):
+        """First-pass yield (a DUT's first run passed) and final yield (its last run passed),
+        over every DUT that has a run of the plan; fractions, None without runs. A DUT's runs are
+        ordered by their start time. ``slot``: over the runs of that slot only (the answer says it)."""
         r = runs_t.c
         failed = case((r.verdict == "PASS", 0), else_=1)
         # one pass over the covering index runs_yield: the first run's start time and verdict
         # packed into one number (2 * start + failed), its minimum per DUT; the last's likewise
         per_dut = select(func.min(r.start_ms * 2 + failed).label("first"),
                          func.max(r.start_ms * 2 + 1 - failed).label("last"),
-                         func.count().label("n")).where(r.plan == str(plan)).group_by(r.dut).subquery()
+                         func.count().label("n")).where(*self._filters(plan=plan, slot=slot)) \
+            .group_by(r.dut).subquery()
         q = select(func.count(), func.coalesce(func.sum(per_dut.c.n), 0),
                    func.coalesce(func.sum(case((per_dut.c.first % 2 == 0, 1), else_=0)), 0),
                    func.coalesce(func.sum(case((per_dut.c.last % 2 == 1, 1), else_=0)), 0))
         duts, n_runs, first, last = self._read(lambda c: c.execute(q).one())
-        return {"plan": str(plan), "runs": int(n_runs), "duts": int(duts), "first_pass": int(first),
-                "final_pass": int(last), "first_pass_yield": first / duts if duts else None,
-                "final_yield": last / duts if duts else None}
+        out = {"plan": str(plan), "runs": int(n_runs), "duts": int(duts), "first_pass": int(first),
+               "final_pass": int(last), "first_pass_yield": first / duts if duts else None,
+               "final_yield": last / duts if duts else None}
+        if slot is not None:
+            out["slot"] = str(slot)
+        return out
 
-    def stats(self, plan):
+    def yield_by_slot(self, plan, slot=None):
+        """Per slot of ``plan`` (``slot``: that one only), in slot order, runs without a slot last
+        (slot None): runs, pass, fail, error (every other verdict: ERROR, TIMEOUT, ABORTED) and
+        yield = pass / runs. Runs, not DUTs: a DUT retested goes to whichever slot is free, and
+        what a slot's own fault costs is the share of its runs that did not pass."""
+        r = runs_t.c
+        count = lambda verdict: func.coalesce(func.sum(case((r.verdict == verdict, 1), else_=0)), 0)  # noqa: E731
+        q = select(r.slot, func.count(), count("PASS"), count("FAIL")) \
+            .where(*self._filters(plan=plan, slot=slot)).group_by(r.slot)
+        rows = sorted(self._read(lambda c: c.execute(q).all()), key=lambda row: slot_key(row[0]))
+        return [{"slot": s, "runs": int(n), "pass": int(p), "fail": int(f), "error": int(n - p - f),
+                 "yield": p / n} for s, n, p, f in rows]
+
+    @staticmethod
+    def _spread(c, n, total, squares, lo, hi, deviations):
+        """(mean, sigma) of n values from their sum and sum of squares; ``deviations(mean)``: the
+        sum of squared deviations from the mean, a second pass when one pass keeps too few digits."""
+        mean = total / n
+        if n < 2:
+            return mean, None
+        if lo == hi:
+            return mean, 0.0
+        var = (squares - total * total / n) / (n - 1)
+        # one pass keeps too few digits of a spread this small against the mean
+        # (sigma under 0.3 % of it): a second pass over the deviations from the mean
+        if var <= 0 or mean * mean > 1e5 * var:
+            var = c.execute(deviations(mean)).scalar() / (n - 1)
+        return mean, math.sqrt(max(var, 0.0))
+
+    @staticmethod
+    def _stat(series, n, mean, sigma, lo, hi):
+        return {"step": series.phase, "measurement": series.name, "unit": series.unit or None, "n": int(n),
+                "min": lo, "mean": mean, "max": hi, "sigma": sigma, "low": series.low, "high": series.high,
+                "limits": series.validators or None, "cpk": cpk(mean, sigma, series.low, series.high)}
+
+    def stats(self, plan, slot=None):
         """Per step + measurement of ``plan`` with numeric values: n, min, mean, max, sigma
         (sample standard deviation), the limits and Cpk = min(USL - mean, mean - LSL) / (3 sigma)
         (one-sided with one limit; None when sigma is 0 or unknown, or without limits). A
-        measurement whose limits or unit changed between plan versions has one entry per set."""
+        measurement whose limits or unit changed between plan versions has one entry per set.
+        ``slot``: over the runs of that slot only (``stats_by_slot``)."""
+        if slot is not None:
+            return [{k: v for k, v in row.items() if k != "slot"} for row in self.stats_by_slot(plan, slot)]
         m, s = measurements_t, series_t
         v = m.c.value_num
         # min and max: two seeks per series in the index measurements_series; n, sum and sum of
@@ -719,39 +803,60 @@ class Store:
             out = []
             for r in series:
                 n, total, squares = agg[r.id]
-                mean = total / n
-                sigma = None
-                if n >= 2:
-                    if r.lo == r.hi:
-                        sigma = 0.0
-                    else:
-                        var = (squares - total * total / n) / (n - 1)
-                        # one pass keeps too few digits of a spread this small against the mean
-                        # (sigma under 0.3 % of it): a second pass over the deviations from the mean
-                        if var <= 0 or mean * mean > 1e5 * var:
-                            var = c.execute(select(func.sum((v - mean) * (v - mean)))
-                                            .where(m.c.series_id == r.id, v.isnot(None))).scalar() / (n - 1)
-                        sigma = math.sqrt(max(var, 0.0))
-                out.append({"step": r.phase, "measurement": r.name, "unit": r.unit or None, "n": int(n),
-                            "min": r.lo, "mean": mean, "max": r.hi, "sigma": sigma, "low": r.low, "high": r.high,
-                            "limits": r.validators or None, "cpk": cpk(mean, sigma, r.low, r.high)})
+                mean, sigma = self._spread(
+                    c, n, total, squares, r.lo, r.hi,
+                    lambda mean, r=r: select(func.sum((v - mean) * (v - mean))).where(m.c.series_id == r.id,
+                                                                                      v.isnot(None)))
+                out.append(self._stat(r, n, mean, sigma, r.lo, r.hi))
             return out
 
         return self._read(query)
 
-    def export_csv(self, dest, dut=None, plan=None, verdict=None, since=None, until=None):
+    def stats_by_slot(self, plan, slot=None):
+        """``stats`` of ``plan`` per slot (``slot``: that one only): the same entries, each with its
+        ``slot`` (None: the runs that were no slot), by measurement and then in slot order."""
+        m, s, r = measurements_t, series_t, runs_t
+        v = m.c.value_num
+        values_runs = m.join(r, r.c.id == m.c.run_id)
+        same_slot = lambda name: r.c.slot.is_(None) if name is None else r.c.slot == name  # noqa: E731
+
+        def query(c):
+            series = {row.id: row for row in c.execute(select(s).where(s.c.plan == str(plan)))}
+            if not series:
+                return []
+            # one pass over the plan's values joined to their runs: n, sum, squares, min, max a slot
+            agg = c.execute(select(m.c.series_id, r.c.slot, func.count(v), func.sum(v), func.sum(v * v),
+                                   func.min(v), func.max(v)).select_from(values_runs)
+                            .where(m.c.series_id.in_(list(series)), v.isnot(None),
+                                   *self._filters(plan=plan, slot=slot))
+                            .group_by(m.c.series_id, r.c.slot)).all()
+            out = []
+            for sid, name, n, total, squares, lo, hi in sorted(agg, key=lambda a: (a[0], slot_key(a[1]))):
+                mean, sigma = self._spread(
+                    c, n, total, squares, lo, hi,
+                    lambda mean, sid=sid, name=name: select(func.sum((v - mean) * (v - mean)))
+                    .select_from(values_runs).where(m.c.series_id == sid, v.isnot(None), same_slot(name)))
+                out.append(dict(self._stat(series[sid], n, mean, sigma, lo, hi), slot=name))
+            return out
+
+        return self._read(query)
+
+    def export_csv(self, dest, dut=None, plan=None, verdict=None, since=None, until=None, slot=None):
         """Every measurement of the runs that match, one CSV row each, oldest run first, to
         ``dest`` (a path, or a text file object); the number of rows. A run without measurements
         (refused at the preflight, an error before its first step) is one row with empty step,
-        measurement and value, so that yield computed from the file counts it as the database does."""
+        measurement and value, so that yield computed from the file counts it as the database does.
+        The run's slot is the last column (after the columns of version 1: scripts that read those
+        by position keep working), empty for a run that was not a slot."""
         m, s, r = measurements_t, series_t, runs_t
         q = select(r.c.id, r.c.start_ms, r.c.plan, r.c.plan_version, r.c.plan_hash, r.c.dut, r.c.station,
                    r.c.operator, r.c.verdict, s.c.phase, s.c.name, m.c.value_text, m.c.value_num, s.c.unit, s.c.low,
-                   s.c.high, s.c.validators, m.c.outcome) \
+                   s.c.high, s.c.validators, m.c.outcome, r.c.slot) \
             .select_from(r.outerjoin(m, m.c.run_id == r.c.id).outerjoin(s, s.c.id == m.c.series_id)) \
-            .where(*self._filters(dut, plan, verdict, since, until)).order_by(r.c.start_ms, r.c.id, m.c.seq)
+            .where(*self._filters(dut, plan, verdict, since, until, slot=slot)) \
+            .order_by(r.c.start_ms, r.c.id, m.c.seq)
         header = ["run_id", "start", "plan", "plan_version", "plan_hash", "dut", "station", "operator", "verdict",
-                  "step", "measurement", "value", "number", "unit", "low", "high", "limits", "outcome"]
+                  "step", "measurement", "value", "number", "unit", "low", "high", "limits", "outcome", "slot"]
         num = lambda x: "" if x is None else repr(x)  # noqa: E731 - shortest exact text of a float
 
         def write(f):
@@ -764,7 +869,7 @@ class Store:
                 for row in c.execution_options(stream_results=True, yield_per=2000).execute(q):
                     w.writerow([row[0], iso(row[1]), *row[2:7], operator_name(row[7]), *row[8:11],
                                 "" if row[11] is None else row[11], num(row[12]), row[13], num(row[14]),
-                                num(row[15]), row[16], row[17]])
+                                num(row[15]), row[16], row[17], row[18] or ""])
                     count += 1
 
             self._read(query)
@@ -819,4 +924,4 @@ def _sqlite_begin(conn):
 
 
 __all__ = ["SCHEMA_VERSION", "MIGRATIONS", "Store", "StoreError", "open_store", "default_path", "resolve",
-           "parse_limits", "parse_time", "cpk", "iso", "operator_name"]
+           "parse_limits", "parse_time", "cpk", "iso", "operator_name", "slot_key"]
