@@ -17,7 +17,7 @@ from jig import frame as F
 from jig import params as P
 from jig import slcan as S
 from jig.app import CAN_IDLE_PARK, SLOW_US, App
-from jig.canport import CAN_POLL_US, STALL_US
+from jig.canport import CAN_DEFER_US, CAN_POLL_US, STALL_US
 from jig.parser import FrameParser
 from motorjig.sim.canbus import CanBus
 from motorjig.sim.canhal import SimCan, SimSlcanPort
@@ -625,6 +625,47 @@ def test_the_pump_serves_the_ports_own_pass_while_the_port_is_open():
     app.due[1] = app.hal.ticks_us()  # (stale: closed, the pump does not look at it)
     app.run(150)
     assert calls == [150]  # closed: the pump as before
+
+
+@pytest.mark.parametrize("fastpath", [False, True])
+def test_the_ports_pass_waits_for_the_bridges_idle_time_at_most_can_defer_us(fastpath):
+    """A frame from the bus while a Plus-R transaction is in flight goes to the host after
+    the reply has been relayed, not between request and reply; with no reply coming, no
+    later than CAN_DEFER_US after the pass fell due (the portable loop and the pump)."""
+    r = Rig(fastpath=fastpath)
+    app = r.app
+    if fastpath and app.pump is None:
+        pytest.skip("this rig's ports do not take the pump")
+    r.say(b"O\r")
+    up = r.hal.up
+    down = r.hal.down
+    bs = app.bridge.bs
+    frame_us = r.bus.frame_us(False, False, 2)
+    for reply in (True, False):
+        up.out_n = 0
+        req = F.encode(2, F.GET_AXIS_STATUS)
+        up.rx.write(bytearray(req), len(req), r.hal.ticks_us())
+        r.run(100, step=5)
+        assert bs[0] == 1  # AWAIT_PC: the request went to the drivers
+        r.peer.transmit(0x181, False, False, b"\x01\x02")
+        r.run(frame_us, step=5)
+        t_due = app.due[1]
+        assert app.can.cv[K.CC_RX] >= 1 and app.can.rs[0] != app.can.rs[1]  # in the ring, not served
+        if reply:
+            r.run(300, step=5)
+            assert r.port.tx == b""  # the transaction in flight: the port's pass waits
+            rep = F.encode(2, F.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08")
+            down.rx.write(bytearray(rep), len(rep), r.hal.ticks_us())
+            r.run(20, step=5)
+            assert bs[0] == 0 and up.out_n == len(rep)  # relayed ...
+            assert r.port.tx == b"t18120102\r"  # ... and the port's pass came at once after it
+        else:
+            r.run(CAN_DEFER_US - 10 - (r.hal.ticks_us() - t_due), step=5)
+            assert bs[0] == 1 and r.port.tx == b""
+            r.run(20, step=5)
+            assert bs[0] == 1 and r.port.tx == b"t18120102\r"  # waited CAN_DEFER_US, not the reply timeout
+        r.port.host_read()
+        r.run(60000)  # (the reply's timeout)
 
 
 def test_closed_and_idle_the_port_costs_the_slow_pass_one_any():

@@ -57,6 +57,7 @@ def test_constants_mirror_the_modules_they_come_from():
     from jig import canport
 
     assert fastpath._CAN_POLL_US == canport.CAN_POLL_US
+    assert fastpath._CAN_DEFER_US == canport.CAN_DEFER_US
     for name in ("RS_HEAD", "RS_TAIL", "TS_HEAD", "TS_TAIL", "TS_DONE", "TS_REC", "TS_BUSY"):
         assert getattr(fastpath, "_" + name) == getattr(canport, name) == getattr(app, "_" + name), name
 

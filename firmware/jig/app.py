@@ -18,7 +18,8 @@ through, the passes themselves run as machine code in ``jig.fastpath.pump``
 While the CAN port is open (``due[2]`` = 1) it has a pass of its own at the tick
 ``due[1]``, every ``canport.CAN_POLL_US``: nothing of the slow pass's work, so the
 host's frames reach the bus within a fraction of a frame time without the slow
-pass's cost. The loop (and the pump, which returns for ``due[1]`` as for
+pass's cost. It runs in the bridge's idle time (``bridge_idle``): while a Plus-R
+transaction is in flight it waits, at most ``canport.CAN_DEFER_US`` past its tick. The loop (and the pump, which returns for ``due[1]`` as for
 ``due[0]``) looks at the port's queues itself -- array compares and one ``any()``,
 no call -- and calls ``CanPort.serve`` (the host's SLCAN lines in, frames both
 ways) only when one of them has something in it.
@@ -58,7 +59,7 @@ from jig import counters as K
 from jig import parser as _parser
 from jig import params as P
 from jig.bridge import ARM_BYTES, Bridge, arm_overdue
-from jig.canport import CAN_POLL_US, CanPort
+from jig.canport import CAN_DEFER_US, CAN_POLL_US, CanPort
 from jig.capture import QUIET_US, Capture
 from jig.compat import NATIVE, const, ticks_add, ticks_diff
 from jig.frame import MAX_BODY
@@ -83,6 +84,10 @@ _TS_TAIL = const(1)
 _TS_DONE = const(2)
 _TS_REC = const(3)
 _TS_BUSY = const(4)
+# jig.bridge's state array (Bridge.bs)
+_B_STATE = const(0)
+_B_FWD = const(1)
+_B_REL = const(3)
 PARSER_COUNTERS = len(_parser.COUNTER_NAMES)  # per parser, in counter_values
 
 
@@ -134,8 +139,9 @@ class App:
         # due[0]: the tick at which the slow pass must next run (anyone may move it
         # earlier); due[1]: the CAN port's own pass, while it is open (jig.canport),
         # which due[2] says (1: open); due[3]: answers the port has not taken yet (its
-        # out_n after its last pass: the pump cannot see CanPort.out_n)
-        self.due = array("i", [self.t_beat, self.t_beat, 0, 0])
+        # out_n after its last pass: the pump cannot see CanPort.out_n); due[4]: 1 when the
+        # pump returned for the port's pass (it has work and may run now)
+        self.due = array("i", [self.t_beat, self.t_beat, 0, 0, 0])
         self.cut = cut
         self.ver8 = ver8  # (how this boot runs: the RESTART parameters may differ in RAM)
         self.up_baud = pr[P.P_UP_BAUD]
@@ -304,12 +310,19 @@ class App:
             if watch and not d and not u:
                 watch(up_st, down_st, now)  # a byte starting: DE up on the other bus now
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
-                self._slow(now)
-            elif due[2] and (now - due[1]) & TICKS_MASK < TICKS_HALF:
-                # the CAN port's own pass: serve only if something waits (the interrupts'
-                # ring, finished or stalled frames, answers, the host's bytes)
+                self._slow(now)  # (open, the CAN port's traffic is not in it: its own pass may follow)
+            if due[2] and (now - due[1]) & TICKS_MASK < TICKS_HALF:
+                # the CAN port's own pass, in the bridge's idle time (as the pump): after a pass
+                # that read input only once it has waited CAN_DEFER_US (due[1] stays put) ...
+                late = (now - due[1]) & TICKS_MASK >= CAN_DEFER_US
+                if (d or u) and not late:
+                    continue
+                # ... serve only if something waits (the interrupts' ring, finished or
+                # stalled frames, answers, the host's bytes), and not inside a transaction
                 if (rs[_RS_TAIL] != rs[_RS_HEAD] or ts[_TS_REC] != ts[_TS_DONE]
                         or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or due[3] or port_any()):
+                    if not late and not self.bridge_idle():
+                        continue
                     serve(now)
                     due[3] = can.out_n
                 t = (due[1] + CAN_POLL_US) & TICKS_MASK  # the next a period on, on its grid
@@ -320,30 +333,27 @@ class App:
 
     def _run_pump(self, passes):
         """run() with the passes in jig.fastpath.pump, which returns to run the slow pass
-        or, the CAN port open, its own pass (the same as the portable loop's)."""
+        or, the CAN port open, its own pass (the pump decides, as the portable loop
+        would, and says so in due[4]). A CAN pass that falls due as the passes run out
+        waits for the next call's pump."""
         pump = self.pump
         ctx = self.pump_ctx
         ticks = self._ticks
         due = self.due
         can = self.can
         serve = self._can_serve
-        port_any = self._can_any
-        rs = ts = None
-        if can is not None:
-            rs = can.rs
-            ts = can.ts
         while True:
             left = pump(ctx, passes)
             if passes > 0:
                 passes = left
             now = ticks()
+            for_can = due[4]  # (the pump has looked: the port has work and may run now)
+            due[4] = 0
             if (now - due[0]) & TICKS_MASK < TICKS_HALF:
                 self._slow(now)
-            elif due[2] and (now - due[1]) & TICKS_MASK < TICKS_HALF:
-                if (rs[_RS_TAIL] != rs[_RS_HEAD] or ts[_TS_REC] != ts[_TS_DONE]
-                        or (not ts[_TS_BUSY] and ts[_TS_TAIL] != ts[_TS_HEAD]) or due[3] or port_any()):
-                    serve(now)
-                    due[3] = can.out_n
+            elif for_can:
+                serve(now)
+                due[3] = can.out_n
                 t = (due[1] + CAN_POLL_US) & TICKS_MASK
                 d = (t - now) & TICKS_MASK
                 if d == 0 or d >= TICKS_HALF:
@@ -351,6 +361,13 @@ class App:
                 due[1] = t
             if passes == 0:
                 return
+
+    def bridge_idle(self):
+        """True when no Plus-R transaction is in flight: the bridge waits for no reply,
+        passes no frame on, and neither parser is inside a frame."""
+        bs = self.bridge.bs
+        return (not (bs[_B_STATE] or bs[_B_FWD] or bs[_B_REL]) and self.up_parser.st[_parser.S_STATE] == _parser.HUNT
+                and self.down_parser.st[_parser.S_STATE] == _parser.HUNT)
 
     def _slow(self, now):
         """Everything with a time in it; sets the next due tick."""
@@ -425,9 +442,18 @@ class App:
         if can is not None and can.is_open:
             due = self.due
             w = ticks_diff(due[1], now)
+            pending = can.pending()
+            if pending and w <= 0:  # due (due[1] stays: a deferred pass's wait counts from it)
+                if w > -CAN_DEFER_US and not self.bridge_idle():
+                    w += CAN_DEFER_US  # deferred (run): the bridge's own events come sooner
+                else:
+                    w = 0
+                if w < d:
+                    d = w
+                return d if d > 0 else 0
             if not 0 <= w <= CAN_POLL_US:
                 w %= CAN_POLL_US  # the next tick on its grid
-            if can.pending():
+            if pending:
                 due[1] = ticks_add(now, w)
                 if w < d:
                     d = w

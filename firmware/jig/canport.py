@@ -22,9 +22,14 @@ none of the slow pass's work; with nothing to do the main loop (or the pump) onl
 looks at its queues and calls one ``any()``, not ``serve``. On the board the host's
 bytes cannot wake the loop (``USB_VCP.irq`` is a soft callback, which never runs
 inside the machine-code pump), so this period is what a host line waits for at
-most: less than a frame time at 1 Mbit/s (47-135 µs). The slow pass (``poll``)
-does the rest: the controller's state, the SLCAN session's line timeout, the
-safety stop; closed, the host's commands wait for it.
+most: less than a frame time at 1 Mbit/s (47-135 µs) -- while the bridge is idle.
+The pass runs in the bridge's idle time: while a Plus-R transaction is in flight (a
+reply awaited, a frame coming in or passed on) it waits, at most ``CAN_DEFER_US``
+past its tick (``App.bridge_idle``); the ring and the USB port hold what comes
+meanwhile. Open, the port's traffic is this pass's only. The slow pass (``poll``),
+which may run inside a transaction, does the rest: the controller's state, the
+SLCAN session's line timeout, the safety stop; closed, the host's commands wait
+for it.
 
 Send: frame lines go into a FIFO of ``TX_FRAMES``. ``machine.CAN``'s transmit
 queue is a priority queue by id, so to keep the host's order at most one frame is
@@ -68,6 +73,10 @@ IN_PER_SERVE = const(32)  # bytes from the host (a frame line and a bit: > 14 00
 RX_PER_SERVE = const(4)  # and frames to the host a pass (40 000 frames/s: more than a CAN bus carries)
 OUT_PER_POLL = const(2048)  # bytes of lines handed to the port a pass, at most
 CAN_POLL_US = const(100)  # while open the port's own pass (serve) comes this often
+# ... but not inside the bridge's work: while a Plus-R transaction is in flight (a reply
+# awaited, a frame being received or passed on) the port's pass waits for the bridge's
+# idle time, at most this long past its due tick (app.due[1]); then it runs anyway
+CAN_DEFER_US = const(1000)
 STALL_US = const(250000)  # a full TX FIFO that sent nothing this long: the host's frames are refused again
 ANSWER_US = const(1000)  # closed with answers the port has not taken: the slow pass this often
 WATCH_US = const(10000)  # the controller's state and error counters are read this often
@@ -127,6 +136,8 @@ _EV_CMD = const(1)
 _EV_BAD = const(2)
 
 _RX_MASK = const(255)  # RX_FRAMES - 1
+_TICKS_MASK = const(0x3FFFFFFF)  # (ticks_diff inline: the interrupt calls nothing it need not)
+_TICKS_HALF = const(0x20000000)
 _TX_MASK = const(63)  # TX_FRAMES - 1
 
 CAN_COUNTER_NAMES = K.CAN_NAMES
@@ -216,7 +227,12 @@ class CanPort:
         self.safety = CanSafety(self, app.params, app.counters, getattr(app, "lease", None))
 
     def _host_data(self, _port):
-        self.due[1 if self.is_open else 0] = self._ticks()  # (closed: commands are read by the slow pass)
+        due = self.due
+        t = self._ticks()
+        if not self.is_open:
+            due[0] = t  # (closed: commands are read by the slow pass)
+        elif (due[1] - t) & _TICKS_MASK < _TICKS_HALF:
+            due[1] = t  # (a pass already due keeps its tick: the bound on its wait counts from it)
 
     @staticmethod
     def _serial_line(hal):
@@ -282,7 +298,9 @@ class CanPort:
             self.rx_tick[head] = t
             rs[RS_HEAD] = nxt
             if head == tail:
-                self.due[1] = t  # the port's own pass next
+                due = self.due
+                if (due[1] - t) & _TICKS_MASK < _TICKS_HALF:
+                    due[1] = t  # the port's own pass next (one already due, deferred, keeps its tick)
 
     def _tx_end(self, f):
         ts = self.ts
@@ -358,25 +376,29 @@ class CanPort:
             not ts[TS_BUSY] and not ts[TS_HOLD] and ts[TS_TAIL] != ts[TS_HEAD])
 
     def poll(self, now):
-        """Read and answer the host, the controller's state, the RX ring to the host."""
+        """The slow pass's part. Closed: read and answer the host. Open: the timestamps'
+        clock, the controller's state, the host's line timeout, the safety stop; the
+        traffic (the host's lines, the ring, the FIFO) is the port's own pass's
+        (``serve``), which waits for the bridge's idle time -- the slow pass may run
+        inside a Plus-R transaction (while the drive thinks), where it must not."""
         port = self.port
         if port is None:
             return
-        if not self.is_open and not self.out_n and not port.any():
-            return  # closed and idle: one any() a slow pass
+        if not self.is_open:
+            if not self.out_n and not port.any():
+                return  # closed and idle: one any() a slow pass
+            self._clock(now)
+            self._flush()
+            if self.reader.gap(now) and self.out_n < STAGE:
+                self._put(_BEL)  # a partial line that never got its CR
+            self._read(now)
+            self._flush()
+            return
         self._clock(now)
-        if self.is_open:
-            self._watch(now)
-            self._tx_count()
-        self._flush()
+        self._watch(now)
         if self.reader.gap(now) and self.out_n < STAGE:
-            self._put(_BEL)  # a partial line that never got its CR
-        self._read(now)
-        if self.is_open:
-            self._rx_out()
-            self.safety.poll(now)
-            self._kick()
-        self._flush()
+            self._put(_BEL)  # (serve hands it to the port: App._slow shows it in due[3])
+        self.safety.poll(now)
 
     def _clock(self, now):
         d = ticks_diff(now, self.t_ref)

@@ -29,7 +29,9 @@ the slow pass is due (``due[0]``) or, while the CAN port is open (``due[2]`` = 1
 the port's own pass (``due[1]``) with something to do, which ``App.run`` then
 runs (with nothing to do -- its ring, FIFO and answers empty (``due[3]`` = 0), no
 byte from the host -- the pump only moves ``due[1]`` a period on, as ``App.run``
-would).
+would). The port's pass comes in the bridge's idle time: from an idle pass with no
+transaction in flight, or once it has waited ``canport.CAN_DEFER_US`` past its due
+tick (``App.run``'s rule too, ``App.bridge_idle``).
 
 What a byte costs is mostly calls (a viper call with its pointer casts costs more
 than the parser's work on a byte), so the per-byte work has none of its own: the
@@ -57,6 +59,7 @@ from jig.compat import NATIVE, const, ptr8, ptr16, ptr32  # noqa: F401 (casts un
 _RX_CHUNK = const(256)  # app.RX_CHUNK
 # jig.canport: its own pass's period, its ring's (CanPort.rs) and FIFO's (CanPort.ts) indices
 _CAN_POLL_US = const(100)
+_CAN_DEFER_US = const(1000)  # ... and how long it waits for the bridge's idle time at most
 _RS_HEAD = const(0)
 _RS_TAIL = const(1)
 _TS_HEAD = const(0)
@@ -324,17 +327,25 @@ def pump(ctx, passes: int) -> int:
                 if ((t - due[0]) & _MASK) < _HALF:
                     return passes
                 if due[2] != 0 and ((t - due[1]) & _MASK) < _HALF:
-                    # the CAN port's own pass (open: due[2] = 1): App.run's when something
-                    # waits (its ring, its FIFO, answers: due[3], the host's bytes) ...
+                    # the CAN port's own pass (open: due[2] = 1): App.run's when something waits
+                    # (its ring, its FIFO, answers: due[3], the host's bytes) ...
                     if (due[3] != 0 or crs[_RS_TAIL] != crs[_RS_HEAD] or cts[_TS_REC] != cts[_TS_DONE]
                             or (cts[_TS_BUSY] == 0 and cts[_TS_TAIL] != cts[_TS_HEAD]) or int(can_any()) != 0):
-                        return passes
-                    # ... else only the next one a period on, on its grid (as App.run)
-                    t1 = (due[1] + _CAN_POLL_US) & _MASK
-                    d = (t1 - t) & _MASK
-                    if d == 0 or d >= _HALF:
-                        t1 = (t + _CAN_POLL_US) & _MASK
-                    due[1] = t1
+                        # ... in the bridge's idle time: not while a transaction is in flight (a
+                        # reply awaited, a frame coming in or passed on, a start bit on either
+                        # line) unless it has waited CAN_DEFER_US (due[1] stays put meanwhile)
+                        if ((bs[_B_STATE] | bs[_B_FWD] | bs[_B_REL]) == 0 and ust[_S_STATE] == _HUNT
+                                and dst[_S_STATE] == _HUNT and ((uisr[0] | disr[0]) & _ISR_BUSY) == 0) or (
+                                ((t - due[1]) & _MASK) >= _CAN_DEFER_US):
+                            due[4] = 1  # (App._run_pump: serve now)
+                            return passes
+                    else:
+                        # ... else only the next one a period on, on its grid (as App.run)
+                        t1 = (due[1] + _CAN_POLL_US) & _MASK
+                        d = (t1 - t) & _MASK
+                        if d == 0 or d >= _HALF:
+                            t1 = (t + _CAN_POLL_US) & _MASK
+                        due[1] = t1
                 continue
             side = 1
         while avail != 0:
@@ -840,9 +851,12 @@ def pump(ctx, passes: int) -> int:
                 avail = int(up_any())
         if ((now - due[0]) & _MASK) < _HALF:  # (a pass that read input: by its last read's tick)
             return passes
-        if due[2] != 0 and ((now - due[1]) & _MASK) < _HALF:  # (as in an idle pass, above)
+        # the CAN port's own pass after a pass that read input only once it has waited
+        # CAN_DEFER_US: the bridge's idle passes come first (the next one serves it)
+        if due[2] != 0 and ((now - due[1]) & _MASK) < _HALF and ((now - due[1]) & _MASK) >= _CAN_DEFER_US:
             if (due[3] != 0 or crs[_RS_TAIL] != crs[_RS_HEAD] or cts[_TS_REC] != cts[_TS_DONE]
                     or (cts[_TS_BUSY] == 0 and cts[_TS_TAIL] != cts[_TS_HEAD]) or int(can_any()) != 0):
+                due[4] = 1
                 return passes
             t1 = (due[1] + _CAN_POLL_US) & _MASK
             d = (t1 - now) & _MASK
