@@ -395,7 +395,9 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
     ctx.test = test
     if on_start is not None:  # the caller may abort from here on (ctx.abort)
         on_start(ctx)
-    hook, threading.excepthook = threading.excepthook, _quiet_abort(threading.excepthook)
+    hook = threading.excepthook
+    if slot is None:  # (the slots' runs end at unrelated times: SlotRun sets the quiet hook once for all)
+        threading.excepthook = _quiet_abort(hook)
     handlers = _catch_signals(ctx)
     try:
         test.execute(test_start=_preflight(plan, serial, ctx).with_plugs(bus=plug))
@@ -406,7 +408,8 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
         raise
     finally:
         ctx.test = None
-        threading.excepthook = hook
+        if slot is None:
+            threading.excepthook = hook
         if (ctx.aborted or (ctx.record or {}).get("outcome") == "ABORTED") and plan.on_end != "none":
             kind.after_abort(plan, ports)
         _restore_signals(handlers)

@@ -285,6 +285,7 @@ class SlotRun:
             workers = [threading.Thread(target=self._run_slot, args=(s, Shared(s.name, master, safety, db_lock, links)),
                                         name="motorjig-slot-%s" % s.name, daemon=True) for s in self.slots]
             handlers = runner._catch_signals(self)
+            hook, threading.excepthook = threading.excepthook, runner._quiet_abort(threading.excepthook)
             try:
                 for w in workers:
                     w.start()
@@ -292,6 +293,7 @@ class SlotRun:
                     while w.is_alive():
                         w.join(0.2)  # (short waits: the main thread takes the signals meanwhile)
             finally:
+                threading.excepthook = hook
                 runner._restore_signals(handlers)
         finally:
             master.close()
