@@ -271,3 +271,57 @@ def test_bench_killed_mid_session_says_connection_lost(desk):
     b.click("btn-reconnect")  # the bench is gone: a sentence, not a traceback
     b.wait_for(lambda: "connection refused (is the bench running?)" in b.driver.page_source, 5, "refused")
     assert "Traceback" not in b.driver.page_source
+
+
+TWO_UP_PLAN = """\
+[plan]
+name = "two-up"
+version = "1.0"
+
+[drive]
+slave = 2
+protocol = [6, 8]
+slave_type = 20
+
+[[steps]]
+kind = "identify"
+name_pattern = "Ezi-STEP"
+
+[[steps]]
+kind = "servo"
+on = true
+
+[[steps]]
+kind = "servo"
+name = "servo_off"
+on = false
+"""
+
+
+def test_two_slots_start_together_and_each_shows_its_verdict(tmp_path):
+    """A Desk of its own (--bench --slots 2,3): START ALL runs the plan in both slots at once."""
+    if WHY_NOT:
+        pytest.fail("browser tests cannot run: " + WHY_NOT)
+    plans = tmp_path / "plans"
+    plans.mkdir()
+    (plans / "two-up.toml").write_text(TWO_UP_PLAN)
+    with B.started() as run:
+        proc, page = B.start_desk("--bench", "--slots", "2,3", "--plans", str(plans), "--db", "none",
+                                  "--out", str(tmp_path / "results"), "--timeout", "300")
+        run.append(proc)
+        b = run.browser(page)
+        b.tab("tab-plan")
+        b.wait_for(lambda: b.visible("slot-1") and b.visible("slot-2"), 10, "two slot panels")
+        assert "slave 2" in b.text("slot-1") and "slave 3" in b.text("slot-2")
+        b.type("slot-serial-1", "SN-MU-A")
+        b.type("slot-serial-2", "SN-MU-B")
+        b.click("btn-slots-start")
+        verdicts = b.wait_for(lambda: (lambda v: all(v) and v)([b.text("slot-verdict-%d" % i) in ("PASS", "FAIL",
+                                                                "ERROR", "ABORTED") and b.text("slot-verdict-%d" % i)
+                                                                for i in (1, 2)]), 30, "both verdicts")
+        assert verdicts == ["PASS", "PASS"]
+        assert "SN-MU-A" in b.text("slot-step-1") and "SN-MU-B" in b.text("slot-step-2")
+        rows = b.wait_for(lambda: (lambda r: len(r) == 2 and r)(table_rows(b, "runs-table")), 10, "two runs listed")
+        assert sorted((r[1], r[3]) for r in rows) == [("1", "SN-MU-A"), ("2", "SN-MU-B")]  # slot, serial
+        b.choose("slot-filter", "slot 2")
+        b.wait_for(lambda: [r[3] for r in table_rows(b, "runs-table")] == ["SN-MU-B"], 10, "slot 2's run only")

@@ -876,3 +876,134 @@ def test_a_stored_report_is_served_only_from_the_output_folder(tmp_path):
         assert st.report_path(999) is None and st.report_path("x") is None
         reports = {r["dut"]: r["report"] for r in st.recent_runs()}
         assert reports["good"] == "/report/%d" % ids["good"] and reports["outside"] == ""
+
+
+# --- multi-up: the Test tab's slots (--slots) ---------------------------------------------------------
+PROMPT_PLAN = """\
+[plan]
+name = "put-in"
+version = "1.0"
+
+[drive]
+slave = 2
+protocol = [6, 8]
+slave_type = 20
+
+[[steps]]
+kind = "prompt"
+message = "Put the drive in its nest, then confirm"
+
+[[steps]]
+kind = "servo"
+on = true
+
+[[steps]]
+kind = "servo"
+name = "servo_off"
+on = false
+"""
+
+
+def answer_prompts(st, multi, count):
+    """Answer ``count`` prompts of the slots' runs as they come; returns their messages."""
+    messages, last = [], None
+    for _ in range(count):
+        prompt = wait_for(lambda: (lambda p: p if p is not None and p["id"] != last else None)(multi.prompt()), 20,
+                          "a slot's prompt")
+        messages.append(prompt["message"])
+        last = prompt["id"]
+        assert st.answer(prompt["id"], True) == "confirmed"
+    return messages
+
+
+def test_the_slots_run_at_once_each_with_its_prompt_serial_verdict_and_records(tmp_path, bench):
+    from motorjig.station.store import open_store
+
+    store = open_store(str(tmp_path / "results.sqlite"))
+    session, st = station_on(tmp_path, bench.tcp_url, {"put-in.toml": PROMPT_PLAN}, slots="2,3", station="desk-mu",
+                             store=store)
+    try:
+        key = str(tmp_path / "plans" / "put-in.toml")
+        slots, why = st.slots(key)
+        assert [s.describe() for s in slots] == ["slot 1 (slave 2)", "slot 2 (slave 3)"] and why == ""
+        with pytest.raises(UserError, match=r"slot 2 \(slave 3\): serial number 'S 2'"):
+            st.start_slots(key, {"1": "SN-MU-1", "2": "S 2"})
+        assert session.state == "connected"  # refused before the port was lent
+        assert st.start_slots(key, {"1": "SN-MU-1", "2": "SN-MU-2"}) == "test put-in started in 2 slots"
+        multi = st.run
+        messages = answer_prompts(st, multi, 2)
+        assert sorted(messages) == ["slot 1 (slave 2): Put the drive in its nest, then confirm",
+                                    "slot 2 (slave 3): Put the drive in its nest, then confirm"]
+        wait_for(lambda: not multi.running, 30, "both verdicts")
+        assert {n: (r.verdict, r.dut_id) for n, r in multi.runs.items()} == {
+            "1": ("PASS", "SN-MU-1"), "2": ("PASS", "SN-MU-2")}, [r.details for r in multi.runs.values()]
+        assert multi.verdict == "PASS" and session.state == "connected"
+        assert [r["state"] for r in multi.runs["2"].snapshot()["steps"]] == ["pass"] * 4
+        # the records name their slot; the runs list is filtered by it
+        rows = wait_for(lambda: st.recent_runs() if len(st.recent_runs()) == 2 else None, 5, "two records")
+        assert sorted((r["slot"], r["dut"]) for r in rows) == [("1", "SN-MU-1"), ("2", "SN-MU-2")]
+        assert [r["dut"] for r in st.recent_runs(slot="2")] == ["SN-MU-2"] and st.recent_runs(slot="9") == []
+        assert st.run_slots(key) == ["1", "2"]
+        # one slot alone: the other keeps its last run
+        assert st.start_slots(key, {"2": "SN-MU-3"}, only="2") == "test put-in started in slot 2"
+        again = st.run
+        assert list(again.runs) == ["2"]
+        assert answer_prompts(st, again, 1) == ["slot 2 (slave 3): Put the drive in its nest, then confirm"]
+        wait_for(lambda: not again.running, 30, "slot 2's verdict")
+        assert again.runs["2"].verdict == "PASS" and st.slot_runs["1"] is multi.runs["1"]
+        assert st.slot_runs["2"] is again.runs["2"]
+        assert [r["dut"] for r in st.recent_runs(slot="2")] == ["SN-MU-3", "SN-MU-2"]
+        assert st.records_error == ""
+    finally:
+        session.stop()
+        store.close()
+
+
+def test_abort_stops_every_slot(tmp_path, bench):
+    # sampled by the PC: the jig samples one axis at a time (both slots move at once here)
+    plan = LONG_MOVE_PLAN.replace('version = "1.0"\n', 'version = "1.0"\nsampling = "pc"\n', 1)
+    session, st = station_on(tmp_path, bench.tcp_url, {"long-move.toml": plan}, slots="2,3",
+                             station="desk-mu-abort")
+    try:
+        key = str(tmp_path / "plans" / "long-move.toml")
+        st.start_slots(key, {})
+        multi = st.run
+        for name in ("1", "2"):
+            wait_for(lambda: len(multi.runs[name].samples_of("long")) > 5, 20, "slot %s moving" % name)
+        assert session.emergency_stop() == "test run aborted: emergency stop and servo off"  # the header's
+        wait_for(lambda: not multi.running, 20, "the verdicts")
+        assert [r.verdict for r in multi.runs.values()] == ["ABORTED", "ABORTED"]
+        assert multi.verdict == "ERROR"  # neither PASS nor FAIL: nobody could judge them
+        for run in multi.runs.values():
+            assert {r["name"]: r["state"] for r in run.snapshot()["steps"]}["long"] == "aborted"
+        for slave in (2, 3):
+            drive = bench.sim.drivers[slave]
+            assert not drive.servo_on and drive.estop, slave
+        assert session.state == "connected"
+    finally:
+        session.stop()
+
+
+def test_a_slots_file_names_its_slots_and_a_missing_serial_is_asked_for(tmp_path):
+    import os
+
+    from motorjig.desk.testrun import Station
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = tmp_path / "two-up.toml"
+    spec.write_text('[[slot]]\nname = "A1"\nslave = 4\nserial = "ask"\nwiring = "%s"\n\n'
+                    '[[slot]]\nname = "A2"\nslave = 5\nwiring = "%s"\n'
+                    % tuple(os.path.join(root, "plans", "multiup", "fixture-%d.toml" % i) for i in (1, 2)))
+    st = Station(BusSession(), plans_dir=os.path.join(root, "plans"), out_dir=str(tmp_path / "out"),
+                 slots=str(spec))
+    key = os.path.join(root, "plans", "ezi-step-eol.toml")
+    slots, why = st.slots(key)
+    assert why == "" and [s.describe() for s in slots] == ["slot A1 (slave 4)", "slot A2 (slave 5)"]
+    assert st.slots(key)[0] is slots  # unchanged files: not read again
+    with pytest.raises(UserError, match=r"slot A1 \(slave 4\): scan or type its serial number"):
+        st.start_slots(key, {"A2": "SN-2"})
+    spec.write_text('[[slot]]\nslave = 4\n\n[[slot]]\nslave = 4\n')
+    later = os.stat(spec).st_mtime + 5
+    os.utime(spec, (later, later))
+    slots, why = st.slots(key)
+    assert slots == [] and "one drive" in why

@@ -9,6 +9,12 @@ answer lets the run go on; Abort ends it). At the end the verdict fills the top 
 the tab in green or red, big enough to read from two metres, the tab that started
 the run opens the HTML report in a new tab, and below come the steps, the plot, the
 station's recent runs and today's yield.
+
+Multi-up (the Desk started with ``--slots``): a row of slot panels takes the serial
+field's place, one per slot (its drive, its serial field, its current step, a progress
+bar, its verdict and report); START ALL runs the plan in every slot, a panel's Start in
+that one; Abort (and STOP) stops them all; a prompt names its slot. A click on a panel
+shows that slot's steps and moves below. The runs list gets a slot column and filter.
 """
 
 import datetime
@@ -16,7 +22,7 @@ import time
 
 from nicegui import ui
 
-from motorjig.desk.testrun import MAX_UPLOAD, fmt_value
+from motorjig.desk.testrun import MAX_UPLOAD, SlotsRun, fmt_value
 
 CSS = """
 .serial-box input {font-size:1.6rem; font-family:monospace; letter-spacing:.04em}
@@ -45,6 +51,14 @@ CSS = """
 .vchip {display:inline-block; min-width:4.6rem; text-align:center; border-radius:4px; padding:0 6px;
         font-weight:700; color:#fff; background:#c62828}
 .vchip.PASS {background:#2e7d32}
+.slot-card {flex:1 1 0; min-width:14rem; cursor:pointer; border:3px solid transparent}
+.slot-card.focused {border-color:#1565c0}
+.slot-card .slot-serial input {font-size:1.2rem; font-family:monospace}
+.slot-verdict {border-radius:8px; text-align:center; font-size:2.6rem; font-weight:900; letter-spacing:.05em;
+               color:#fff; background:#eceff1; min-height:3.4rem}
+.slot-verdict.running {background:#1565c0; font-size:1.4rem; line-height:3.4rem}
+.slot-verdict.pass {background:#2e7d32}
+.slot-verdict.fail, .slot-verdict.error, .slot-verdict.aborted {background:#c62828}
 """
 
 STATE_TEXT = {"not run": "not run"}
@@ -81,6 +95,12 @@ class TestPanel:
         self.records_key = None
         self.records_t = 0.0
         self.plot_key = None
+        self.multi = bool(station.slots_spec)  # --slots: the slot panels instead of one serial field
+        self.panels = {}  # slot name -> its widgets
+        self.slots_key = None
+        self.slots_t = 0.0
+        self.focus_slot = None  # the slot whose steps and moves are shown
+        self.run_cols = None
 
     # --- layout -----------------------------------------------------------------------------
     def build(self):
@@ -94,15 +114,25 @@ class TestPanel:
                     .props("flat round").tooltip("upload a plan (and the parameter sets it names)")
                 ui.button(icon="refresh", on_click=self._refresh_plans).props("flat round").tooltip(
                     "read the plans folder again")
-                self.serial = tid(ui.input("serial number: scan or type, Enter starts"), "serial") \
-                    .props("outlined autofocus").classes("serial-box flex-grow")
-                self.serial.on("keydown.enter", self._start)
+                if self.multi:
+                    self.serial = None
+                    ui.space()
+                else:
+                    self.serial = tid(ui.input("serial number: scan or type, Enter starts"), "serial") \
+                        .props("outlined autofocus").classes("serial-box flex-grow")
+                    self.serial.on("keydown.enter", self._start)
                 self.operator = tid(ui.input("operator", value=st.operator), "operator").classes("w-36")
-                self.btn_start = tid(ui.button("START", icon="play_arrow", on_click=self._start), "btn-test-start") \
-                    .props("color=green-8 size=lg")
+                if self.multi:
+                    self.btn_start = tid(ui.button("START ALL", icon="play_arrow", on_click=self._start_slots),
+                                         "btn-slots-start").props("color=green-8 size=lg")
+                else:
+                    self.btn_start = tid(ui.button("START", icon="play_arrow", on_click=self._start),
+                                         "btn-test-start").props("color=green-8 size=lg")
                 self.btn_abort = tid(ui.button("ABORT", icon="stop", on_click=self._abort), "btn-test-abort") \
                     .props("color=red size=lg")
             self.plan_info = tid(ui.label(st.unavailable), "plan-info").classes("text-caption text-grey-8")
+        self.slots_box = tid(ui.row().classes("w-full q-mt-sm gap-2 no-wrap items-stretch"), "slots")
+        self.slots_box.set_visibility(self.multi)
         with tid(ui.element("div"), "verdict").classes("verdict w-full q-mt-sm") as self.verdict_box:
             self.verdict_word = tid(ui.label(""), "verdict-word").classes("word")
             self.verdict_sub = tid(ui.label(""), "verdict-sub").classes("sub")
@@ -133,13 +163,16 @@ class TestPanel:
                          "yAxisIndex": 1},
                     ]}), "test-plot").classes("w-full h-72")
         with ui.card().classes("w-full q-mt-sm"):
-            with ui.row().classes("items-center"):
+            with ui.row().classes("items-center w-full"):
                 ui.label("Recent runs of this station").classes("text-subtitle1")
                 self.yield_label = tid(ui.label(""), "yield").classes("text-body1 q-ml-md")
-            cols = [{"name": k, "label": label, "field": k, "align": "left"} for k, label in (
-                ("when", "started"), ("plan", "plan"), ("dut", "serial / DUT"), ("verdict", "verdict"),
-                ("failed", "first failing step"), ("operator", "operator"), ("seconds", "s"), ("report", ""))]
-            self.runs_table = tid(ui.table(columns=cols, rows=[], row_key="key", pagination={"rowsPerPage": 0}),
+                ui.space()
+                self.slot_filter = tid(ui.select({"": "all slots"}, value="", label="slot",
+                                                 on_change=lambda _e: self._records_again()), "slot-filter") \
+                    .classes("w-32")
+                self.slot_filter.set_visibility(False)
+            self.runs_table = tid(ui.table(columns=_run_columns(False), rows=[], row_key="key",
+                                           pagination={"rowsPerPage": 0}),
                                   "runs-table").classes("w-full").props("dense flat hide-pagination")
             self.runs_table.add_slot("body-cell-verdict", '<q-td :props="props"><span :class="\'vchip \' + '
                                      'props.value">{{ props.value }}</span></q-td>')
@@ -189,6 +222,10 @@ class TestPanel:
             self.station.selected = e.value
         self._show_plan(e.value)
         self.records_key = None
+        self.slots_key = None
+
+    def _records_again(self):
+        self.records_key = None
 
     def _open_upload(self):
         self.upload_dialog.open()
@@ -212,6 +249,43 @@ class TestPanel:
             self.started_run = self.station.run.number
             self.serial.value = ""
 
+    async def _start_slots(self, only=None):
+        """START ALL (``only`` None) or one panel's Start: the plan in those slots, each with the
+        serial in its field."""
+        if self.station.running:
+            ui.notify("a test is running: wait for its verdicts, or press Abort", type="warning")
+            return
+        names = [only] if only is not None else list(self.panels)
+        serials = {n: self.panels[n]["serial"].value for n in names if n in self.panels}
+        msg = await self.page.act(self.station.start_slots, self.plan_select.value, serials, self.operator.value,
+                                  only)
+        if msg is not None:
+            self.started_run = self.station.run.number
+            for n in serials:
+                self.panels[n]["serial"].value = ""
+            if only is not None:
+                self._focus(only)
+
+    async def _slot_enter(self, name):
+        """Enter in a slot's serial field (a scanner's end): the next slot's field, or from the
+        last one START ALL."""
+        names = list(self.panels)
+        i = names.index(name) if name in names else len(names) - 1
+        if i + 1 < len(names):
+            self.panels[names[i + 1]]["serial"].run_method("focus")
+        else:
+            await self._start_slots()
+
+    def _focus(self, name):
+        if name != self.focus_slot:
+            self.focus_slot = name
+            self.shown_run = None  # the steps list and the plot show that slot's run
+            for n, p in self.panels.items():
+                if n == name:
+                    p["card"].classes(add="focused")
+                else:
+                    p["card"].classes(remove="focused")
+
     async def _abort(self):
         await self.page.act(self.station.abort)
 
@@ -228,9 +302,112 @@ class TestPanel:
         if self.changed("test-buttons", running):
             self.btn_start.set_enabled(not running)
             self.btn_abort.set_enabled(running)
-        if run is not None:
+            for p in self.panels.values():
+                p["start"].set_enabled(not running)
+        if self.multi:
+            self._refresh_slots(run)
+        elif run is not None:
             self._refresh_run(run)
         self._refresh_records()
+
+    def _shown_run(self):
+        """The Run whose steps and moves are shown: the run, or the focused slot's last one."""
+        if self.multi:
+            return self.station.slot_runs.get(self.focus_slot)
+        run = self.station.run
+        return None if isinstance(run, SlotsRun) else run
+
+    # --- the slot panels ------------------------------------------------------------------------
+    def _refresh_slots(self, run):
+        st = self.station
+        now = time.monotonic()
+        key = self.plan_select.value
+        if key != self.slots_key or now - self.slots_t > 2.0:
+            self.slots_key, self.slots_t = key, now
+            slots, why = st.slots(key)
+            if self.changed("slots", (tuple((s.name, s.describe(), s.serial) for s in slots), why)):
+                self._build_slots(slots, why)
+        for name, panel in self.panels.items():
+            self._show_slot(panel, st.slot_runs.get(name))
+        if isinstance(run, SlotsRun):
+            self._show_prompt(run.prompt())
+            if not run.running and self.started_run == run.number and self.report_opened != run.number:
+                self.report_opened = run.number  # the next drives: the first slot's field
+                first = next(iter(self.panels.values()), None)
+                if first is not None:
+                    first["serial"].run_method("focus")
+        shown = self._shown_run()
+        if shown is not None:
+            self._refresh_run(shown)
+
+    def _build_slots(self, slots, why):
+        self.slots_box.clear()
+        self.panels = {}
+        with self.slots_box:
+            if why:
+                tid(ui.label(why), "slots-error").classes("text-red-9 text-body1")
+            for s in slots:
+                with ui.card().classes("slot-card q-pa-sm gap-1") as card:
+                    with ui.row().classes("items-center no-wrap w-full gap-2"):
+                        ui.label("slot %s" % s.name).classes("text-h6")
+                        ui.label(s.describe().split("(", 1)[-1].rstrip(")")).classes("text-caption text-grey-8")
+                        ui.space()
+                        start = tid(ui.button("Start", icon="play_arrow",
+                                              on_click=lambda n=s.name: self._start_slots(n)),
+                                    "btn-slot-start-%s" % s.name).props("color=green-8 dense")
+                    hint = {"ask": "serial: scan or type (needed)", None: "serial: scan or type (none: the drive's id)"}
+                    serial = tid(ui.input(hint.get(s.serial, "serial (default %s)" % s.serial)),
+                                 "slot-serial-%s" % s.name).props("outlined dense").classes("slot-serial w-full")
+                    serial.on("keydown.enter", lambda n=s.name: self._slot_enter(n))
+                    step = tid(ui.label("waiting for a start"), "slot-step-%s" % s.name) \
+                        .classes("text-body2 ellipsis w-full")
+                    bar = tid(ui.linear_progress(value=0, show_value=False, size="10px"), "slot-progress-%s" % s.name)
+                    verdict = tid(ui.label(""), "slot-verdict-%s" % s.name).classes("slot-verdict w-full")
+                    report = tid(ui.link("report", "#", new_tab=True), "slot-report-%s" % s.name)
+                    report.set_visibility(False)
+                tid(card, "slot-%s" % s.name)
+                card.on("click", lambda n=s.name: self._focus(n))
+                self.panels[s.name] = {"card": card, "serial": serial, "step": step, "bar": bar, "verdict": verdict,
+                                       "report": report, "start": start, "shown": None}
+        running = self.station.running
+        for p in self.panels.values():
+            p["start"].set_enabled(not running)
+        if self.focus_slot not in self.panels:
+            self.focus_slot = None
+            self._focus(next(iter(self.panels), None))
+        else:
+            self.panels[self.focus_slot]["card"].classes(add="focused")
+
+    def _show_slot(self, panel, run):
+        """A slot panel: its run's serial, current step, progress and verdict."""
+        if run is None:
+            return
+        snap = run.snapshot()
+        key = (run.number, snap["version"])
+        if panel["shown"] == key:
+            return
+        panel["shown"] = key
+        steps = snap["steps"]
+        done = sum(1 for r in steps if r["state"] not in ("pending", "running"))
+        current = next((i for i, r in enumerate(steps) if r["state"] == "running"), None)
+        verdict = snap["verdict"]
+        who = snap["dut_id"] or "DUT id from the drive"
+        if verdict is None:
+            where = "step %d/%d %s" % (current, len(steps) - 1, steps[current]["name"]) if current else "preflight"
+            panel["step"].text = "%s  ·  %s" % (who, where)
+        else:
+            failure = run.first_failure()
+            panel["step"].text = "%s  ·  %s" % (who, "at %s" % failure[0] if failure and verdict != "PASS"
+                                                else "%.1f s" % run.seconds())
+        panel["bar"].set_value(1.0 if verdict else done / float(len(steps)))
+        state = (verdict or "running").lower()
+        panel["verdict"].text = verdict or "running"
+        panel["verdict"].classes(replace="slot-verdict w-full " + state)
+        panel["card"].props('data-state="%s"' % state)
+        html = snap["files"].get("html")
+        if html:
+            panel["report"].props('href="/runs/%s"' % html.replace("\\", "/").rsplit("/", 1)[-1])
+        panel["report"].set_visibility(bool(html))
 
     def _refresh_run(self, run):
         snap = run.snapshot()
@@ -240,14 +417,17 @@ class TestPanel:
             self.shown_version = snap["version"]
             for row, step in zip(self.rows, snap["steps"]):
                 self._show_step(row, step)
-            self._show_prompt(snap["prompt"])
+            if run.slot is None:  # (a slot's prompt: the SlotsRun's, whichever slot asks)
+                self._show_prompt(snap["prompt"])
             elapsed = run.seconds()
-            self.run_title.text = "%s %s  ·  %s  ·  %s%s" % (
-                run.plan.name, run.plan.version, snap["dut_id"] or "DUT id from the drive",
-                snap["verdict"] or "running", "  ·  %.1f s" % elapsed if snap["verdict"] else "")
-            if snap["verdict"] and self.changed("verdict-shown", run.number):
+            self.run_title.text = "%s%s %s  ·  %s  ·  %s%s" % (
+                "slot %s: " % run.slot if run.slot is not None else "", run.plan.name, run.plan.version,
+                snap["dut_id"] or "DUT id from the drive", snap["verdict"] or "running",
+                "  ·  %.1f s" % elapsed if snap["verdict"] else "")
+            if snap["verdict"] and run.slot is None and self.changed("verdict-shown", run.number):
                 self._show_verdict(run, snap)
-        if snap["verdict"] and self.started_run == run.number and self.report_opened != run.number:
+        if snap["verdict"] and run.slot is None and self.started_run == run.number \
+                and self.report_opened != run.number:
             self.report_opened = run.number
             html = snap["files"].get("html")
             if html:
@@ -339,7 +519,7 @@ class TestPanel:
         self.records_key = None
 
     def refresh_plot(self):
-        run = self.station.run
+        run = self._shown_run()
         if run is None:
             return
         step = run.plot_step
@@ -362,16 +542,24 @@ class TestPanel:
     def _refresh_records(self):
         st = self.station
         now = time.monotonic()
-        key = (st.records_version, self.plan_select.value)
+        key = (st.records_version, self.plan_select.value, self.slot_filter.value)
         if key == self.records_key and now - self.records_t < 5.0:
             return
         self.records_key, self.records_t = key, now
+        names = st.run_slots(self.plan_select.value)
+        if self.changed("slot-filter", tuple(names)):
+            value = self.slot_filter.value if self.slot_filter.value in names else ""
+            self.slot_filter.set_options(dict([("", "all slots")] + [(n, "slot %s" % n) for n in names]), value=value)
+            self.slot_filter.set_visibility(bool(names))
+        if self.changed("run-cols", bool(names)):
+            self.runs_table.columns = _run_columns(bool(names))
         today = datetime.date.today()
         rows = []
-        for r in st.recent_runs():
+        for r in st.recent_runs(slot=self.slot_filter.value or None):
             when = datetime.datetime.fromtimestamp(r["start"])
-            rows.append({"key": "%s-%s" % (r["start"], r["dut"]),
+            rows.append({"key": "%s-%s-%s" % (r["start"], r["dut"], r.get("slot", "")),
                          "when": when.strftime("%H:%M:%S" if when.date() == today else "%Y-%m-%d %H:%M"),
+                         "slot": r.get("slot", ""),
                          "plan": r["plan"], "dut": r["dut"], "verdict": r["verdict"], "failed": r["failed"],
                          "operator": r["operator"], "seconds": "%.1f" % max(0.0, r["end"] - r["start"]),
                          "report": r["report"]})
@@ -390,6 +578,14 @@ class TestPanel:
             everything["runs"], everything["PASS"], everything["FAIL"], everything["ERROR"] + everything["ABORTED"])
         if self.changed("yield", text):
             self.yield_label.text = text
+
+
+def _run_columns(slots):
+    """The runs table's columns; ``slots``: with the slot's, after the start time."""
+    names = [("when", "started")] + ([("slot", "slot")] if slots else []) + [
+        ("plan", "plan"), ("dut", "serial / DUT"), ("verdict", "verdict"), ("failed", "first failing step"),
+        ("operator", "operator"), ("seconds", "s"), ("report", "")]
+    return [{"name": k, "label": label, "field": k, "align": "left"} for k, label in names]
 
 
 def _yield_text(y, name):

@@ -1,10 +1,13 @@
 """Start MotorJig Desk: the web server, the shared bus session, the Test tab's station and, on request, the bench.
 
     jigctl gui [--port PORT] [--baud B] [--http-port N] [--host 127.0.0.1] [--open]
-               [--plans DIR] [--out DIR] [--operator NAME] [--station NAME] [--read-only]
+               [--plans DIR] [--out DIR] [--operator NAME] [--station NAME] [--slots FILE|ADDRS] [--read-only]
                [--capture-port PORT] [--can-port PORT] [--can-bitrate BPS]
     python -m motorjig.desk --bench [--drivers 2,3] [--can-nodes 5,6]     the virtual bench and the page on it (`make`)
 
+``--slots`` makes the Test tab multi-up: the chosen plan runs in every slot of a
+slots file (``station.slots``, docs/station.md) or at the drives' addresses (2,3) at
+once; with ``--bench`` the bench gets the slots' drives and fixture wiring.
 ``--capture-port`` is the jig's capture port (its second USB port): the raw-frames
 tab then records both buses through the jig and offers the recording as pcapng
 (``capture``); with ``--bench`` the bench's own capture port is used.
@@ -161,6 +164,11 @@ def add_gui_arguments(p):
     p.add_argument("--operator", default=os.environ.get("USER", ""),
                    help="the operator's name the Test tab starts with (default: $USER)")
     p.add_argument("--station", help="station name in the run records (default: this computer's name)")
+    p.add_argument("--slots", metavar="FILE|ADDRS",
+                   help="multi-up: the Test tab runs the chosen plan in every slot of FILE (a slots file: each slot's "
+                        "drive, serial and fixture wiring, docs/station.md) or at the drives ADDRS (e.g. 2,3) at once, "
+                        "each slot with its own serial, progress and verdict (with --bench: the bench gets the "
+                        "slots' drives and wiring)")
     p.add_argument("--db", default=os.environ.get("JIGCTL_DB") or None, metavar="PATH|URL|none",
                    help="results database the Test tab stores every run in and lists them from (as jigctl "
                         "test --db; default: $JIGCTL_DB, else ~/.local/share/motorjig/results.sqlite; 'none': "
@@ -197,6 +205,26 @@ def build_parser():
     p.add_argument("--timeout", "-t", type=int, default=100, help="reply timeout in ms (default 100)")
     add_gui_arguments(p)
     return p
+
+
+def bench_slots(spec, plan_path, drivers):
+    """What the bench needs for the slots ``spec`` (a slots file or addresses) loaded with the plan
+    at ``plan_path``: (the driver ids, with the slots' drives added; the slots' fixture wirings, or
+    None). ValueError with the reason."""
+    from motorjig.station.slots import SlotError, load_slots
+
+    if not (spec.endswith(".toml") or os.path.isfile(spec)):  # addresses: the plan's own wiring, if any
+        try:
+            return tuple(sorted(set(drivers) | {int(x, 0) for x in spec.split(",") if x.strip()})), None
+        except ValueError:
+            raise ValueError("%r: give a slots file (.toml) or the drives' addresses, e.g. 2,3" % spec) from None
+    try:
+        slots = load_slots(spec, plan_path)
+    except SlotError as exc:
+        raise ValueError(str(exc)) from None
+    ids = set(drivers) | {s.plan.drive.slave for s in slots if s.kind.address_key == "slave"}
+    wirings = [s.plan.wiring for s in slots if s.plan.wiring is not None]
+    return tuple(sorted(ids)), wirings or None
 
 
 def open_results(db, out):
@@ -271,6 +299,10 @@ def serve(args, out=None):
         return 3
 
     bench = None
+    slots_spec = getattr(args, "slots", None)
+    if slots_spec and (slots_spec.endswith(".toml") or os.sep in slots_spec) and not os.path.isfile(slots_spec):
+        sys.stderr.write("jigctl gui: --slots: %s does not exist.\n" % slots_spec)
+        return 2
     port = getattr(args, "port", None)
     capture_port = getattr(args, "capture_port", None)
     can_port = getattr(args, "can_port", None)
@@ -281,11 +313,19 @@ def serve(args, out=None):
         from motorjig.wiring import WiringError, load_wiring
 
         wiring = getattr(args, "wiring", None)
-        if wiring is None:
-            eol = os.path.join(getattr(args, "plans", None) or default_plans_dir(), "ezi-step-eol.toml")
+        eol = os.path.join(getattr(args, "plans", None) or default_plans_dir(), "ezi-step-eol.toml")
+        fixture = None
+        if slots_spec:  # (the slots' wiring and drives, read with a Plus-R plan: the bench's drives are)
+            plan = eol if os.path.exists(eol) else os.path.join(default_plans_dir(), "ezi-step-eol.toml")
+            try:
+                args.drivers, fixture = bench_slots(slots_spec, plan, args.drivers)
+            except ValueError as exc:
+                sys.stderr.write("jigctl gui: --slots: %s.\n" % str(exc).rstrip("."))
+                return 2
+        if wiring is None and fixture is None:
             wiring = eol if os.path.exists(eol) else None
         try:
-            wiring = load_wiring(wiring) if wiring else None
+            wiring = load_wiring(wiring) if wiring else fixture
         except WiringError as exc:
             sys.stderr.write("jigctl gui: %s.\n" % str(exc).rstrip("."))
             return 2
@@ -306,8 +346,8 @@ def serve(args, out=None):
             ",".join(map(str, args.drivers)), bench.tcp_url,
             " or %s" % bench.pty_path if bench.pty_path else ""))
         out.write("  the jig's capture port: %s (the raw-frames tab records through it)\n" % bench.capture_url)
-        if wiring is not None:
-            out.write("  wired as %s says: jig relays and inputs to %s\n" % (wiring.source, wiring.drive or "the first drive"))
+        for w in wiring if isinstance(wiring, list) else [wiring] if wiring is not None else []:
+            out.write("  wired as %s says: jig relays and inputs to %s\n" % (w.source, w.drive or "the first drive"))
         if can_nodes and can_port is None:
             can_port = getattr(bench, "slcan_url", None)
         if can_nodes:
@@ -335,7 +375,8 @@ def serve(args, out=None):
     # The station's engine (OpenHTF) sets a signal handler when imported: that works in this thread only.
     store = open_results(getattr(args, "db", None), out)
     station = Station(session, plans_dir=getattr(args, "plans", None), out_dir=getattr(args, "out", "results"),
-                      operator=getattr(args, "operator", ""), station=getattr(args, "station", None), store=store)
+                      operator=getattr(args, "operator", ""), station=getattr(args, "station", None), store=store,
+                      slots=slots_spec)
     if station.unavailable:
         out.write("Test tab: %s\n" % station.unavailable)
     capture = DeskCapture(capture_port)

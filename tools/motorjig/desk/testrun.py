@@ -15,10 +15,17 @@ Every run is stored in the results database (``motorjig.station.store``, the one
 recent runs and today's yield are read from it. Without a database (``--db none``,
 or it cannot be opened) they come from the records in the output folder instead
 (each run leaves ``<plan>_<dut>_<time>.json`` there).
+
+Multi-up (``--slots``): the chosen plan runs in every slot of the station's slots
+(``motorjig.station.slots``: a slots file, or the drives' addresses) at once, or in one
+of them, through ``slots.SlotRun``; ``SlotsRun`` keeps a ``Run`` per slot for the page,
+routes each operator prompt to its slot's, and its abort (Abort, STOP) stops them all.
 """
 
 import datetime
 import glob
+import inspect
+import itertools
 import json
 import os
 import re
@@ -65,6 +72,25 @@ def _inside(path, folder):
         return False
 
 
+def _serial(text, who=""):
+    """A serial number as typed or scanned ("" for none), else UserError."""
+    serial = str(text or "").strip()
+    if serial and not SERIAL_RE.match(serial):
+        raise UserError("%sserial number %r: 1..64 printable ASCII characters without spaces" % (who, serial))
+    return serial
+
+
+def _record_slot(path):
+    """The slot a run record file names (its metadata's), "" for none or no file."""
+    if not path:
+        return ""
+    try:
+        with open(path, encoding="utf-8") as f:
+            return str(json.load(f).get("metadata", {}).get("slot") or "")
+    except (OSError, ValueError, AttributeError):
+        return ""
+
+
 def fmt_value(v):
     """A measured value as the steps list shows it."""
     if isinstance(v, bool) or v is None:
@@ -100,9 +126,10 @@ class PlanEntry:
 class Run:
     """One plan run as the page sees it; the engine's events arrive from its worker threads."""
 
-    def __init__(self, number, plan, serial, operator):
+    def __init__(self, number, plan, serial, operator, slot=None, prompt_ids=None):
         self.number = number
         self.plan = plan
+        self.slot = slot  # the slot's name when it is one of several at once (a SlotsRun's)
         self.serial = serial
         self.operator = operator
         self.lock = threading.Lock()
@@ -114,7 +141,7 @@ class Run:
         self.samples = {}  # step name -> [[t, command, actual, velocity], ...]
         self.plot_step = None  # the step whose samples came last
         self.prompt = None  # {"id", "message"} while the engine waits for the operator
-        self._prompts = 0
+        self._prompt_ids = prompt_ids or itertools.count(1)  # a SlotsRun's runs share theirs
         self._answer = None
         self._answered = threading.Event()
         self.verdict = None  # PASS, FAIL, ERROR, ABORTED once it ended
@@ -167,8 +194,7 @@ class Run:
     def confirm(self, message):
         """The engine's operator prompt: blocks its worker until the page answers (or Abort)."""
         with self.lock:
-            self._prompts += 1
-            self.prompt = {"id": self._prompts, "message": message}
+            self.prompt = {"id": next(self._prompt_ids), "message": message}
             self._answer = None
             self._answered.clear()
             self.version += 1
@@ -255,12 +281,100 @@ class Run:
         return (self.ended or time.time()) - self.started
 
 
+def slot_order(name):
+    """Sort key of slot names: "2" before "10", "A3" before "A10"."""
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in re.findall(r"\d+|\D+", str(name)))
+
+
+class SlotsRun:
+    """Several slots' runs at once (``slots.SlotRun``) as the page sees them: a ``Run`` per slot
+    in ``runs`` (by slot name); the prompts go to their slot's run, Abort to every slot."""
+
+    def __init__(self, number, slots, runs):
+        self.number = number
+        self.slots = list(slots)
+        self.plan = self.slots[0].plan
+        self.runs = runs
+        self.ports, self.lent = {}, []  # as a Run's
+        self.engine = None  # the SlotRun, once its worker made it
+        self.abort_requested = False
+        self.cause = None
+        self._lock = threading.Lock()
+        self._who = [(s.describe() + ": ", s.name) for s in self.slots]
+
+    @property
+    def running(self):
+        return any(r.running for r in self.runs.values())
+
+    @property
+    def verdict(self):
+        if self.running:
+            return None
+        from motorjig.station.slots import overall
+
+        return overall([r.verdict for r in self.runs.values()])
+
+    def attach(self, engine):
+        """The worker's SlotRun: an Abort that came before it existed reaches it now."""
+        with self._lock:
+            self.engine = engine
+            aborted, cause = self.abort_requested, self.cause
+        if aborted:
+            engine.abort(cause)
+
+    def abort(self, cause="aborted from the Desk (Abort)"):
+        """Every slot: its running step ends, emergency stop and servo off (``SlotRun.abort``)."""
+        with self._lock:
+            self.abort_requested = True
+            self.cause = self.cause or cause
+            engine = self.engine
+        for run in self.runs.values():
+            run.abort(cause)
+        if engine is not None:
+            engine.abort(cause)
+
+    def on_event(self, ev):
+        run = self.runs.get(ev.get("slot"))
+        if run is None:
+            return
+        if run.ctx is None and self.engine is not None:  # (its Abort then reaches its engine as a Run's does)
+            run.ctx = self.engine.ctxs.get(run.slot)
+        run.on_event(ev)
+
+    def confirm(self, message):
+        """A slot's operator prompt (SlotRun's message starts with "slot N (slave S): ")."""
+        for prefix, name in self._who:
+            if message.startswith(prefix):
+                return self.runs[name].confirm(message)
+        return next(iter(self.runs.values())).confirm(message)
+
+    def answer(self, prompt_id, ok):
+        return any(run.answer(prompt_id, ok) for run in self.runs.values())
+
+    def prompt(self):
+        """The prompt waiting for the operator, or None (SlotRun asks one at a time)."""
+        for run in self.runs.values():
+            prompt = run.prompt
+            if prompt is not None:
+                return prompt
+        return None
+
+    def finish(self, ctxs, errors, error=""):
+        for name, run in self.runs.items():
+            ctx = ctxs.get(name)
+            why = errors.get(name) or (error if ctx is None else "")
+            run.finish(ctx.record if ctx is not None else None, ctx.files if ctx is not None else {}, why)
+
+
 class Station:
     """The Test tab's state, shared by every browser tab of one Desk."""
 
     def __init__(self, session, plans_dir=None, out_dir="results", operator="", station=None, upload_dir=None,
-                 store=None):
+                 store=None, slots=None):
         self.session = session
+        self.slots_spec = slots  # --slots: a slots file or the drives' addresses ("2,3"); None: one drive
+        self.slot_runs = {}  # slot name -> its last Run (a Start of one slot leaves the others' shown)
+        self._slots_cache = {}  # plan path -> (what they were loaded from, its signature, (slots, error))
         self.store = store  # a motorjig.station.store.Store, or None: the records of out_dir
         self.plans_dir = os.path.abspath(plans_dir or default_plans_dir())
         self.out_dir = os.path.abspath(out_dir)
@@ -274,7 +388,7 @@ class Station:
         self._lock = threading.Lock()
         self._plan_cache = {}  # path -> (what it was loaded from, its signature, PlanEntry or None)
         self._record_cache = {}  # path -> (mtime, size, summary)
-        self._stored = {}  # run id -> (first failing step, report path): stored runs do not change
+        self._stored = {}  # run id -> (first failing step, report path, slot): stored runs do not change
         self._own_files = set()  # the files this Desk's runs wrote (real paths)
         self.records_error = ""
         self.records_version = 0
@@ -366,18 +480,8 @@ class Station:
 
     def start(self, key, serial="", operator=""):
         """Start the plan at path ``key`` for DUT ``serial``; returns a sentence (the run goes on)."""
-        if self.session.read_only:
-            raise UserError("starting a test refused: this Desk is read-only (--read-only)")
-        if self.unavailable:
-            raise UserError(self.unavailable)
-        entry = self.find_plan(key) if key else None
-        if entry is None:
-            raise UserError("choose a plan first")
-        if entry.plan is None:
-            raise UserError(entry.error)
-        serial = str(serial or "").strip()
-        if serial and not SERIAL_RE.match(serial):
-            raise UserError("serial number %r: 1..64 printable ASCII characters without spaces" % serial)
+        entry = self._startable(key)
+        serial = _serial(serial)
         with self._lock:
             if self.running:
                 raise UserError("a test is running: wait for its verdict, or press Abort")
@@ -397,6 +501,141 @@ class Station:
         self._worker = threading.Thread(target=self._work, args=(run, url, baud), name="desk-test-run", daemon=True)
         self._worker.start()
         return "test %s started%s" % (entry.plan.name, " for %s" % serial if serial else "")
+
+    def _startable(self, key):
+        """The PlanEntry of ``key`` when a run of it may start, else UserError."""
+        if self.session.read_only:
+            raise UserError("starting a test refused: this Desk is read-only (--read-only)")
+        if self.unavailable:
+            raise UserError(self.unavailable)
+        entry = self.find_plan(key) if key else None
+        if entry is None:
+            raise UserError("choose a plan first")
+        if entry.plan is None:
+            raise UserError(entry.error)
+        return entry
+
+    # --- multi-up -----------------------------------------------------------------------------------
+    def slots(self, key):
+        """(the slots the plan at ``key`` runs in, why not: a sentence); ([], "") without --slots.
+        Read again when the plan, the slots file or a fixture's wiring file changed."""
+        if not self.slots_spec:
+            return [], ""
+        entry = self.find_plan(key) if key else None
+        if entry is None or entry.plan is None:
+            return [], "choose a plan that loads: it runs in every slot"
+        cached = self._slots_cache.get(key)
+        if cached is not None and cached[0][0] is entry and _signature(cached[0][1:]) == cached[1]:
+            return cached[2]
+        from motorjig.station.slots import SlotError, load_slots
+
+        try:
+            got = load_slots(self.slots_spec, key), ""
+        except SlotError as exc:
+            got = [], str(exc)
+        files = [self.slots_spec] if os.path.isfile(self.slots_spec) else []
+        files += sorted({s.plan.wiring.source for s in got[0] if s.plan.wiring is not None and s.plan.wiring.source})
+        self._slots_cache[key] = ((entry,) + tuple(files), _signature(files), got)
+        return got
+
+    def start_slots(self, key, serials=None, operator="", only=None):
+        """Start the plan at ``key`` in every slot, or in slot ``only``; ``serials``: {slot name:
+        the serial typed or scanned} (none: the slots file's, else the drive's own id). One
+        SlotRun at a time: it has the jig's port. Returns a sentence (the runs go on)."""
+        entry = self._startable(key)
+        slots, why = self.slots(key)
+        if why:
+            raise UserError(why)
+        if not slots:
+            raise UserError("no slots: start the Desk with --slots FILE (or the drives' addresses, 2,3)")
+        if only is not None:
+            slots = [s for s in slots if s.name == str(only)]
+            if not slots:
+                raise UserError("no slot %r" % only)
+        serials = dict(serials or {})
+        chosen = {}
+        for s in slots:
+            serial = _serial(serials.get(s.name), s.describe() + ": ")
+            if not serial and s.serial == "ask":
+                raise UserError("%s: scan or type its serial number (the slots file asks for it)" % s.describe())
+            chosen[s.name] = serial or (s.serial if s.serial != "ask" else "")
+        operator = str(operator or self.operator or "").strip()
+        from motorjig.station import kinds
+        from motorjig.station.slots import Slot
+
+        slots = [Slot(s.name, s.plan, chosen[s.name] or None) for s in slots]  # (SlotRun reads the serials here)
+
+        needed = {}
+        for s in slots:
+            for port in kinds.kind_of(s.plan).ports:
+                needed.setdefault(port[0], port)
+        who = "the test run (%s, %s)" % (entry.plan.name, "slot %s" % slots[0].name if len(slots) == 1
+                                          else "%d slots" % len(slots))
+        with self._lock:
+            if self.running:
+                raise UserError("a test is running: wait for its verdict, or press Abort")
+            try:
+                ports, lent = lend_ports(self.axes, list(needed.values()), who)
+            except LookupError as exc:
+                raise UserError("%s: %s" % (entry.plan.name, exc)) from None
+            ids = itertools.count(1)
+            runs = {}
+            for s in slots:
+                self._number += 1
+                runs[s.name] = Run(self._number, s.plan, chosen[s.name], operator, slot=s.name, prompt_ids=ids)
+            self._number += 1
+            multi = SlotsRun(self._number, slots, runs)
+            try:
+                url, baud = self.session.lend_port(who, multi.abort)
+            except Exception:
+                give_back(lent)
+                raise
+            multi.ports, multi.lent = ports, lent
+            self.run = multi
+            self.slot_runs.update(runs)
+        self.session.log("info", "test %s %s started in %s" % (
+            entry.plan.name, entry.plan.version, ", ".join("%s (%s)" % (s.describe(), chosen[s.name] or
+                                                                         "the drive's own id") for s in slots)))
+        self._worker = threading.Thread(target=self._work_slots, args=(multi, url, baud), name="desk-test-slots",
+                                        daemon=True)
+        self._worker.start()
+        return "test %s started in %s" % (entry.plan.name, "slot %s" % slots[0].name if len(slots) == 1
+                                           else "%d slots" % len(slots))
+
+    def _work_slots(self, multi, url, baud):
+        from motorjig.station.slots import SlotRun
+
+        ctxs, errors, error = {}, {}, ""
+        try:
+            engine = SlotRun(multi.slots, url, baud=baud, operator=next(iter(multi.runs.values())).operator or None,
+                             station=self.station, out_dir=self.out_dir, out=None, confirm=multi.confirm,
+                             timeout_ms=max(1, round(self.session.timeout * 1000)), on_event=multi.on_event,
+                             db=self.store, **multi.ports)
+            multi.attach(engine)
+            ctxs = engine.run()
+            errors = dict(engine.errors)
+        except Exception as exc:  # the engine itself failed: every slot is an error, with the reason
+            error = "the runs could not go on: %s: %s" % (type(exc).__name__, exc)
+        finally:
+            try:
+                self.session.take_port_back()
+            except Exception as exc:  # never leave the runs without their verdicts
+                self.session.log("error", "the port could not be taken back: %s" % exc)
+            for problem in give_back(multi.lent):
+                self.session.log("error", problem)
+            stored = [ctx.store_error for ctx in ctxs.values() if getattr(ctx, "store_error", None)]
+            if stored:
+                self.records_error = ("a run was not stored in the results database: %s (its files are written)"
+                                      % stored[0])
+            for ctx in ctxs.values():
+                for path in (ctx.files or {}).values():
+                    self._own_files.add(os.path.realpath(path))
+            multi.finish(ctxs, errors, error)
+            for name, run in multi.runs.items():
+                self.session.log("info", "test %s, slot %s: %s (%s)%s" % (
+                    run.plan.name, name, run.verdict, run.dut_id, "; " + "; ".join(run.details) if run.details
+                    else ""))
+            self.records_version += 1
 
     def _lend_ports(self, plan):
         """The ports the plan's drive kind needs beside the jig's PC port (``DriveKind.ports``), each
@@ -458,7 +697,7 @@ class Station:
         run = self.run
         if run is None or not run.running:
             raise UserError("no test is running")
-        run.abort()
+        run.abort()  # (a SlotsRun's: every slot)
         self.session.log("info", "test %s: Abort pressed" % run.plan.name)
         from motorjig.station import kinds
 
@@ -497,7 +736,8 @@ class Station:
             r = self.store.run(run_id) or {}
             failed = next((p["name"] for p in r.get("phases", []) if p.get("outcome") in ("FAIL", "ERROR")), "")
             html = (r.get("files") or {}).get("html") or ""
-            got = self._stored[run_id] = (failed, html if self._servable_report(html) else "")
+            slot = r["slot"] if "slot" in r else _record_slot((r.get("files") or {}).get("json"))
+            got = self._stored[run_id] = (failed, html if self._servable_report(html) else "", slot or "")
         return got
 
     def _servable_report(self, path):
@@ -527,6 +767,7 @@ class Station:
                        "plan": r.get("metadata", {}).get("test_name", ""), "dut": r.get("dut_id") or "",
                        "verdict": r.get("outcome", ""), "operator": r.get("metadata", {}).get("operator", ""),
                        "station": r.get("station_id", ""), "failed": failed,
+                       "slot": str(r.get("metadata", {}).get("slot") or ""),
                        "report": "/runs/" + html if os.path.isfile(os.path.join(self.out_dir, html)) else ""}
         except (OSError, ValueError, KeyError, TypeError):
             summary = None
@@ -541,23 +782,50 @@ class Station:
     def _row(r):
         return {"start": r["start_ms"] / 1000.0, "end": (r["end_ms"] or r["start_ms"]) / 1000.0, "plan": r["plan"],
                 "dut": r["dut"], "verdict": r["verdict"], "operator": r["operator"], "station": r["station"],
-                "id": r["id"], "failed": "", "report": ""}
+                "id": r["id"], "failed": "", "report": "", "slot": r.get("slot") or ""}
 
-    def recent_runs(self, limit=12):
-        """This station's last runs, newest first: the database's, else the output folder's."""
+    def _store_knows_slots(self):
+        """The database keeps each run's slot (its runs(slot=...)); an older one does not: the
+        slot is then read from the run's record file."""
+        try:
+            return "slot" in inspect.signature(self.store.runs).parameters
+        except (TypeError, ValueError):
+            return False
+
+    def recent_runs(self, limit=12, slot=None):
+        """This station's last runs, newest first: the database's, else the output folder's;
+        ``slot``: of that slot only."""
+        slot = str(slot) if slot not in (None, "") else None
         if self.store is None:
-            return self._folder_rows()[:limit]
+            return [r for r in self._folder_rows() if slot is None or r["slot"] == slot][:limit]
         try:
             me = self.station_name()
-            rows = [self._row(r) for r in self.store.runs(station=me, limit=limit)]
-            for row in rows:
-                failed, html = self._stored_run(row["id"])
+            if slot is None:
+                found = self.store.runs(station=me, limit=limit)
+            elif self._store_knows_slots():
+                found = self.store.runs(station=me, limit=limit, slot=slot)
+            else:  # filtered here, over the last runs
+                found = self.store.runs(station=me, limit=max(limit, 200))
+            rows = []
+            for r in found:
+                row = self._row(r)
+                failed, html, row_slot = self._stored_run(row["id"])
                 row["failed"], row["report"] = failed, "/report/%d" % row["id"] if html else ""
+                row["slot"] = row["slot"] or row_slot
+                if slot is None or row["slot"] == slot:
+                    rows.append(row)
             self.records_error = ""
-            return rows
+            return rows[:limit]
         except Exception as exc:  # the database went away: say so, keep the page alive
             self.records_error = "the results database cannot be read: %s" % exc
             return []
+
+    def run_slots(self, key=None):
+        """The slots the runs list can be filtered by: the configured ones (for the plan at
+        ``key``) and those of this station's recent runs, in slot order."""
+        names = {s.name for s in self.slots(key)[0]}
+        names.update(r["slot"] for r in self.recent_runs(limit=50) if r["slot"])
+        return sorted(names, key=slot_order)
 
     def yield_today(self, plan_name=None):
         """Today's runs (local date) of this station: counts per verdict, the DUTs and the
