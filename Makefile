@@ -27,7 +27,7 @@ test: setup check-mpy ## compile firmware for Cortex-M7, then run all host tests
 check-mpy: setup ## compile every firmware module with mpy-cross -march=armv7emdp
 	@$(PY) tools/firmware/check_mpy.py
 
-bench: setup ## print parser, bridge, trace, CAN, station (Plus-R and CiA 402), results-database and EtherCAT figures (takes several minutes)
+bench: setup ## print parser, bridge, trace, CAN, station (Plus-R and CiA 402), results-database, EtherCAT and multi-up figures (takes several minutes)
 	@$(PY) tools/bench/run_benchmarks.py
 
 docs: setup ## regenerate every document made from the code's tables (make test fails when one is stale)

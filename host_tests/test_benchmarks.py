@@ -23,6 +23,7 @@ NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?")
 # At least this many lines of figures (three numbers or more) in each quick run: its tables.
 FIGURE_LINES = {"bench_parser.py": 5, "bench_bridge.py": 30, "bench_trace.py": 12, "bench_can.py": 8,
                 "bench_station.py": 3, "bench_station402.py": 1, "bench_store.py": 6,
+                "bench_multiup.py": 2,
                 "bench_ecat.py": 0 if os.geteuid() else 6}  # without root: only the line saying why
 
 

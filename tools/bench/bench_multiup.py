@@ -14,10 +14,17 @@ over one slot (goal: >= 3.5x with 4 slots where the plan is motion-bound), the v
 load of the driver bus (RS-485) and of the CAN bus over the group (their wire time / the
 wall time), the trace rate each slot's moves got (the lowest and the mean of the
 ``sample_rate`` measurements), and the engine's time per step (a slot's run time less its
-steps' time, over its steps). Prints figures, asserts nothing.
+steps' time, over its steps).
+
+Then the loaded proof (``--loaded N``, default 25): ``ezi-step-eol`` in the 4 slots of
+plans/multiup/ezi-step-4up.toml N rounds at 921 600 baud, the bench in a process of its
+own above two CPU burners (as bench_station's proof): every FAIL is a false FAIL (the goal
+is 0); an ERROR is a measurement the station could not trust, with its reason. Prints
+figures, asserts nothing.
 """
 
 import argparse
+import collections
 import os
 import statistics
 import sys
@@ -137,12 +144,65 @@ def line(title, make_slots, counts, baud=115200, bitrate=500000):
                 print("        %s: %s" % (s.describe(), "; ".join(SL.summary(s, ctxs[s.name])["details"])[:160]))
 
 
+def loaded_proof(rounds, n_burners, baud=921600):
+    """``rounds`` x 4 slots of ezi-step-eol on healthy drives beside CPU burners: the false FAILs."""
+    from bench_station import Line, board_priority_note, burners, first_failure, start_sim, stop_sim
+
+    four_up = os.path.join(MULTIUP, "ezi-step-4up.toml")
+    print("\nfalse FAILs on a busy PC with 4 slots: ezi-step-eol %d rounds x 4 healthy drives at %d baud, the bench in "
+          "its own process (%s), %d CPU burners beside it" % (rounds, baud, board_priority_note(), n_burners))
+    hogs = burners(n_burners)
+    sim, urls = start_sim(line=Line(EOL, ["--slots", four_up, "--baud", str(baud)]))
+    verdicts, fails, errors, loads = collections.Counter(), collections.Counter(), collections.Counter(), []
+    t0 = time.monotonic()
+    try:
+        time.sleep(2)  # the burners' load builds up
+        with tempfile.TemporaryDirectory() as out:
+            for _ in range(rounds):
+                slots = SL.load_slots(four_up, EOL)
+                run = SL.SlotRun(slots, urls["tcp"], baud=baud, out_dir=out, out=None, confirm=lambda m: True,
+                                 timeout_ms=300, db=None)
+                ctxs = run.run()
+                for s in slots:
+                    rec = (ctxs.get(s.name).record if ctxs.get(s.name) else None) or {}
+                    verdict = rec.get("outcome", "ERROR")
+                    verdicts[verdict] += 1
+                    where = first_failure(rec)
+                    if verdict == "FAIL":
+                        fails["%s: %s" % (where[0], ", ".join(where[1]))] += 1
+                    elif verdict != "PASS":
+                        details = [d.get("description", "") for d in rec.get("outcome_details", [])]
+                        errors["%s: %s" % (where[0] if where else "-", (details or [run.errors.get(s.name, "?")])[0][:90])] += 1
+                loads.append(os.getloadavg()[0])
+    finally:
+        for h in hogs:
+            h.kill()
+        stop_sim(sim)
+    print("  %d rounds (%d runs) in %.0f s, load average %.1f-%.1f: PASS %d, false FAIL %d (goal 0), ERROR %d"
+          % (rounds, rounds * 4, time.monotonic() - t0, min(loads), max(loads), verdicts["PASS"], verdicts["FAIL"],
+             sum(v for k, v in verdicts.items() if k not in ("PASS", "FAIL"))))
+    for what, n in fails.most_common():
+        print("    FAIL  %3d x %s" % (n, what))
+    for what, n in errors.most_common():
+        print("    ERROR %3d x %s" % (n, what))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smoke.toml in 1 and 2 slots at 115 200 baud only")
+    ap.add_argument("--loaded", type=int, default=25, metavar="N",
+                    help="rounds of 4 slots beside CPU burners for the false-FAIL count (default 25; 0: skip it)")
+    ap.add_argument("--burners", type=int, default=2, help="CPU burners beside the loaded rounds (default 2)")
+    ap.add_argument("--only-loaded", action="store_true", help="only the loaded proof")
     args = ap.parse_args(argv)
+    if args.loaded < 0 or args.burners < 0:
+        print("error: --loaded and --burners must be at least 0", file=sys.stderr)
+        return 2
     if args.quick:
         line("smoke (quick mode), Plus-R, 115 200 baud", lambda n: [plusr_slot(i, SMOKE) for i in range(n)], (1, 2))
+        return 0
+    if args.only_loaded:
+        loaded_proof(args.loaded, args.burners)
         return 0
     for baud in (115200, 921600):
         line("ezi-step-eol, Plus-R, %d baud" % baud, lambda n: [plusr_slot(i) for i in range(n)], (1, 2, 4), baud=baud)
@@ -151,6 +211,8 @@ def main(argv=None):
             cia402_slot(i, br) for i in range(n)], (1, 2, 4), bitrate=bitrate)
     line("mixed: 2 ezi-step-eol (Plus-R) + 2 cia402-eol (CiA 402), 115 200 baud, 500 kbit/s",
          lambda n: [plusr_slot(0), plusr_slot(1), cia402_slot(0, 500000, 3), cia402_slot(1, 500000, 4)], (4,))
+    if args.loaded:
+        loaded_proof(args.loaded, args.burners)
     return 0
 
 

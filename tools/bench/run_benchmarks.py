@@ -18,7 +18,7 @@ TOOLS = os.path.dirname(os.path.abspath(__file__))
 # In the order `make bench` prints them; host_tests/test_benchmarks.py checks that every
 # tools/bench/bench_*.py is here.
 BENCHMARKS = ("bench_parser.py", "bench_bridge.py", "bench_trace.py", "bench_can.py", "bench_station.py",
-              "bench_station402.py", "bench_store.py", "bench_ecat.py")
+              "bench_station402.py", "bench_store.py", "bench_ecat.py", "bench_multiup.py")
 
 
 def run(script, quick):
