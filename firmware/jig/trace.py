@@ -112,7 +112,8 @@ T_TIMEOUT_MS = const(14)
 T_STALE = const(15)  # 1: the request out belongs to a trace since restarted: its answer is not kept
 T_SET = const(16)  # bit k: drive k is in the set
 T_COUNT = const(17)  # drives in the set
-T_SIZE = const(18)
+T_ONLY = const(18)  # the drive, when the set holds one (-1: several or none): no search per slot
+T_SIZE = const(19)
 
 _GET_ALL_STATUS = const(0x43)
 _STATUS_OK = const(0)
@@ -223,6 +224,7 @@ class Trace:
         if not ts[T_SET] & bit:
             ts[T_SET] |= bit
             ts[T_COUNT] += 1
+            self._only()
         self.d_framing[slave] = flags
         if flags == FRAMING_DETECT:
             self.d_ver8[slave] = 1 if self.bridge.ver8 else 0
@@ -241,6 +243,16 @@ class Trace:
             ts[T_SET] &= ~bit
             ts[T_COUNT] -= 1
             self.d_skipped[slave] = ts[T_SKIPPED] - self.d_skipped[slave]
+            self._only()
+
+    def _only(self):
+        ts = self.ts
+        i = -1
+        if ts[T_COUNT] == 1:
+            i = 0
+            while not ts[T_SET] & (1 << i):
+                i += 1
+        ts[T_ONLY] = i
 
     def _drop_all(self):
         for i in range(SEEN_IDS):
@@ -397,17 +409,20 @@ class Trace:
             self.poll(now)
 
     def _next_drive(self):
-        """The drive of the next slot: the first in the set after the one polled last."""
-        ts = self.ts
-        members = ts[T_SET]
-        i = ts[T_SLAVE]
-        for _ in range(SEEN_IDS):
+        """The drive of the next slot: the first in the set after the one polled last
+        (-1: the set is empty)."""
+        members = self.ts[T_SET]
+        if not members:
+            return -1
+        i = self.ts[T_SLAVE] + 1
+        rest = members >> i  # the members after it
+        if not rest:
+            i = 0  # (round again from the lowest)
+            rest = members
+        while not rest & 1:
+            rest >>= 1
             i += 1
-            if i >= SEEN_IDS:
-                i = 0
-            if members & (1 << i):
-                return i
-        return -1
+        return i
 
     def poll(self, now):
         """Slow pass: send the request of a slot that is due, if the driver bus is free."""
@@ -431,9 +446,11 @@ class Trace:
             ts[T_SKIPPED] += k
             nxt = ticks_add(nxt, k * per)
         ts[T_NEXT] = ticks_add(nxt, per)
-        slave = self._next_drive()
+        slave = ts[T_ONLY]
         if slave < 0:
-            return
+            slave = self._next_drive()
+            if slave < 0:
+                return
         ver8 = self.d_ver8[slave]
         ts[T_VER8] = ver8
         ts[T_FRAMING] = self.d_framing[slave]
@@ -463,22 +480,14 @@ class Trace:
         if (t - due[0]) & _TICKS_MASK >= _TICKS_HALF:  # t comes before due[0]
             due[0] = t
 
-    def _kept(self):
-        """The answer to the request out counts: the sampler runs, was not restarted
-        since, and its drive is still in the set."""
+    def on_reply(self, p):
         ts = self.ts
         ts[T_WAITING] = 0
         self._next_slot()
-        if ts[T_STALE]:
-            ts[T_STALE] = 0
-            return False  # restarted meanwhile
-        return ts[T_ON] and ts[T_SET] & (1 << ts[T_SLAVE])  # (stopped, or it left: not kept)
-
-    def on_reply(self, p):
-        if not self._kept():
-            return
-        ts = self.ts
         slave = ts[T_SLAVE]
+        if ts[T_STALE] or not ts[T_ON] or not ts[T_SET] & (1 << slave):
+            ts[T_STALE] = 0
+            return  # restarted, stopped, or its drive left meanwhile: not kept
         body = p.body
         n = p.st[S_N]
         h = 3 if ts[T_VER8] else 2  # id, [sync], type
@@ -509,8 +518,14 @@ class Trace:
         self.d_taken[slave] += 1
 
     def on_timeout(self):
-        if self._kept():
-            self.ts[T_FAILED] += 1
-            self.d_failed[self.ts[T_SLAVE]] += 1
+        ts = self.ts
+        ts[T_WAITING] = 0
+        self._next_slot()
+        slave = ts[T_SLAVE]
+        if ts[T_STALE] or not ts[T_ON] or not ts[T_SET] & (1 << slave):
+            ts[T_STALE] = 0
+            return
+        ts[T_FAILED] += 1
+        self.d_failed[slave] += 1
 
     on_abort = on_timeout
