@@ -4,12 +4,13 @@ Runs under CPython, on the WebAssembly MicroPython VM (host_tests/test_trace.py:
 heap bytes per sample with the collector off) and frozen into the qemu build
 (tools/firmware/qemu/qemu_suite.py). ``TraceRig.sample_once`` is one slot: the clock moves
 to the slot, a pass sends the GetAllStatus request, the drive's reply comes in, a
-pass stores the sample.
+pass stores the sample. ``SetRig`` samples a set of drives (StartTrace's join) and
+reads tagged chunks.
 """
 
 
 from jig import frame
-from jig.trace import T_NEXT
+from jig.trace import T_NEXT, T_SLAVE
 
 import bridge_probe
 
@@ -100,3 +101,61 @@ def times_alloc(n=100):
     out0 = v[1]  # C_UP_OUT
     used = bridge_probe.heap_used(lambda: r.local_once(req), n)
     return used, v[1] - out0 == n
+
+
+class SetRig(TraceRig):
+    """Drives 2, 3 and 4 in the sampler's set (each joining: StartTrace's 7th byte), each
+    answering its own GetAllStatus; ReadTrace reads tagged chunks."""
+
+    IDS = (2, 3, 4)
+
+    def __init__(self, period_us=PERIOD_US):
+        bridge_probe.Rig.__init__(self)
+        self.replies = {}
+        for slave in self.IDS:  # each answers once through the bridge: the jig has seen it
+            self.req = bytearray(frame.encode(slave, frame.GET_AXIS_STATUS))
+            self.reply = bytearray(frame.encode(slave, frame.GET_AXIS_STATUS, b"\x00\x00\x00\x00\x08"))
+            self.forward_once()
+            self.replies[slave] = all_status_reply(slave)
+        for slave in self.IDS:
+            data = bytearray(7)
+            data[0] = slave
+            frame.put_u32(data, 1, period_us)
+            data[5] = 1  # Ver6
+            data[6] = 1  # join
+            self.local_once(bytearray(frame.encode(1, 0xF5, bytes(data))))
+        self.read_req = bytearray(frame.encode(1, 0xF7, b"\x00\x00\x00\x01"))
+        self.trace = self.app.trace
+
+    def sample_once(self):
+        """One slot: the request to the next drive of the set goes out, its reply comes in."""
+        hal = self.hal
+        hal.t = self.trace.ts[T_NEXT]
+        self.app.poll()
+        self._in(hal.down, self.replies[self.trace.ts[T_SLAVE]])
+        self.app.poll()
+
+
+def set_sample_alloc(n=200):
+    """Heap bytes allocated over n samples of a set of three drives, and whether every
+    sample was stored, each drive's a third of them."""
+    r = SetRig()
+    for _ in range(21):
+        r.sample_once()
+    used = bridge_probe.heap_used(r.sample_once, n - n % 3)
+    tr = r.trace
+    k = (n - n % 3 + 21) // 3
+    return used, tr.ts[6] == n - n % 3 + 21 and all(tr.d_taken[i] == k for i in SetRig.IDS)
+
+
+def tagged_read_alloc(n=100):
+    """Heap bytes allocated over n tagged ReadTrace requests answered (11 samples each),
+    and whether every reply went out."""
+    r = SetRig()
+    for _ in range(30):
+        r.sample_once()
+    for _ in range(10):
+        r.read_once()
+    w0 = r.hal.up.writes
+    used = bridge_probe.heap_used(r.read_once, n)
+    return used, r.hal.up.writes - w0 == n

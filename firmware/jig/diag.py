@@ -13,14 +13,27 @@ layouts (reply data always starts with the status byte)::
                                                 no crash log or the HAL has no crash_summary()
     0xF5 StartTrace        req: u8 slave, u32 period µs, u8 framing (0 detect, 1 Ver6, 2 Ver8)
                                          reply: St, u16 ring size (samples), u32 jig tick now
+                                                (a restart: the set is that one drive)
+                           req: the same + u8 1 (join: the drive joins the set, the others go on)
+                                         reply: St, u16 ring size, u32 jig tick now, u8 started
+                                                (1: the sampler was off), u16 oldest index held,
+                                                u16 next index, u32 set (bit k: drive k)
     0xF6 StopTrace         req: -        reply: St, the trace status (below); samples stay readable
+                           req: u8 slave (leave: the others go on; the last one stops it)
+                                         reply: St, that drive's status (below)
     0xF7 ReadTrace         req: u16 from index, u8 max n (0: 12)
                                          reply: St, u8 state, u16 next index, u8 n, n x sample
                                                 (u32 tick, i32 command, i32 actual, i32 velocity,
                                                 u32 axis flags)
+                           req: the same + u8 1 (tagged; max n 0: 11)
+                                         reply: St, u8 state, u16 next index, u8 n, n x (u8 slave,
+                                                sample)
     0xF8 GetTraceStatus    req: -        reply: St, u8 state (0 off, 1 running), u8 slave, u32 period µs,
                                                 u32 taken, u32 skipped, u32 lost (ring full),
                                                 u32 failed, u16 oldest index held, u16 next index
+                           req: u8 slave reply: St, u8 state, u8 slave, u32 set, u32 period µs, that
+                                                drive's u32 taken, skipped, lost, failed since its
+                                                join, u16 oldest index held, u16 next index
     0xF9 ReadTransactionTimes req: -     reply: St, u8 n, n x (u8 id, u8 type (Ver6) / sync (Ver8),
                                                 u32 tick the request's last stop bit left on the driver
                                                 bus, u32 tick the reply's last byte came in or
@@ -61,7 +74,12 @@ XT_ENTRY = const(10)  # u8 id, u8 b1, u32 request sent, u32 reply in
 
 TRACE_SAMPLE = const(20)  # bytes: u32 tick, i32 command, i32 actual, i32 velocity, u32 flags
 TRACE_CHUNK = const(12)  # samples per ReadTrace reply at most
+TRACE_CHUNK_TAGGED = const(11)  # samples per tagged ReadTrace reply at most
 TRACE_STATUS_REPLY_LEN = const(27)  # incl. status
+TRACE_DRIVE_STATUS_REPLY_LEN = const(31)  # incl. status
+TRACE_JOIN_REPLY_LEN = const(16)  # incl. status
+TRACE_JOIN = const(1)  # StartTrace's 7th byte
+TRACE_TAGGED = const(1)  # ReadTrace's 4th byte
 TRACE_STATE_NAMES = ("off", "running")
 
 SLAVE_TYPE = const(200)
@@ -171,6 +189,29 @@ def decode_trace_status(data):
             "next": frame.get_u16(data, 25)}
 
 
+def decode_trace_join(data):
+    """Reply data of a joining StartTrace -> dict: ring, tick, started, first (oldest index
+    held), next, set (the drive ids in the set) (host side)."""
+    if len(data) != TRACE_JOIN_REPLY_LEN or data[0] != 0:
+        raise ValueError("bad StartTrace (join) reply")
+    members = frame.get_u32(data, 12)
+    return {"ring": frame.get_u16(data, 1), "tick": frame.get_u32(data, 3), "started": bool(data[7]),
+            "first": frame.get_u16(data, 8), "next": frame.get_u16(data, 10),
+            "set": [i for i in range(32) if members >> i & 1]}
+
+
+def decode_trace_drive_status(data):
+    """Reply data of a leaving StopTrace / GetTraceStatus for one drive -> dict; taken,
+    skipped, lost, failed are that drive's since its join (host side)."""
+    if len(data) != TRACE_DRIVE_STATUS_REPLY_LEN or data[0] != 0 or data[1] >= len(TRACE_STATE_NAMES):
+        raise ValueError("bad trace drive status reply")
+    g = frame.get_u32
+    members = g(data, 3)
+    return {"state": TRACE_STATE_NAMES[data[1]], "slave": data[2], "set": [i for i in range(32) if members >> i & 1],
+            "period_us": g(data, 7), "taken": g(data, 11), "skipped": g(data, 15), "lost": g(data, 19),
+            "failed": g(data, 23), "first": frame.get_u16(data, 27), "next": frame.get_u16(data, 29)}
+
+
 def decode_trace_chunk(data):
     """Reply data of ReadTrace -> (state name, next index, [(tick, command, actual,
     velocity, flags), ...]) with raw 30-bit ticks (host side)."""
@@ -198,3 +239,19 @@ def decode_transaction_times(data):
         t_rep = frame.get_u32(data, k + 6)
         out.append((data[k], data[k + 1], frame.get_u32(data, k + 2), None if t_rep == 0xFFFFFFFF else t_rep))
     return out
+
+
+def decode_trace_chunk_tagged(data):
+    """Reply data of a tagged ReadTrace -> (state name, next index, [(slave, tick, command,
+    actual, velocity, flags), ...]) with raw 30-bit ticks (host side)."""
+    if len(data) < 5 or data[0] != 0 or data[1] >= len(TRACE_STATE_NAMES):
+        raise ValueError("bad ReadTrace reply")
+    n = data[4]
+    if n > TRACE_CHUNK_TAGGED or len(data) != 5 + (TRACE_SAMPLE + 1) * n:
+        raise ValueError("bad ReadTrace reply length")
+    out = []
+    for i in range(n):
+        k = 5 + (TRACE_SAMPLE + 1) * i
+        out.append((data[k], frame.get_u32(data, k + 1), frame.get_i32(data, k + 5), frame.get_i32(data, k + 9),
+                    frame.get_i32(data, k + 13), frame.get_u32(data, k + 17)))
+    return TRACE_STATE_NAMES[data[1]], frame.get_u16(data, 2), out

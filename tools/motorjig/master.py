@@ -102,8 +102,11 @@ REPLY_LEN = {
     # the jig's diagnostic frames (jig.diag)
     D.READ_COUNTERS: VAR, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0,
     D.GET_BUS_SCAN_RESULT: D.SCAN_REPLY_LEN - 1, D.READ_CRASH_LOG: VAR,
-    D.START_TRACE: 6, D.STOP_TRACE: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRACE: VAR,
-    D.GET_TRACE_STATUS: D.TRACE_STATUS_REPLY_LEN - 1, D.READ_TRANSACTION_TIMES: VAR,
+    # (the sampler's frames: the single-drive reply, or a drive of the set's)
+    D.START_TRACE: (6, D.TRACE_JOIN_REPLY_LEN - 1),
+    D.STOP_TRACE: (D.TRACE_STATUS_REPLY_LEN - 1, D.TRACE_DRIVE_STATUS_REPLY_LEN - 1), D.READ_TRACE: VAR,
+    D.GET_TRACE_STATUS: (D.TRACE_STATUS_REPLY_LEN - 1, D.TRACE_DRIVE_STATUS_REPLY_LEN - 1),
+    D.READ_TRANSACTION_TIMES: VAR,
     D.READ_CAN_COUNTERS: VAR, D.TAKE_SAFETY_NOTICE: D.SAFETY_NOTICE_LEN,
 }
 #: data bytes of a request (Ver6); the monitor tells requests from replies with it
@@ -125,7 +128,8 @@ REQUEST_LEN = {
     F.MOVE_PUSH: (26, 28), F.GET_PUSH_STATUS: 0, F.MOVE_ABS_POS_EX: 40, F.MOVE_INC_POS_EX: 40,
     F.MOVE_VELOCITY_EX: 37,
     D.READ_COUNTERS: 0, D.RESET_COUNTERS: 0, D.START_BUS_SCAN: 0, D.GET_BUS_SCAN_RESULT: 0,
-    D.READ_CRASH_LOG: 0, D.START_TRACE: 6, D.STOP_TRACE: 0, D.READ_TRACE: 3, D.GET_TRACE_STATUS: 0,
+    D.READ_CRASH_LOG: 0, D.START_TRACE: (6, 7), D.STOP_TRACE: (0, 1),
+    D.READ_TRACE: (3, 4), D.GET_TRACE_STATUS: (0, 1),
     D.READ_TRANSACTION_TIMES: 0, D.READ_CAN_COUNTERS: 0, D.TAKE_SAFETY_NOTICE: 0,
 }
 
@@ -871,9 +875,9 @@ class Master:
         return found
 
     # --- the jig's own frames (slave 1 by default; layouts in jig.diag) ---------------------
-    def _jig_reply(self, jig, ftype, decode, name):
+    def _jig_reply(self, jig, ftype, decode, name, data=b""):
         """Request ftype from the jig and decode its reply data with jig.diag's decode."""
-        fr = self.request(jig, ftype)
+        fr = self.request(jig, ftype, data)
         try:
             return decode(fr.data)
         except ValueError as exc:
@@ -916,25 +920,64 @@ class Master:
         and keep the samples (read them with ``trace_read``). The slave is contacted first
         if this Master has not (the jig samples only drives it has seen answer), and
         polled in its variant (``ver8`` forces one). Returns the jig's ring size in samples."""
-        _check_slave(slave)
-        v8 = self.variant(slave) == 8 if ver8 is None else bool(ver8)
-        framing = 2 if v8 else 1
-        data = pack(("u8", slave), ("u32", period_us), ("u8", framing))
-        try:
-            fr = self.request(jig, D.START_TRACE, data)
-        except StatusError as exc:
-            if exc.status != F.STATUS_DATA_ERROR or slave == jig:
-                raise
-            # The jig may not have seen this drive answer since it started (a variant known
-            # from before its reset): one request through it, then once more.
-            self.request(slave, F.GET_AXIS_STATUS, ver8=v8)
-            fr = self.request(jig, D.START_TRACE, data)
+        fr = self._start_trace(slave, period_us, jig, ver8, b"")
         try:
             size, t0 = D.decode_trace_start(fr.data)
         except ValueError as exc:
             raise BadReplyError("slave %d sent a bad StartTrace reply (%s)" % (jig, exc), jig, D.START_TRACE) from None
         self._trace = {"jig": jig, "next": 0, "raw": t0, "t": 0}
         return size
+
+    def _start_trace(self, slave, period_us, jig, ver8, extra):
+        _check_slave(slave)
+        v8 = self.variant(slave) == 8 if ver8 is None else bool(ver8)
+        framing = 2 if v8 else 1
+        data = pack(("u8", slave), ("u32", period_us), ("u8", framing)) + extra
+        try:
+            return self.request(jig, D.START_TRACE, data)
+        except StatusError as exc:
+            if exc.status != F.STATUS_DATA_ERROR or slave == jig:
+                raise
+            # The jig may not have seen this drive answer since it started (a variant known
+            # from before its reset): one request through it, then once more.
+            self.request(slave, F.GET_AXIS_STATUS, ver8=v8)
+            return self.request(jig, D.START_TRACE, data)
+
+    # A set of drives sampled at once (several slots moving; the station's tracehub reads
+    # them). A jig whose sampler knows one drive only answers these with 0x82 (StatusError).
+    def trace_join(self, slave, period_us, jig=1, ver8=None):
+        """Add slave to the drives the jig samples in turn (StartTrace's join), the others
+        sampling on; the sampler starts if it was off (``started``). Returns {ring, tick,
+        started, first, next, set}: tick the jig's at the join, first/next the indexes
+        held, set the drive ids now sampled."""
+        fr = self._start_trace(slave, period_us, jig, ver8, bytes([D.TRACE_JOIN]))
+        try:
+            return D.decode_trace_join(fr.data)
+        except ValueError as exc:
+            raise BadReplyError("slave %d sent a bad StartTrace reply (%s)" % (jig, exc), jig, D.START_TRACE) from None
+
+    def trace_leave(self, slave, jig=1):
+        """Take slave out of the jig's set (the last one out stops the sampler); returns its
+        figures since it joined (``trace_drive_status``)."""
+        _check_slave(slave)
+        return self._jig_reply(jig, D.STOP_TRACE, D.decode_trace_drive_status, "StopTrace", bytes([slave]))
+
+    def trace_drive_status(self, slave, jig=1):
+        """{state, slave, set, period_us, taken, skipped, lost, failed, first, next}: the
+        sampler's state and set, and slave's figures since it joined."""
+        _check_slave(slave)
+        return self._jig_reply(jig, D.GET_TRACE_STATUS, D.decode_trace_drive_status, "GetTraceStatus",
+                               bytes([slave]))
+
+    def trace_read_tagged(self, frm, jig=1):
+        """One chunk of the set's samples from ring index frm: (state, next index, [(slave,
+        tick, command, actual, velocity, flags), ...]), raw 30-bit ticks. Naming frm releases
+        the samples before it."""
+        fr = self.request(jig, D.READ_TRACE, pack(("u16", frm), ("u8", 0), ("u8", D.TRACE_TAGGED)))
+        try:
+            return D.decode_trace_chunk_tagged(fr.data)
+        except ValueError as exc:
+            raise BadReplyError("slave %d sent a bad ReadTrace reply (%s)" % (jig, exc), jig, D.READ_TRACE) from None
 
     def trace_read(self, jig=None, max_chunks=None):
         """The samples the jig has taken since the last read, as TraceSample tuples (t_us

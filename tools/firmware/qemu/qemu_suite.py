@@ -976,6 +976,37 @@ def bench_trace(n=100, prices=None):
                                                                             board_a + board_b + slow_on))
 
 
+def trace_set_heap(n=90):
+    """The sampler with a set of drives (trace_probe.SetRig: three drives joined, tagged
+    ReadTrace): n samples and n // 9 tagged reads with the heap locked; none may allocate."""
+    import trace_probe
+
+    rig = trace_probe.SetRig()
+    tr = rig.trace
+    for _ in range(30):
+        rig.sample_once()
+    rig.read_once()
+    taken0 = tr.ts[6]  # T_TAKEN
+    w0 = rig.hal.up.writes
+    gc.collect()
+    heap_lock(True)
+    try:
+        for i in range(n):
+            rig.sample_once()
+            if i % 9 == 8:
+                rig.read_once()
+    except MemoryError:
+        heap_lock(False)
+        fail("trace set: a sample or a tagged read allocated with the heap locked")
+        return
+    heap_lock(False)
+    if tr.ts[6] - taken0 != n or rig.hal.up.writes - w0 != n // 9:
+        fail("trace set: %d samples stored of %d, %d reads answered of %d" % (
+            tr.ts[6] - taken0, n, rig.hal.up.writes - w0, n // 9))
+    result("trace set of 3 drives (join, round robin, tagged ReadTrace): %d samples and %d tagged reads with the "
+           "heap locked, nothing allocated" % (n, n // 9))
+
+
 def probe_cross_check(n=200):
     """The same figures through host_tests/bridge_probe.Rig, the harness the other
     benchmarks use: a second opinion on the numbers above."""
@@ -1035,12 +1066,14 @@ def main(quick=False):
         bench_parser(2)
         bench_bridge(5)
         bench_trace(5)
+        trace_set_heap(18)
     else:
         bench_crc()
         bench_parser()
         prices = check_board()
         bench_bridge(prices=prices)
         bench_trace(prices=prices)
+        trace_set_heap()
         probe_cross_check()
         result("bridge_probe heap with capture on: forward %+d bytes over 200 transactions (records streamed)"
                % capture_alloc())

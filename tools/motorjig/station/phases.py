@@ -86,10 +86,12 @@ def _skip(test, name):
 
 
 def _attachment(trace, target=None):
-    return json.dumps({"columns": ["t", "command", "actual", "velocity"],
-                       "units": {"t": "s", "command": "pulse", "actual": "pulse", "velocity": "pps"},
-                       "rows": trace.rows, "target": target, "sampled_by": trace.source,
-                       "marks": trace.marks})
+    att = {"columns": ["t", "command", "actual", "velocity"],
+           "units": {"t": "s", "command": "pulse", "actual": "pulse", "velocity": "pps"},
+           "rows": trace.rows, "target": target, "sampled_by": trace.source, "marks": trace.marks}
+    if getattr(trace, "why", None):  # this PC sampled a step of a run the jig samples
+        att["sampling_note"] = trace.why
+    return json.dumps(att)
 
 
 def _alarm_code(m, s):

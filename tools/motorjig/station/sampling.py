@@ -6,7 +6,9 @@ Two samplers with one interface, chosen per run (``new_trace``):
   GetAllStatus at a fixed period, each sample dated by the jig's µs clock, and the PC's
   own commands to that drive (the move, the stop) and the jig's relay switchings dated
   by the same clock as they happened on the bus. Nothing a busy PC does moves a date:
-  the PC only reads the samples later, in chunks.
+  the PC only reads the samples later, in chunks. The slots that share one Master share
+  the jig's sampler through its ``tracehub.TraceHub``: each moving step's drive joins the
+  jig's set and gets its own samples; with N drives moving each is sampled every N periods.
 * ``PcTrace`` -- the station polls GetAllStatus itself and dates each sample with its own
   clock at the middle of the round trip (a bus without a MotorJig, or a jig whose
   firmware has no sampler). A busy PC delays replies and leaves gaps.
@@ -19,9 +21,13 @@ judge the drive: a gap, a rate below the plan's floor, samples the jig lost, a c
 the jig did not see go out -- the step then ends ERROR with that reason, never FAIL.
 """
 
+import logging
 import time
 
 from motorjig.errors import JigError
+from motorjig.station import tracehub
+
+_LOG = logging.getLogger(__name__)
 
 # GetAllStatus on the driver bus: the request and its 32-byte reply, framed (Ver6, no stuffing).
 _STATUS_TRANSACTION_BYTES = 8 + 41
@@ -158,9 +164,10 @@ class PcTrace(_Trace):
 
     source = "pc"
 
-    def __init__(self, ctx=None, step=None):
+    def __init__(self, ctx=None, step=None, why=None):
         super().__init__(ctx, step)
         self.t0 = time.monotonic()
+        self.why = why  # why this PC samples a step of a run the jig samples (None: the run's choice)
 
     def gap_cause(self):
         return "this PC's polling: a busy PC or a slow reply"
@@ -186,16 +193,19 @@ class PcTrace(_Trace):
 
 
 class JigTrace(_Trace):
-    """The jig's own sampling (see the module's doc). A command is dated by the jig: ``sent(m, s,
-    name)``, called right after the command's reply, finds it among the jig's last forwarded
-    requests (ReadTransactionTimes) and keeps the jig's tick of its last stop bit leaving on the
-    driver bus, on the samples' time base."""
+    """The jig's own sampling (see the module's doc), through the hub of the Master's jig
+    (``tracehub.hub_for``). A command is dated by the jig: ``sent(m, s, name)``, called right
+    after the command's reply, finds it among the jig's last forwarded requests
+    (ReadTransactionTimes: the drive's id, and its frame type or Ver8 sync number) and keeps
+    the jig's tick of its last stop bit leaving on the driver bus, on this drive's time base."""
 
     source = "jig"
 
-    def __init__(self, ctx=None, step=None, jig=1, period_us=5000):
+    def __init__(self, ctx=None, step=None, jig=1, period_us=5000, hub=None):
         super().__init__(ctx, step)
         self.jig, self.period_us = jig, period_us
+        self.hub = hub
+        self.slave = None
         self.status = None
 
     def gap_cause(self):
@@ -204,20 +214,30 @@ class JigTrace(_Trace):
             st.get("skipped", 0), st.get("failed", 0), st.get("lost", 0))
 
     def begin(self, m, s):
-        m.trace_start(s, self.period_us, jig=self.jig)
+        if self.hub is None:
+            self.hub = tracehub.hub_for(m, self.jig)
+        if not self.hub.claim(s):
+            raise JigError("the jig samples one drive at a time (its firmware has no set of drives) and another "
+                           "slot's step has it")
+        try:
+            self.hub.join(s, self.period_us)
+        except BaseException:
+            self.hub.release(s)
+            raise
+        self.slave = s
         while not self.rows:
             self.more(m, s)
 
     def more(self, m, s):
         out = []
-        got = m.trace_read(self.jig)
+        got = self.hub.take(s)
         for item in got:
             t = item.t_us / 1e6
             smp = _Sample(item.command_pos, item.actual_pos, item.actual_vel, item.axis)
             self._add(t, smp)
             out.append((t, smp))
         if not got:
-            time.sleep(self.period_us / 2e6)  # nothing new yet: half a slot
+            time.sleep(self.period_us * self.hub.drives() / 2e6)  # nothing new yet: half this drive's interval
         return out
 
     def mark(self, name, ftype):
@@ -229,7 +249,7 @@ class JigTrace(_Trace):
         b1 = self._ftype if m.variant(s) == 6 else m.last_sync(s)  # Ver8: the sync number it went out with
         for tt in reversed(m.transaction_times(self.jig)):
             if tt.slave == s and tt.b1 == b1:
-                self.marks[name] = m.trace_time_us(tt.request_end) / 1e6
+                self.marks[name] = self.hub.time_us(s, tt.request_end) / 1e6
                 return
         raise UntrustedMeasurement("the jig has no record of %s going out to slave %d: the step's times cannot "
                                    "be dated" % (name, s))
@@ -238,8 +258,10 @@ class JigTrace(_Trace):
         pass  # the jig records only what it forwards: the step dates it by the drive's flags (date_by_flag)
 
     def end(self, m):
+        if self.slave is None:
+            return  # never joined
         try:
-            self.status = m.trace_stop(self.jig)
+            self.status = self.hub.leave(self.slave)
         except JigError:
             self.status = None
         if self.status and self.status.get("lost"):
@@ -259,8 +281,16 @@ def jig_can_trace(m, jig):
 
 
 def new_trace(bus, ctx, step):
-    """The run's sampler for one step: the jig's when it has one (``bus.trace_period_us``)."""
+    """The run's sampler for one step: the jig's when it has one (``bus.trace_period_us``). A jig
+    whose sampler takes one drive only samples one slot's step at a time: a step that begins
+    while another slot's has it is sampled by this PC (the trace says why)."""
     if getattr(bus, "trace_period_us", None):
-        return JigTrace(ctx, step, bus.jig_id, bus.trace_period_us)
+        hub = tracehub.hub_for(bus.master, bus.jig_id)
+        if hub.claim(bus.slave):
+            return JigTrace(ctx, step, bus.jig_id, bus.trace_period_us, hub)
+        why = ("the jig's firmware samples one drive at a time and another slot's step had it: this PC sampled "
+               "this step")
+        _LOG.warning("slave %d: %s", bus.slave, why)
+        return PcTrace(ctx, step, why)
     return PcTrace(ctx, step)
 
