@@ -74,6 +74,23 @@ def test_the_move_ends_at_the_first_standstill_sample_even_in_a_late_chunk():
     assert m.stopped
 
 
+def test_a_stop_ends_at_the_first_standstill_even_when_every_later_sample_is_still():
+    """The axis was seen moving before the stop; the next chunk read holds only samples after the
+    stop, all at standstill (the jig read in chunks, several slots' drives sampled in turn): the
+    stop ends at its first sample, not settle_s later (it was a false stop_time FAIL of 51 ms)."""
+    trace = samples(4000, 0, 50, 40)  # moving until 0.2 s, still from then on
+    m = FakeJigMaster([trace[:50], trace[50:]], move_tick=199500)  # the stop, 0.5 ms before standstill
+    m.transaction_times = lambda jig=1: [TransactionTime(2, 0x31, 199500, 199600, 100)]  # EmergencyStop
+    jt = JigTrace(jig=1, period_us=4000)
+    jt.begin(m, 2)
+    while len(jt.rows) < 50:
+        jt.more(m, 2)
+    jt.mark("stop", 0x31)
+    jt.sent(m, 2, "stop")
+    assert jt.until_stopped(m, 2, 5.0)
+    assert jt.t_stop - jt.time_of("stop") == pytest.approx(0.0005)
+
+
 def test_a_command_the_jig_has_no_record_of_cannot_be_dated():
     m = FakeJigMaster([samples(5000, 2, 0, 0)], move_tick=0)
     m.transaction_times = lambda jig=1: [TransactionTime(3, 0x35, 100, 900, 800)]  # another slave's

@@ -1,13 +1,14 @@
 """Multi-up benchmark (part of `make bench`): drives tested per hour with 1, 2 and 4 slots.
 
 Each line runs its plan in 1, 2 and 4 slots at once on the real-time virtual bench (the
-jig's firmware modules on CPython, simulated healthy drives wired as the slots files in
-plans/multiup/ say), through ``station.slots.SlotRun`` as ``jigctl test --slots`` does:
+jig's firmware modules on CPython, simulated healthy drives wired as the fixture files in
+plans/multiup/ say; the bench in a process of its own, as the jig is a board with a CPU of its
+own), through ``station.slots.SlotRun`` as ``jigctl test --slots`` does:
 
 * ``ezi-step-eol`` on Plus-R drives (slaves 2-5) at 115 200 and 921 600 baud,
 * ``cia402-eol`` on CiA 402 drives (nodes 5-8) at 500 kbit/s and 1 Mbit/s,
-* the mixed set: 2 Plus-R + 2 CiA 402 (ezi-step-eol and cia402-eol) at 115 200 baud and
-  500 kbit/s.
+* the mixed set: 2 Plus-R + 2 CiA 402 (ezi-step-eol and cia402-eol) at 921 600 baud and
+  500 kbit/s (its speed-up: over running its four drives one by one).
 
 For each: the wall time of the group, drives per hour (slots x 3600 / wall), the speed-up
 over one slot (goal: >= 3.5x with 4 slots where the plan is motion-bound), the verdicts, the
@@ -25,7 +26,10 @@ figures, asserts nothing.
 
 import argparse
 import collections
+import json
 import os
+import re
+import signal
 import statistics
 import sys
 import tempfile
@@ -37,10 +41,9 @@ for sub in ("firmware", "tools"):
     if p not in sys.path:
         sys.path.insert(0, p)
 
-from motorjig.sim import Bench  # noqa: E402
+from bench_station import Line, start_sim, stop_sim  # noqa: E402
 from motorjig.station import slots as SL  # noqa: E402
 from motorjig.station.plan import load_plan  # noqa: E402
-from motorjig.tomlsource import read_toml  # noqa: E402
 
 PLANS = os.path.join(ROOT, "plans")
 MULTIUP = os.path.join(PLANS, "multiup")
@@ -49,43 +52,66 @@ EOL402 = os.path.join(PLANS, "cia402-eol.toml")
 SMOKE = os.path.join(PLANS, "smoke.toml")
 
 
-def fixture(name):
-    path = os.path.join(MULTIUP, name)
-    return read_toml(path)[0]["wiring"], path
-
-
 def plusr_slot(i, plan=EOL):
-    """Slot i (0..3) of the 4-up Plus-R fixture: slave 2 + i, fixture position i + 1."""
-    wiring = fixture("fixture-%d.toml" % (i + 1)) if load_plan(plan).wiring is not None else None
-    return SL.Slot(i + 1, load_plan(plan, address={"slave": 2 + i}, wiring=wiring))
+    """Slot i (0..3) of the 4-up Plus-R fixture: slave 2 + i, fixture position i + 1 (a plan with [wiring])."""
+    table = {"name": str(i + 1), "slave": 2 + i}
+    if load_plan(plan).wiring is not None:
+        table["wiring"] = os.path.join(MULTIUP, "fixture-%d.toml" % (i + 1))
+    return plan, table
 
 
 def cia402_slot(i, bitrate, position=None):
-    """Slot i of the CiA 402 fixture: node 5 + i at ``bitrate``, fixture position ``position`` (i + 1)."""
+    """Slot of node 5 + i at ``bitrate``, fixture position ``position`` (default i + 1)."""
     position = i + 1 if position is None else position
-    plan = load_plan(EOL402, address={"node_id": 5 + i, "bitrate": bitrate},
-                     wiring=fixture("fixture-402-%d.toml" % position))
-    return SL.Slot(position, plan)
+    return EOL402, {"name": str(position), "node_id": 5 + i, "bitrate": bitrate,
+                    "wiring": os.path.join(MULTIUP, "fixture-402-%d.toml" % position)}
 
 
-def run_group(slots, baud=115200, bitrate=500000):
-    """The slots at once on a fresh bench: (wall s, {slot: RunContext}, {slot: error}, RS-485 load, CAN load)."""
-    drivers = tuple(s.plan.drive.slave for s in slots if hasattr(s.plan.drive, "slave")) or (2,)
-    nodes = tuple(s.plan.drive.node_id for s in slots if hasattr(s.plan.drive, "node_id"))
-    wirings = [s.plan.wiring for s in slots if s.plan.wiring is not None] or None
-    with tempfile.TemporaryDirectory() as out, \
-            Bench(driver_ids=drivers, baud=baud, pty=False, can_nodes=nodes, can_bitrate=bitrate,
-                  wiring=wirings) as b:
-        run = SL.SlotRun(slots, b.tcp_url, baud=baud, out_dir=out, out=None, confirm=lambda m: True,
-                         timeout_ms=300, db=None, can_port=b.slcan_url if nodes else None)
-        rs485_0 = b.sim.down_bus.busy_us
-        can_0 = b.sim.can_bus.busy_us if nodes else 0.0
-        t0, sim0 = time.monotonic(), b.sim.clock.now
-        ctxs = run.run()
-        wall, span_us = time.monotonic() - t0, b.sim.clock.now - sim0
-        rs485 = (b.sim.down_bus.busy_us - rs485_0) / span_us
-        can = (b.sim.can_bus.busy_us - can_0) / span_us if nodes else None
-    return wall, ctxs, run.errors, rs485, can
+def slots_file(entries, folder):
+    """A slots file of (plan, slot table) entries: the one the bench and the run read."""
+    path = os.path.join(folder, "slots.toml")
+    with open(path, "w") as f:
+        for plan, table in entries:
+            f.write("[[slot]]\nplan = %s\n" % json.dumps(plan))
+            for k, v in table.items():
+                f.write("%s = %s\n" % (k, json.dumps(v)))
+    return path
+
+
+def bus_time(sim):
+    """The bench's buses' wire time so far (µs): (RS-485, CAN or None), asked with SIGUSR1."""
+    sim.send_signal(signal.SIGUSR1)
+    for text in sim.stdout:
+        m = re.match(r"bus time: rs485 (\d+) us,(?: can (\d+) us,)? over", text)
+        if m:
+            return float(m.group(1)), float(m.group(2)) if m.group(2) else None
+    raise RuntimeError("the bench did not say its bus time")
+
+
+def run_group(entries, baud=115200, bitrate=500000):
+    """The slots at once on a fresh bench in its own process (as the jig is a board: the station's
+    threads do not slow it): (wall s, slots, {slot: RunContext}, {slot: error}, RS-485 load, CAN load)."""
+    nodes = [t["node_id"] for _p, t in entries if "node_id" in t]
+    with tempfile.TemporaryDirectory() as out:
+        path = slots_file(entries, out)
+        args = ["--slots", path, "--baud", str(baud), "--can-bitrate", str(bitrate)]
+        if nodes:
+            args += ["--can-nodes", ",".join(str(n) for n in nodes)]
+        sim, urls = start_sim(line=Line(EOL, args))
+        try:
+            slots = SL.load_slots(path, EOL)
+            run = SL.SlotRun(slots, urls["tcp"], baud=baud, out_dir=out, out=None, confirm=lambda m: True,
+                             timeout_ms=300, db=None, can_port=urls.get("slcan"))
+            busy0 = bus_time(sim)
+            t0 = time.monotonic()
+            ctxs = run.run()
+            wall = time.monotonic() - t0
+            busy1 = bus_time(sim)
+        finally:
+            stop_sim(sim)
+    rs485 = (busy1[0] - busy0[0]) / (wall * 1e6)
+    can = (busy1[1] - busy0[1]) / (wall * 1e6) if nodes else None
+    return wall, slots, ctxs, run.errors, rs485, can
 
 
 def verdicts(slots, ctxs, errors):
@@ -124,8 +150,7 @@ def line(title, make_slots, counts, baud=115200, bitrate=500000):
                                                        "RS-485", "CAN", "trace Hz min/mean", "engine/step"))
     base = None
     for n in counts:
-        slots = make_slots(n)
-        wall, ctxs, errors, rs485, can = run_group(slots, baud, bitrate)
+        wall, slots, ctxs, errors, rs485, can = run_group(make_slots(n), baud, bitrate)
         per_hour = n * 3600.0 / wall
         if n == 1:
             ALONE.setdefault(slots[0].plan.name, wall)
@@ -146,7 +171,7 @@ def line(title, make_slots, counts, baud=115200, bitrate=500000):
 
 def loaded_proof(rounds, n_burners, baud=921600):
     """``rounds`` x 4 slots of ezi-step-eol on healthy drives beside CPU burners: the false FAILs."""
-    from bench_station import Line, board_priority_note, burners, first_failure, start_sim, stop_sim
+    from bench_station import board_priority_note, burners, first_failure
 
     four_up = os.path.join(MULTIUP, "ezi-step-4up.toml")
     print("\nfalse FAILs on a busy PC with 4 slots: ezi-step-eol %d rounds x 4 healthy drives at %d baud, the bench in "
@@ -189,7 +214,7 @@ def loaded_proof(rounds, n_burners, baud=921600):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="smoke.toml in 1 and 2 slots at 115 200 baud only")
+    ap.add_argument("--quick", action="store_true", help="smoke.toml in 1 and 2 slots at 921 600 baud only")
     ap.add_argument("--loaded", type=int, default=25, metavar="N",
                     help="rounds of 4 slots beside CPU burners for the false-FAIL count (default 25; 0: skip it)")
     ap.add_argument("--burners", type=int, default=2, help="CPU burners beside the loaded rounds (default 2)")
@@ -199,7 +224,8 @@ def main(argv=None):
         print("error: --loaded and --burners must be at least 0", file=sys.stderr)
         return 2
     if args.quick:
-        line("smoke (quick mode), Plus-R, 115 200 baud", lambda n: [plusr_slot(i, SMOKE) for i in range(n)], (1, 2))
+        line("smoke (quick mode), Plus-R, 921 600 baud", lambda n: [plusr_slot(i, SMOKE) for i in range(n)], (1, 2),
+             baud=921600)
         return 0
     if args.only_loaded:
         loaded_proof(args.loaded, args.burners)
@@ -209,8 +235,9 @@ def main(argv=None):
     for bitrate in (500000, 1000000):
         line("cia402-eol, CiA 402, %d kbit/s" % (bitrate // 1000), lambda n, br=bitrate: [
             cia402_slot(i, br) for i in range(n)], (1, 2, 4), bitrate=bitrate)
-    line("mixed: 2 ezi-step-eol (Plus-R) + 2 cia402-eol (CiA 402), 115 200 baud, 500 kbit/s",
-         lambda n: [plusr_slot(0), plusr_slot(1), cia402_slot(0, 500000, 3), cia402_slot(1, 500000, 4)], (4,))
+    line("mixed: 2 ezi-step-eol (Plus-R) + 2 cia402-eol (CiA 402), 921 600 baud, 500 kbit/s",
+         lambda n: [plusr_slot(0), plusr_slot(1), cia402_slot(0, 500000, 3), cia402_slot(1, 500000, 4)], (4,),
+         baud=921600)
     if args.loaded:
         loaded_proof(args.loaded, args.burners)
     return 0

@@ -395,6 +395,8 @@ def main(argv=None):
             demo(bench.tcp_url, args.drivers)
         print("serving; Ctrl-C to stop" + (" (stopping after %g s)" % args.duration if args.duration else ""))
         sys.stdout.flush()
+        if hasattr(signal, "SIGUSR1"):  # `kill -USR1`: the buses' wire time so far (make bench reads it)
+            signal.signal(signal.SIGUSR1, lambda *_a: print(bus_time(bench.sim), flush=True))
         t_end = time.monotonic() + args.duration if args.duration else None
         while t_end is None or time.monotonic() < t_end:
             if bench.error is not None:
@@ -408,10 +410,18 @@ def main(argv=None):
             time.sleep(0.1)
     except KeyboardInterrupt:
         print("stopped")
+        print(bus_time(bench.sim))
     finally:
         bench.stop()
         stop_all(extra)
     return 0
+
+
+def bus_time(sim):
+    """The wire time of the buses over the bench's life (benchmarks read it for a bus's load)."""
+    span = sim.clock.now - sim.t_started
+    can = " can %.0f us," % sim.can_bus.busy_us if sim.can_bus is not None else ""
+    return "bus time: rs485 %.0f us,%s over %.0f us" % (sim.down_bus.busy_us, can, span)
 
 
 if __name__ == "__main__":

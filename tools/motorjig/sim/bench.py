@@ -238,6 +238,7 @@ class SimBench:
             self.clock = PacedClock(realtime_start_us() if start_us is None else start_us)
         else:
             self.clock = VirtualClock(VIRTUAL_START_US if start_us is None else start_us)
+        self.t_started = self.clock.now  # (a bus's load over the bench's life: its busy_us over now - this)
         fresh = fs is None
         settings = dict(jig_params or {})
         if baud is not None:

@@ -61,10 +61,12 @@ _LOAD = 0.3  # the share of the bus the trace may use
 PERIOD_MIN_S = 0.002
 
 
-def sync_period(bitrate):
+def sync_period(bitrate, sharing=1):
     """The SYNC period (s) of a trace at ``bitrate``: the three frames of a sample in 30 % of the
-    bus, rounded up to 0.5 ms, at least PERIOD_MIN_S (2 ms at 1 Mbit/s and 500 kbit/s, 4 ms at 250 kbit/s)."""
-    period = _FRAME_BITS / (_LOAD * bitrate)
+    bus, rounded up to 0.5 ms, at least PERIOD_MIN_S (2 ms at 1 Mbit/s and 500 kbit/s, 4 ms at 250 kbit/s).
+    ``sharing`` drives tracing on one bus at once (multi-up slots) share those 30 %: 8 ms each for
+    four at 500 kbit/s (at 2 ms each they would fill the bus and starve the SDOs)."""
+    period = _FRAME_BITS * max(1, sharing) / (_LOAD * bitrate)
     return max(PERIOD_MIN_S, -(-period // 0.0005) * 0.0005)
 
 

@@ -158,13 +158,14 @@ class Cia402Kind(DriveKind):
 
     def open_drive(self, plug):
         from motorjig.errors import JigError
-        from motorjig.station.drive_cia402 import Cia402Drive
+        from motorjig.station.drive_cia402 import Cia402Drive, sync_period
         conf = plug.conf
         if not conf("motorjig_can_port"):
             raise JigError("no CAN port: set motorjig_can_port (jigctl test --can-port ...)")
         d = Cia402Drive(conf("motorjig_can_port"), conf("motorjig_node_id"), conf("motorjig_bitrate"),
                         object_dictionary(conf("motorjig_eds")), plug.master, conf("motorjig_jig_id"),
-                        links=conf("motorjig_links"))
+                        links=conf("motorjig_links"),
+                        period=sync_period(conf("motorjig_bitrate"), conf("motorjig_port_share") or 1))
         try:
             d.open(require_node=not conf("motorjig_lss"))  # an lss step first: the node has no id yet
         except BaseException:

@@ -73,6 +73,7 @@ for _name, _doc, _default in (
          None),
         ("motorjig_links", "a slot's run: the connections the slots share on a kind's own port (station.slots.Links)",
          None),
+        ("motorjig_port_share", "a slot's run: how many slots of its kind run at once (they share its port)", 1),
         ("motorjig_safety_shared", "a slot's run: the slots' one SharedSafetyNet (None: the run's own SafetyNet)",
          None)):
     if _name not in CONF._declarations:  # a re-import (tests) must not declare twice

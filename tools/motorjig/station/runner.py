@@ -383,7 +383,7 @@ def run_plan(plan, port, baud=115200, serial=None, operator=None, station=None, 
     load.update(own)
     if slot is not None:
         load.update(motorjig_slot=slot.name, motorjig_master=slot.master, motorjig_safety_shared=slot.safety,
-                    motorjig_links=slot.links)
+                    motorjig_links=slot.links, motorjig_port_share=slot.share)
     elif station:
         load["station_id"] = station
     if slot is None:

@@ -83,9 +83,12 @@ class _Trace:
         """Sample until the axis stops (or stops with an alarm); False on timeout. A standstill
         counts once motion was seen, or ``settle_s`` after the last command (a drive may flag a
         start a cycle late). ``t_stop``: the first sample at standstill (the last one on a
-        timeout) -- a chunk read from the jig may hold samples after it."""
+        timeout) -- a chunk read from the jig may hold samples after it. An axis already moving
+        when this is called (a stop's command) has been seen moving: its first standstill counts,
+        even when every sample read from here on is after the stop (a jig read in chunks, several
+        slots' drives sampled in turn), instead of ``settle_s`` later (a false stop time)."""
         end = time.monotonic() + timeout_s
-        moved = False
+        moved = self.last is not None and self.last.axis.motioning
         while True:
             for t, smp in self.more(m, s):
                 moved = moved or smp.axis.motioning

@@ -223,10 +223,12 @@ class Links:
 class Shared:
     """What the runs of the slots share (``run_plan(..., slot=...)``): the slot's ``name``, the
     jig's connection ``master``, its safety net ``safety`` (None: not armed), the kinds' port
-    connections ``links`` and ``db_lock``."""
+    connections ``links``, ``db_lock``, and ``share``: how many slots of its kind run at once (a
+    kind whose drives sample on their own port divides the port among them)."""
 
-    def __init__(self, name, master, safety, db_lock, links):
+    def __init__(self, name, master, safety, db_lock, links, share=1):
         self.name, self.master, self.safety, self.db_lock, self.links = name, master, safety, db_lock, links
+        self.share = share
 
 
 class SlotRun:
@@ -282,7 +284,11 @@ class SlotRun:
             if self.station:
                 configuration.CONF.load(station_id=self.station)
             db_lock, links = threading.Lock(), Links()
-            workers = [threading.Thread(target=self._run_slot, args=(s, Shared(s.name, master, safety, db_lock, links)),
+            share = {}
+            for s in self.slots:
+                share[s.kind.name] = share.get(s.kind.name, 0) + 1
+            workers = [threading.Thread(target=self._run_slot, args=(s, Shared(s.name, master, safety, db_lock, links,
+                                                                               share[s.kind.name])),
                                         name="motorjig-slot-%s" % s.name, daemon=True) for s in self.slots]
             handlers = runner._catch_signals(self)
             hook, threading.excepthook = threading.excepthook, runner._quiet_abort(threading.excepthook)

@@ -38,6 +38,7 @@ from motorjig.errors import BadReplyError, JigError, StatusError
 from motorjig.master import AxisStatus, TraceSample
 
 _HUBS_LOCK = threading.Lock()
+READ_INTERVAL_S = 0.02  # the ring read at most this often while several drives are sampled
 
 
 def hub_for(master, jig=1):
@@ -132,11 +133,19 @@ class TraceHub:
             mine = self.members.get(slave)
             if mine is None:
                 raise JigError("slave %d's samples were asked for before it joined the jig's trace" % slave)
-            if not mine.samples and time.monotonic() - self.t_read >= self.period_us / 1e6:
+            if not mine.samples and time.monotonic() - self.t_read >= self._read_interval_s():
                 self._read()
                 self.t_read = time.monotonic()
             out, mine.samples = mine.samples, []
             return out
+
+    def _read_interval_s(self):
+        """How often the ring is read: once a period for one drive (as before the set); with
+        several, at least every READ_INTERVAL_S, since each read's request, arriving at the jig as
+        a slot falls due, delays that slot (the PC goes first) and at 115 200 baud the delays pile
+        up into skipped slots (the dates stay the jig's: only the rate suffers)."""
+        period = self.period_us / 1e6
+        return period if len(self.members) < 2 else max(period, READ_INTERVAL_S)
 
     def drives(self):
         """The drives sampled now (at least 1): each gets a sample every that many periods."""
