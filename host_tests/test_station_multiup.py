@@ -115,8 +115,8 @@ def test_four_slots_two_healthy_two_faulty_each_judged_alone(tmp_path):
     assert all(not moving and vel == 0 for moving, vel in axes.values()), axes
 
 
-def long_bench():
-    return Bench(driver_ids=DRIVES, baud=115200, pty=False)
+def long_bench(baud=921600):
+    return Bench(driver_ids=DRIVES, baud=baud, pty=False)
 
 
 def wait_all_moving(b, proc, timeout=30.0):
@@ -168,6 +168,21 @@ def test_sigkill_with_four_axes_moving_the_jig_stops_them_all(tmp_path):
         stops = b.sim.counters["safety_stops"]
     assert not any(moving.values()), "axes still moving 5 s after SIGKILL: %s" % moving
     assert stops == 1  # one stop of the jig's, for every drive it has seen
+
+
+def test_slots_the_jigs_sampler_cannot_serve_at_the_plans_floor_are_refused(tmp_path):
+    """Four moving slots at 115 200 baud would get about 53 samples/s each, under the plan's 100:
+    refused with one sentence before anything moves."""
+    plan = tmp_path / "long.toml"
+    plan.write_text(LONG_PLAN)
+    with long_bench(115200) as b:
+        p = jigctl_test(str(plan), "2,3,4,5", b.tcp_url, tmp_path)
+        out, err = p.communicate(timeout=60)
+        moved = [s for s in DRIVES if b.sim.drivers[s].motion.pos != 0]
+    assert p.returncode == 2, (out, err)
+    assert "4 slots moving at once get about 53 samples/s each" in err and "nothing was moved" in err, err
+    assert "Traceback" not in err and not moved
+    assert not glob.glob(str(tmp_path / "long_*.json"))
 
 
 def test_an_exception_in_one_slots_engine_leaves_the_others_to_finish(tmp_path, monkeypatch):

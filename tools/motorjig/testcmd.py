@@ -115,7 +115,7 @@ def cmd_test(args):
     problem = _unanswerable_prompt(args, plan)
     if problem and not args.check:
         return _err("%s: %s" % (args.plan, problem), args)
-    if getattr(args, "slots", None):
+    if getattr(args, "slots", None) is not None:
         return _cmd_slots(args)
     kind = kinds.kind_of(plan)
     extra = {key: getattr(args, key, None) for key, _option, _what in kind.ports}
@@ -338,6 +338,8 @@ def _cmd_slots(args):
                      timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window, **extra)
     try:
         ctxs = run.run()
+    except SL.SlotError as exc:
+        return _err(str(exc), args)
     finally:
         if store is not None:
             store.close()

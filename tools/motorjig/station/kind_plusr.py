@@ -102,6 +102,13 @@ class PlusRKind(DriveKind):
                 return str(exc).replace(": nothing was moved", "")
         return None
 
+    def slot_sample_rate(self, master, jig_id, n):
+        """The jig's sampler polls the moving slots' drives in turn: one transaction a period each."""
+        from jig.params import P_DOWN_BAUD
+        from motorjig.station.sampling import trace_period_us
+
+        return 1e6 / (trace_period_us(master.get_parameter(jig_id, P_DOWN_BAUD)) * n)
+
     def describe_run(self, plan, ports):
         return "drive slave %d, %s" % (plan.drive.slave, ports["port"])
 

@@ -93,6 +93,11 @@ class DriveKind:
     # a sentence when two slots of this kind cannot run at once on one port (None: they can)
     one_slot_per_port = None
 
+    def slot_sample_rate(self, master, jig_id, n):
+        """Samples per second each of ``n`` slots of this kind gets while all of them move (the
+        jig's sampler shared), or None when its drives' traces do not share the jig's."""
+        return None
+
     # --- the run -------------------------------------------------------------------------------
     ports = ()  # (key, option, what: "the jig's SLCAN port") of each port a run needs beside the jig's PC port
     checks_on_port = False  # check_on_port reads the drive (jigctl test --check --port)

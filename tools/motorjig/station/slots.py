@@ -275,6 +275,7 @@ class SlotRun:
         jig_id = self.slots[0].plan.drive.jig_id
         master = TimedMaster(self.port, baud=self.baud, timeout=self.timeout_ms / 1000.0)
         try:
+            self.check_rates(master, jig_id)
             if any(s.plan.reset_jig_counters for s in self.slots):
                 master.reset_counters(jig_id)  # once, for all: a slot's reset would blank another's bus-health
             safety = None
@@ -304,6 +305,25 @@ class SlotRun:
         finally:
             master.close()
         return self.ctxs
+
+    def check_rates(self, master, jig_id):
+        """SlotError before anything moves when the slots sharing the jig's sampler would each get
+        fewer samples per second than a plan's floor (``sample_rate_min``): their moving steps
+        could only end ERROR."""
+        by_kind = {}
+        for s in self.slots:
+            by_kind.setdefault(s.kind.name, []).append(s)
+        for group in by_kind.values():
+            if len(group) < 2:
+                continue
+            rate = group[0].kind.slot_sample_rate(master, jig_id, len(group))
+            for s in group:
+                if rate is not None and s.plan.sampling != "pc" and rate < s.plan.sample_rate_min:
+                    raise SlotError(
+                        "%d slots moving at once get about %.0f samples/s each from the jig's sampler at its driver "
+                        "bus's baud rate, below %s's floor of %g (sample_rate_min): their moving steps could not be "
+                        "judged; use fewer slots, a faster driver bus (921 600 baud) or a lower floor; nothing was "
+                        "moved" % (len(group), rate, s.describe(), s.plan.sample_rate_min))
 
     def _run_slot(self, slot, shared):
         who = slot.describe()

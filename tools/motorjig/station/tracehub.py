@@ -14,12 +14,13 @@ in turn (docs/bridge.md, "The jig's own sampler"); the hub owns it for all of th
   were since StartTrace.
 * One lock: a take reads for every slot while the others wait for it, and then finds its
   samples already read. Requests go through the Master, whose own lock serialises them.
-  The ring is read at most once a sampler period, however many slots ask (each slot asks
-  again after half its own drive's interval): every PC frame that reaches the jig as a
-  slot falls due delays that slot (the PC goes first), and at 115 200 baud a transaction
-  fills 4.56 ms of the 4.75 ms period, so delays pile up into skipped slots. On the
-  real-time bench at 115 200 baud about 5 % of the slots are skipped while the slots read
-  (each drive's median interval N x 5.0 ms instead of N x 4.75); at 921 600 baud none.
+  The ring is read at most once a sampler period for one drive, and at most every
+  ``READ_PERIODS`` periods with several (19 ms at 115 200 baud, 4 ms at 921 600), however many
+  slots ask (each slot asks again
+  after half its own drive's interval): every PC frame that reaches the jig as a slot falls
+  due delays that slot (the PC goes first), and at 115 200 baud a transaction fills 4.56 ms
+  of the 4.75 ms period, so delays pile up into skipped slots (read once a period, about 5 %
+  of them on the real-time bench at 115 200 baud; at 921 600 baud none).
 
 A jig whose firmware samples one drive only (it answers GetTraceStatus for one drive
 0x82) is used the way it always was (StartTrace / ReadTrace / StopTrace), by one slot at a
@@ -38,7 +39,7 @@ from motorjig.errors import BadReplyError, JigError, StatusError
 from motorjig.master import AxisStatus, TraceSample
 
 _HUBS_LOCK = threading.Lock()
-READ_INTERVAL_S = 0.02  # the ring read at most this often while several drives are sampled
+READ_PERIODS = 4  # while several drives are sampled, the ring is read at most every this many periods
 
 
 def hub_for(master, jig=1):
@@ -141,11 +142,11 @@ class TraceHub:
 
     def _read_interval_s(self):
         """How often the ring is read: once a period for one drive (as before the set); with
-        several, at least every READ_INTERVAL_S, since each read's request, arriving at the jig as
+        several, every READ_PERIODS periods at most, since each read's request, arriving at the jig as
         a slot falls due, delays that slot (the PC goes first) and at 115 200 baud the delays pile
         up into skipped slots (the dates stay the jig's: only the rate suffers)."""
         period = self.period_us / 1e6
-        return period if len(self.members) < 2 else max(period, READ_INTERVAL_S)
+        return period if len(self.members) < 2 else READ_PERIODS * period
 
     def drives(self):
         """The drives sampled now (at least 1): each gets a sample every that many periods."""
