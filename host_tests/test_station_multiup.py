@@ -170,6 +170,40 @@ def test_sigkill_with_four_axes_moving_the_jig_stops_them_all(tmp_path):
     assert stops == 1  # one stop of the jig's, for every drive it has seen
 
 
+LONG_402 = ('[plan]\nname = "long402"\nversion = "1"\n[drive]\nprotocol = "cia402"\nnode_id = 5\n'
+            '[[steps]]\nkind = "servo"\n[[steps]]\nkind = "move"\nname = "long_move"\n'
+            'distance = 400000\nspeed = 20000\naccel = 500000\ndecel = 500000\n')
+
+
+def test_sigkill_with_two_plusr_and_two_cia402_axes_moving_the_jig_stops_them_all(tmp_path):
+    """Slots of two kinds at once, killed mid-move: the jig's safety lease stops the Plus-R drives
+    (EmergencyStop) and the CAN nodes (quick stop) it has seen."""
+    (tmp_path / "long.toml").write_text(LONG_PLAN)
+    (tmp_path / "long402.toml").write_text(LONG_402)
+    slots = write(tmp_path, "mixed.toml", '[[slot]]\nslave = 2\n[[slot]]\nslave = 3\n'
+                                          '[[slot]]\nplan = "long402.toml"\nnode_id = 5\n'
+                                          '[[slot]]\nplan = "long402.toml"\nnode_id = 6\n')
+    with Bench(driver_ids=(2, 3), can_nodes=(5, 6), can_bitrate=500000, baud=921600, pty=False) as b:
+        axes = [b.sim.drivers[2], b.sim.drivers[3], b.sim.can_nodes[5], b.sim.can_nodes[6]]
+        p = jigctl_test(str(tmp_path / "long.toml"), slots, b.tcp_url, tmp_path, "--can-port", b.slcan_url,
+                        "--safety-window", "500")
+        deadline = time.monotonic() + 60
+        while not all(a.motion.moving for a in axes):
+            assert p.poll() is None, "jigctl test ended before the moves: %s" % (p.communicate(),)
+            assert time.monotonic() < deadline, "not every axis started to move"
+            time.sleep(0.05)
+        time.sleep(0.3)
+        p.kill()
+        p.wait(timeout=10)
+        deadline = time.monotonic() + 5
+        while any(a.motion.moving for a in axes) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        moving = [a.motion.moving for a in axes]
+        stops, can_stops = b.sim.counters["safety_stops"], b.sim.counters["can_safety_stops"]
+    assert moving == [False] * 4, "axes still moving 5 s after SIGKILL: %s" % moving
+    assert stops >= 1 and can_stops >= 2, (stops, can_stops)  # the quick stop went to each node heard
+
+
 def test_slots_the_jigs_sampler_cannot_serve_at_the_plans_floor_are_refused(tmp_path):
     """Four moving slots at 115 200 baud would get about 53 samples/s each, under the plan's 100:
     refused with one sentence before anything moves."""
@@ -180,7 +214,7 @@ def test_slots_the_jigs_sampler_cannot_serve_at_the_plans_floor_are_refused(tmp_
         out, err = p.communicate(timeout=60)
         moved = [s for s in DRIVES if b.sim.drivers[s].motion.pos != 0]
     assert p.returncode == 2, (out, err)
-    assert "4 slots moving at once get about 53 samples/s each" in err and "nothing was moved" in err, err
+    assert "4 slots moving at once get at most 53 samples/s each" in err and "nothing was moved" in err, err
     assert "Traceback" not in err and not moved
     assert not glob.glob(str(tmp_path / "long_*.json"))
 

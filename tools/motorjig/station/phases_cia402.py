@@ -391,6 +391,7 @@ def run_limit_sensor(test, bus, step, ctx):
     trace = d.new_trace(ctx, step)
     trace.begin(d)
     stopped = flag = False
+    n0 = len(d.sw_log)
     try:
         trace.sent("move", d.move(far, a["speed"]))
         trace.sample_until(d, None, a.get("after_ms", 100) / 1000.0)
@@ -404,8 +405,16 @@ def run_limit_sensor(test, bus, step, ctx):
         trace.end(d)
         d.controlword(power402.COMMANDS[power402.DISABLE_OPERATION])  # drop the move the limit held ...
         d.enable(True)  # ... and enable again: the demand is the actual position
-    # the relay's instant as the drive saw it: halfway from the sample before its flag
-    trace.date_by_flag("relay", "internal_limit", trace.time_of("move"))
+    # the relay's instant as the drive saw it: its internal-limit flag as TPDO1 (sent on every change of
+    # the statusword) brought it; else halfway from the sample before the flag. A sample pairs the last
+    # TPDO2 (statusword) with a TPDO3 (velocity), so at a long period (slots sharing the bus) the first
+    # standstill sample may still carry the statusword from before the limit.
+    t_move = trace.time_of("move")
+    t_flag = next((t for t, sw in d.sw_log[n0:] if sw & SW_INTERNAL_LIMIT and t >= t_move), None)
+    if t_flag is not None:
+        trace.marks["relay"] = t_flag
+    else:
+        trace.date_by_flag("relay", "internal_limit", t_move)
     test.measurements["stopped"] = stopped
     test.measurements["limit_flag"] = flag
     test.measurements["stop_time"] = round(trace.t_stop - trace.time_of("relay"), 4)
