@@ -331,6 +331,8 @@ def serve(args, out=None):
             return 2
         can_nodes = tuple(getattr(args, "can_nodes", ()) or ())
         can_kw = {"can_nodes": can_nodes, "can_bitrate": args.can_bitrate} if can_nodes else {}
+        if slots_spec:  # a multi-up line's driver bus: four moving slots get 250 samples/s each, not 53
+            can_kw["down_baud"] = 921600
         bench = Bench(driver_ids=args.drivers, baud=args.baud, tcp_port=args.tcp_port, pty=True, wiring=wiring,
                       **can_kw)
         try:

@@ -603,7 +603,7 @@ class Station:
                                            else "%d slots" % len(slots))
 
     def _work_slots(self, multi, url, baud):
-        from motorjig.station.slots import SlotRun
+        from motorjig.station.slots import SlotError, SlotRun
 
         ctxs, errors, error = {}, {}, ""
         try:
@@ -614,6 +614,8 @@ class Station:
             multi.attach(engine)
             ctxs = engine.run()
             errors = dict(engine.errors)
+        except SlotError as exc:  # refused before anything moved (the slots' sample rate): its sentence
+            error = str(exc)
         except Exception as exc:  # the engine itself failed: every slot is an error, with the reason
             error = "the runs could not go on: %s: %s" % (type(exc).__name__, exc)
         finally:

@@ -102,6 +102,8 @@ class PlusRKind(DriveKind):
                 return str(exc).replace(": nothing was moved", "")
         return None
 
+    sampled_step_kinds = ("move", "home", "limit-sensor", "stop-response")
+
     def slot_sample_rate(self, master, jig_id, n):
         """The jig's sampler polls the moving slots' drives in turn: one transaction a period each."""
         from jig.params import P_DOWN_BAUD

@@ -93,6 +93,8 @@ class DriveKind:
     # a sentence when two slots of this kind cannot run at once on one port (None: they can)
     one_slot_per_port = None
 
+    sampled_step_kinds = ()  # the step kinds that sample the axis (the moving ones)
+
     def slot_sample_rate(self, master, jig_id, n):
         """Samples per second each of ``n`` slots of this kind gets while all of them move (the
         jig's sampler shared), or None when its drives' traces do not share the jig's."""

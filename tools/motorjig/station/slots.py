@@ -316,7 +316,8 @@ class SlotRun:
         a period): their moving steps could only end ERROR."""
         by_kind = {}
         for s in self.slots:
-            by_kind.setdefault(s.kind.name, []).append(s)
+            if any(step.kind in s.kind.sampled_step_kinds for step in s.plan.steps):
+                by_kind.setdefault(s.kind.name, []).append(s)
         for group in by_kind.values():
             if len(group) < 2:
                 continue
