@@ -247,6 +247,31 @@ def test_an_exception_in_one_slots_engine_leaves_the_others_to_finish(tmp_path, 
     assert all(not moving for moving, _ in axes.values())
 
 
+def test_an_exception_in_one_slots_worker_mid_move_stops_its_axis_and_the_others_go_on(tmp_path):
+    """A bug in slot 2's code (its event callback raises at its move's first sample): its step
+    ends ERROR with the exception, its axis stops at once; slot 1 moves on to its end and passes."""
+    plan = tmp_path / "mid.toml"
+    plan.write_text(LONG_PLAN.replace("distance = 200000", "distance = 15000"))
+    slots = SL.load_slots("2,3", str(plan))
+
+    def on_event(event):
+        if event["slot"] == "2" and event["event"] == "sample":
+            raise RuntimeError("a bug in slot 2's callback")
+
+    with Bench(driver_ids=(2, 3), baud=921600, pty=False) as b:
+        run = SL.SlotRun(slots, b.tcp_url, out_dir=str(tmp_path), out=None, confirm=lambda m: True, timeout_ms=300,
+                         on_event=on_event)
+        ctxs = run.run()
+        time.sleep(0.2)
+        axes = still(b.tcp_url, (2, 3))
+        positions = {s: b.sim.drivers[s].motion.pos for s in (2, 3)}
+    assert ctxs["1"].record["outcome"] == "PASS", failed(ctxs["1"].record)
+    rec = ctxs["2"].record
+    assert rec["outcome"] == "ERROR" and "a bug in slot 2's callback" in json.dumps(rec["outcome_details"])
+    assert positions[2] == 15000 and 0 < positions[3] < 15000, positions
+    assert all(not moving and vel == 0 for moving, vel in axes.values()), axes
+
+
 def write(tmp_path, name, text):
     path = tmp_path / name
     path.write_text(text)

@@ -26,7 +26,6 @@ figures, asserts nothing.
 """
 
 import argparse
-import collections
 import json
 import os
 import re
@@ -178,14 +177,14 @@ def line(title, make_slots, counts, baud=115200, bitrate=500000):
 
 def loaded_proof(rounds, n_burners, baud=921600):
     """``rounds`` x 4 slots of ezi-step-eol on healthy drives beside CPU burners: the false FAILs."""
-    from bench_station import board_priority_note, burners, first_failure
+    from bench_station import Tally, board_priority_note, burners
 
     four_up = os.path.join(MULTIUP, "ezi-step-4up.toml")
     print("\nfalse FAILs on a busy PC with 4 slots: ezi-step-eol %d rounds x 4 healthy drives at %d baud, the bench in "
           "its own process (%s), %d CPU burners beside it" % (rounds, baud, board_priority_note(), n_burners))
     hogs = burners(n_burners)
     sim, urls = start_sim(line=Line(EOL, ["--slots", four_up, "--baud", str(baud)]))
-    verdicts, fails, errors, loads = collections.Counter(), collections.Counter(), collections.Counter(), []
+    tally = Tally()
     t0 = time.monotonic()
     try:
         time.sleep(2)  # the burners' load builds up
@@ -196,27 +195,14 @@ def loaded_proof(rounds, n_burners, baud=921600):
                                  timeout_ms=300, db=None)
                 ctxs = run.run()
                 for s in slots:
-                    rec = (ctxs.get(s.name).record if ctxs.get(s.name) else None) or {}
-                    verdict = rec.get("outcome", "ERROR")
-                    verdicts[verdict] += 1
-                    where = first_failure(rec)
-                    if verdict == "FAIL":
-                        fails["%s: %s" % (where[0], ", ".join(where[1]))] += 1
-                    elif verdict != "PASS":
-                        details = [d.get("description", "") for d in rec.get("outcome_details", [])]
-                        errors["%s: %s" % (where[0] if where else "-", (details or [run.errors.get(s.name, "?")])[0][:90])] += 1
-                loads.append(os.getloadavg()[0])
+                    ctx = ctxs.get(s.name)
+                    tally.add((ctx.record if ctx else None) or {}, run.errors.get(s.name, "?"))
+                tally.loads.append(os.getloadavg()[0])
     finally:
         for h in hogs:
             h.kill()
         stop_sim(sim)
-    print("  %d rounds (%d runs) in %.0f s, load average %.1f-%.1f: PASS %d, false FAIL %d (goal 0), ERROR %d"
-          % (rounds, rounds * 4, time.monotonic() - t0, min(loads), max(loads), verdicts["PASS"], verdicts["FAIL"],
-             sum(v for k, v in verdicts.items() if k not in ("PASS", "FAIL"))))
-    for what, n in fails.most_common():
-        print("    FAIL  %3d x %s" % (n, what))
-    for what, n in errors.most_common():
-        print("    ERROR %3d x %s" % (n, what))
+    tally.report("%d rounds (%d runs)" % (rounds, rounds * 4), t0)
 
 
 def main(argv=None):

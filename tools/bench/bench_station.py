@@ -160,6 +160,36 @@ def first_failure(record):
     return None
 
 
+class Tally:
+    """The verdicts of a loaded proof's runs: how many of each, the false FAILs and the ERRORs by
+    step and reason, the load average after each run."""
+
+    def __init__(self):
+        self.verdicts, self.fails, self.errors = collections.Counter(), collections.Counter(), collections.Counter()
+        self.loads = []
+
+    def add(self, rec, why="?"):
+        """One run's record (``why``: what ended it when it has no record)."""
+        verdict = rec.get("outcome", "ERROR")
+        self.verdicts[verdict] += 1
+        where = first_failure(rec)
+        if verdict == "FAIL":
+            self.fails["%s: %s" % (where[0], ", ".join(where[1]))] += 1
+        elif verdict != "PASS":
+            details = [d.get("description", "") for d in rec.get("outcome_details", [])]
+            self.errors["%s: %s" % (where[0] if where else "-", (details or [why])[0][:90])] += 1
+
+    def report(self, head, t0):
+        v = self.verdicts
+        print("  %s in %.0f s, load average %.1f-%.1f: PASS %d, false FAIL %d (goal 0), ERROR %d"
+              % (head, time.monotonic() - t0, min(self.loads), max(self.loads), v["PASS"], v["FAIL"],
+                 sum(n for k, n in v.items() if k not in ("PASS", "FAIL"))))
+        for what, n in self.fails.most_common():
+            print("    FAIL  %3d x %s" % (n, what))
+        for what, n in self.errors.most_common():
+            print("    ERROR %3d x %s" % (n, what))
+
+
 def run_eol(urls, out_dir, line=PLUSR):
     ctx = run_plan(load_plan(line.plan), urls["tcp"], out_dir=out_dir, out=None, confirm=lambda m: True,
                    timeout_ms=300, **line.run_kw(urls))
@@ -173,34 +203,18 @@ def loaded_proof(runs, n_burners, out_dir, line=PLUSR):
                                                                                  n_burners))
     hogs = burners(n_burners)
     sim, urls = start_sim(line=line)
-    verdicts = collections.Counter()
-    fails, errors = collections.Counter(), collections.Counter()
-    loads = []
+    tally = Tally()
     t0 = time.monotonic()
     try:
         time.sleep(2)  # the burners' load builds up
         for _ in range(runs):
-            rec = run_eol(urls, out_dir, line)
-            verdict = rec.get("outcome", "ERROR")
-            verdicts[verdict] += 1
-            where = first_failure(rec)
-            if verdict == "FAIL":
-                fails["%s: %s" % (where[0], ", ".join(where[1]))] += 1
-            elif verdict != "PASS":
-                details = [d.get("description", "") for d in rec.get("outcome_details", [])]
-                errors["%s: %s" % (where[0] if where else "-", (details or ["?"])[0][:90])] += 1
-            loads.append(os.getloadavg()[0])
+            tally.add(run_eol(urls, out_dir, line))
+            tally.loads.append(os.getloadavg()[0])
     finally:
         for h in hogs:
             h.kill()
         stop_sim(sim)
-    print("  %d runs in %.0f s, load average %.1f-%.1f: PASS %d, false FAIL %d (goal 0), ERROR %d"
-          % (runs, time.monotonic() - t0, min(loads), max(loads), verdicts["PASS"], verdicts["FAIL"],
-             sum(v for k, v in verdicts.items() if k not in ("PASS", "FAIL"))))
-    for what, n in fails.most_common():
-        print("    FAIL  %3d x %s" % (n, what))
-    for what, n in errors.most_common():
-        print("    ERROR %3d x %s" % (n, what))
+    tally.report("%d runs" % runs, t0)
 
 
 def faults_proof(out_dir, n_burners, faults=FAULTS, line=PLUSR):

@@ -266,7 +266,7 @@ def _cmd_slots(args):
         return _err("--serial names one drive: with --slots give each slot's serial in a slots file", args)
     try:
         slots = SL.load_slots(args.slots, args.plan)
-    except SL.SlotError as exc:
+    except (SL.SlotError, JigError) as exc:  # refused, or the jig stopped answering before the slots started
         return _err(str(exc), args)
     ports = {"port": args.port, "baud": args.baud, "timeout_ms": args.timeout}
     for name in {s.kind.name for s in slots}:
@@ -338,7 +338,7 @@ def _cmd_slots(args):
                      timeout_ms=args.timeout, db=store, safety_window_ms=args.safety_window, **extra)
     try:
         ctxs = run.run()
-    except SL.SlotError as exc:
+    except (SL.SlotError, JigError) as exc:  # refused, or the jig stopped answering before the slots started
         return _err(str(exc), args)
     finally:
         if store is not None:
