@@ -462,6 +462,31 @@ def test_jig_trace_and_transaction_times(bench, m):
     assert samples[0].t_us <= t_move < first_moving <= t_move + 2 * 5000
 
 
+def test_jig_trace_of_a_set_of_drives(bench, m):
+    """Two drives joined to the jig's sampler (several slots moving): tagged samples of each, taken
+    in turn, each drive's own figures, the last one out stops it (the station's tracehub)."""
+    import time
+
+    j = m.trace_join(DRIVE, 5000)
+    assert j["started"] and j["set"] == [DRIVE]
+    j2 = m.trace_join(OTHER, 5000)
+    assert not j2["started"] and j2["set"] == [DRIVE, OTHER]
+    time.sleep(0.3)
+    rows, frm = [], j["first"]
+    while True:
+        _state, frm, chunk = m.trace_read_tagged(frm)
+        rows += chunk
+        if not chunk:
+            break
+    both = m.trace_drive_status(OTHER)
+    assert both["state"] == "running" and both["set"] == [DRIVE, OTHER] and both["taken"] >= 20
+    tags = [r[0] for r in rows]
+    assert set(tags) == {DRIVE, OTHER} and abs(tags.count(DRIVE) - tags.count(OTHER)) <= 3  # in turn
+    mine = m.trace_leave(DRIVE)
+    assert mine["failed"] == 0 and mine["taken"] >= 20
+    assert m.trace_leave(OTHER)["state"] == "off"  # the last one out stopped the sampler
+
+
 def test_every_public_method_is_exercised():
     src = open(os.path.abspath(__file__)).read()
     called = set(re.findall(r"\bmm?\.(\w+)\(", src))
