@@ -160,17 +160,9 @@ def cmd_test(args):
         note(notice)
     from motorjig.station import runner
 
-    store = None
-    if args.db is None or args.db.strip().lower() != "none":
-        try:
-            from motorjig.station.store import StoreError, open_store
-        except ImportError as exc:
-            return _err("the results database needs the 'station' extra (%s): pip install 'motorjig[station]' "
-                        "(or --db none)" % exc, args)
-        try:
-            store = open_store(args.db)  # before anything moves: a wrong --db is said now
-        except StoreError as exc:
-            return _err("%s (--db none runs without the results database)" % exc, args)
+    store, problem = _open_store(args)
+    if problem:
+        return _err(problem, args)
     problem = runner.check_out_dir(args.out)  # after --db: a refused run leaves no empty folder behind
     if problem:
         if store is not None:

@@ -261,3 +261,38 @@ def load_wiring(path):
         if not isinstance(slave, int) or isinstance(slave, bool) or not 0 <= slave <= 15:
             raise WiringError(source, "drive.slave", "expected an integer 0..15, got %r" % (slave,))
     return parse_wiring(data["wiring"], source, slave, node)
+
+
+def load_slot_fixtures(path):
+    """The fixture of a multi-up slots file (``station.slots``), without its plans: for each
+    ``[[slot]]`` (its ``slave`` or None, its ``node_id`` or None, its ``Wiring`` or None), each
+    wiring defaulting to its slot's drive (what the bench is wired as). WiringError on any problem."""
+    import os
+
+    from motorjig.tomlsource import SourceError, read_toml
+
+    source = str(path)
+    try:
+        data = read_toml(path)[0]
+    except SourceError as exc:
+        raise WiringError(source, "", exc.message) from None
+    tables = data.get("slot")
+    if not isinstance(tables, list) or not tables:
+        raise WiringError(source, "", "no [[slot]] tables")
+    here = os.path.dirname(os.path.abspath(path))
+    out = []
+    for i, slot in enumerate(tables):
+        slave = slot.get("slave") if isinstance(slot.get("slave"), int) else None
+        node = slot.get("node_id") if isinstance(slot.get("node_id"), int) else None
+        wiring = None
+        if "wiring" in slot:
+            wpath = os.path.join(here, str(slot["wiring"]))
+            try:
+                table = read_toml(wpath)[0].get("wiring")
+            except SourceError as exc:
+                raise WiringError(source, "slot[%d].wiring" % i, str(exc)) from None
+            if table is None:
+                raise WiringError(source, "slot[%d].wiring" % i, "%s has no [wiring] table" % wpath)
+            wiring = parse_wiring(table, wpath, default_slave=slave, default_node=node)
+        out.append((slave, node, wiring))
+    return out

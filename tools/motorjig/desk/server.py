@@ -207,11 +207,11 @@ def build_parser():
     return p
 
 
-def bench_slots(spec, plan_path, drivers):
-    """What the bench needs for the slots ``spec`` (a slots file or addresses) loaded with the plan
-    at ``plan_path``: (the driver ids, with the slots' drives added; the slots' fixture wirings, or
-    None). ValueError with the reason."""
-    from motorjig.station.slots import SlotError, load_slots
+def bench_slots(spec, drivers):
+    """What the bench needs for the slots ``spec`` (a slots file or addresses; with addresses, the
+    plan keeps its own wiring): (the driver ids, with the slots' drives added; the slots' fixture
+    wirings, or None). ValueError with the reason."""
+    from motorjig.wiring import WiringError, load_slot_fixtures
 
     if not (spec.endswith(".toml") or os.path.isfile(spec)):  # addresses: the plan's own wiring, if any
         try:
@@ -219,11 +219,11 @@ def bench_slots(spec, plan_path, drivers):
         except ValueError:
             raise ValueError("%r: give a slots file (.toml) or the drives' addresses, e.g. 2,3" % spec) from None
     try:
-        slots = load_slots(spec, plan_path)
-    except SlotError as exc:
+        fixtures = load_slot_fixtures(spec)
+    except WiringError as exc:
         raise ValueError(str(exc)) from None
-    ids = set(drivers) | {s.plan.drive.slave for s in slots if s.kind.address_key == "slave"}
-    wirings = [s.plan.wiring for s in slots if s.plan.wiring is not None]
+    ids = set(drivers) | {slave for slave, _node, _w in fixtures if slave is not None}
+    wirings = [w for _s, _n, w in fixtures if w is not None]
     return tuple(sorted(ids)), wirings or None
 
 
@@ -315,10 +315,9 @@ def serve(args, out=None):
         wiring = getattr(args, "wiring", None)
         eol = os.path.join(getattr(args, "plans", None) or default_plans_dir(), "ezi-step-eol.toml")
         fixture = None
-        if slots_spec:  # (the slots' wiring and drives, read with a Plus-R plan: the bench's drives are)
-            plan = eol if os.path.exists(eol) else os.path.join(default_plans_dir(), "ezi-step-eol.toml")
+        if slots_spec:  # (the slots' drives and their fixture wiring)
             try:
-                args.drivers, fixture = bench_slots(slots_spec, plan, args.drivers)
+                args.drivers, fixture = bench_slots(slots_spec, args.drivers)
             except ValueError as exc:
                 sys.stderr.write("jigctl gui: --slots: %s.\n" % str(exc).rstrip("."))
                 return 2

@@ -222,37 +222,20 @@ def check_setup(args):
 def slot_wirings(args):
     """The wirings of a slots file's slots, each to its slot's drive (added to --drivers or
     --can-nodes); ValueError with one sentence."""
-    from ..tomlsource import SourceError, read_toml
-    from ..wiring import parse_wiring
+    from ..wiring import load_slot_fixtures
 
     try:
-        data, _lines, _raw = read_toml(args.slots)
-    except SourceError as exc:
+        fixtures = load_slot_fixtures(args.slots)
+    except WiringError as exc:
         raise ValueError("--slots: %s" % exc) from None
-    here = os.path.dirname(os.path.abspath(args.slots))
-    wirings = []
-    for i, slot in enumerate(data.get("slot") or ()):
-        slave, node = slot.get("slave"), slot.get("node_id")
-        if isinstance(slave, int) and slave not in args.drivers:
+    for slave, node, _wiring in fixtures:
+        if slave is not None and slave not in args.drivers:
             ver8 = args.drivers.ver8
             args.drivers = DriverSpec(tuple(args.drivers) + (slave,))
             args.drivers.ver8 = ver8
-        if isinstance(node, int) and node not in args.can_nodes:
+        if node is not None and node not in args.can_nodes:
             args.can_nodes = tuple(args.can_nodes) + (node,)
-        if "wiring" not in slot:
-            continue
-        path = os.path.join(here, str(slot["wiring"]))
-        try:
-            table = read_toml(path)[0].get("wiring")
-            if table is None:
-                raise ValueError("%s has no [wiring] table" % path)
-            wirings.append(parse_wiring(table, path, default_slave=slave if isinstance(slave, int) else None,
-                                        default_node=node if isinstance(node, int) else None))
-        except (SourceError, ValueError) as exc:
-            raise ValueError("--slots: slot[%d]: %s" % (i, exc)) from None
-    if not wirings and not data.get("slot"):
-        raise ValueError("--slots: %s has no [[slot]] tables" % args.slots)
-    return wirings or None
+    return [w for _s, _n, w in fixtures if w is not None] or None
 
 
 def describe_setup(sim, out=print):
